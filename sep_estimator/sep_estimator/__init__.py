@@ -1,0 +1,1 @@
+"""sep_estimator: part of sep (data-driven LQG control of a heat slab)."""
