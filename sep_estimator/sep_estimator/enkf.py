@@ -1,0 +1,65 @@
+"""Ensemble Kalman Filter (stochastic, perturbed observations) over a black-box model.
+
+Forecast  x_i <- f(x_i, u + w_i),            w_i ~ N(0, W) on the input channels
+Analysis  x_i <- x_i + K (y + v_i - h(x_i)),  v_i ~ N(0, V),
+          K = P_xy P_yy^{-1} with P_xy, P_yy the ensemble (cross-)covariances (+ V).
+
+The ensemble is one batch (M, n_x): a forecast is one batched simulator call, so the
+cost is that of M runs stepped together. Pure numpy: no ROS import.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+StepFn = Callable[[np.ndarray, np.ndarray], np.ndarray]     # (M, n_x), (M, n_u) -> (M, n_x)
+ObserveFn = Callable[[np.ndarray], np.ndarray]              # (M, n_x) -> (M, n_y)
+
+
+@dataclass
+class EnKFResult:
+    mean: np.ndarray   # (N+1, n_x) analysis means (k = 0 is the initial ensemble)
+    std: np.ndarray    # (N+1, n_x) per-state standard deviations
+
+
+class EnsembleKalmanFilter:
+    """Stochastic EnKF with a given random generator (reproducible)."""
+
+    def __init__(self, step: StepFn, observe: ObserveFn, w_std: np.ndarray | float,
+                 v_std: np.ndarray | float, rng: np.random.Generator):
+        self.step, self.observe, self.rng = step, observe, rng
+        self.w_std = np.asarray(w_std, dtype=float)
+        self.v_std = np.asarray(v_std, dtype=float)
+
+    def forecast(self, X: np.ndarray, u: np.ndarray) -> np.ndarray:
+        M, n_u = X.shape[0], np.shape(u)[-1]
+        w = self.rng.standard_normal((M, n_u)) * self.w_std
+        return self.step(X, np.broadcast_to(u, (M, n_u)) + w)
+
+    def analysis(self, X: np.ndarray, y: np.ndarray) -> np.ndarray:
+        M = X.shape[0]
+        HX = self.observe(X)
+        n_y = HX.shape[1]
+        Ax = X - X.mean(axis=0)
+        Ay = HX - HX.mean(axis=0)
+        V = np.diag(np.broadcast_to(self.v_std, (n_y,)) ** 2)
+        P_xy = Ax.T @ Ay / (M - 1)
+        P_yy = Ay.T @ Ay / (M - 1) + V
+        v = self.rng.standard_normal((M, n_y)) * self.v_std
+        innov = y + v - HX                                   # (M, n_y)
+        # K innov_i for all members: P_xy P_yy^{-1} innov_i
+        return X + np.linalg.solve(P_yy, innov.T).T @ P_xy.T
+
+    def run(self, X0: np.ndarray, U: np.ndarray, Y: np.ndarray) -> EnKFResult:
+        """Filter along inputs U (N, n_u) and observations Y (N+1, n_y) (y_0 unused: x_0 is the prior)."""
+        N = U.shape[0]
+        X = np.array(X0, dtype=float)
+        mean = np.empty((N + 1, X.shape[1]))
+        std = np.empty_like(mean)
+        mean[0], std[0] = X.mean(axis=0), X.std(axis=0, ddof=1)
+        for k in range(N):
+            X = self.analysis(self.forecast(X, U[k]), Y[k + 1])
+            mean[k + 1], std[k + 1] = X.mean(axis=0), X.std(axis=0, ddof=1)
+        return EnKFResult(mean, std)
