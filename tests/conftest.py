@@ -6,7 +6,7 @@ whole repository by the top-level conftest.py.
 import os
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -30,7 +30,7 @@ def clean_env(**extra):
 @dataclass
 class ColconInstall:
     install: Path
-    env: dict  # environment after `. install/setup.sh`
+    env: dict = field(repr=False)  # environment after `. install/setup.sh`
 
     def prefix(self, package):
         return self.install / package

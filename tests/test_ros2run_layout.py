@@ -71,7 +71,8 @@ def test_setup_sh_exports_the_packages(colcon_install):
     code = ('import sep_plant, sep_estimator, sep_control; '
             'print(sep_plant.__file__, sep_estimator.__file__, sep_control.__file__)')
     proc = colcon_install.run([sys.executable, '-c', code], cwd='/')
-    assert proc.returncode == 0, proc.stderr
+    stderr, returncode = proc.stderr, proc.returncode
+    assert returncode == 0, stderr
     for path in proc.stdout.split():
         assert Path(path).is_relative_to(colcon_install.install), path
 
@@ -118,6 +119,6 @@ def test_executable_resolves_and_runs(ament_env, package_name, executable_name):
     # Like `ros2 run <pkg> <exe> --help` from a shell that sourced install/setup.sh.
     proc = ament_env.run(['bash', '-c', '. "$1/setup.sh" && exec "$2" --help', 'bash',
                           str(ament_env.install), str(path)], timeout=120, cwd='/')
-    output = proc.stdout + proc.stderr
-    assert proc.returncode == 0, f'`{executable_name} --help` exited {proc.returncode}:\n{output}'
+    output, returncode = proc.stdout + proc.stderr, proc.returncode
+    assert returncode == 0, f'`{executable_name} --help` exited {returncode}:\n{output}'
     assert 'usage' in output.lower(), output
