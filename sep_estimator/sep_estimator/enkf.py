@@ -5,7 +5,14 @@ Analysis  x_i <- x_i + K (y + v_i - h(x_i)),  v_i ~ N(0, V),
           K = P_xy P_yy^{-1} with P_xy, P_yy the ensemble (cross-)covariances (+ V).
 
 The ensemble is one batch (M, n_x): a forecast is one batched simulator call, so the
-cost is that of M runs stepped together. Pure numpy: no ROS import.
+cost is that of M runs stepped together.
+
+With ``antithetic=True`` (M even) members i and i + M/2 receive opposite noise draws
+(w and -w, v and -v). The ensemble then stays symmetric about its mean to first order,
+so the mean carries no first-order sampling noise: what remains is the nonlinear
+(second-order) effect of the spread. This matters when the belief mean is optimized
+over U, where sampling noise would otherwise be fitted as if it were signal.
+Pure numpy: no ROS import.
 """
 from __future__ import annotations
 
@@ -28,14 +35,23 @@ class EnsembleKalmanFilter:
     """Stochastic EnKF with a given random generator (reproducible)."""
 
     def __init__(self, step: StepFn, observe: ObserveFn, w_std: np.ndarray | float,
-                 v_std: np.ndarray | float, rng: np.random.Generator):
+                 v_std: np.ndarray | float, rng: np.random.Generator, antithetic: bool = False):
         self.step, self.observe, self.rng = step, observe, rng
+        self.antithetic = antithetic
         self.w_std = np.asarray(w_std, dtype=float)
         self.v_std = np.asarray(v_std, dtype=float)
 
+    def _draw(self, M: int, n: int) -> np.ndarray:
+        if not self.antithetic:
+            return self.rng.standard_normal((M, n))
+        if M % 2:
+            raise ValueError(f"antithetic sampling needs an even ensemble size, got {M}")
+        z = self.rng.standard_normal((M // 2, n))
+        return np.vstack([z, -z])
+
     def forecast(self, X: np.ndarray, u: np.ndarray) -> np.ndarray:
         M, n_u = X.shape[0], np.shape(u)[-1]
-        w = self.rng.standard_normal((M, n_u)) * self.w_std
+        w = self._draw(M, n_u) * self.w_std
         return self.step(X, np.broadcast_to(u, (M, n_u)) + w)
 
     def analysis(self, X: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -47,7 +63,7 @@ class EnsembleKalmanFilter:
         V = np.diag(np.broadcast_to(self.v_std, (n_y,)) ** 2)
         P_xy = Ax.T @ Ay / (M - 1)
         P_yy = Ay.T @ Ay / (M - 1) + V
-        v = self.rng.standard_normal((M, n_y)) * self.v_std
+        v = self._draw(M, n_y) * self.v_std
         innov = y + v - HX                                   # (M, n_y)
         # K innov_i for all members: P_xy P_yy^{-1} innov_i
         return X + np.linalg.solve(P_yy, innov.T).T @ P_xy.T

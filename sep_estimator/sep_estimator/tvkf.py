@@ -149,14 +149,21 @@ def open_loop_covariance(A: np.ndarray, B: np.ndarray, W: np.ndarray, k: int) ->
     return P
 
 
+def filter_from_schedule(A: np.ndarray, B: np.ndarray, C: np.ndarray, G: np.ndarray, L: np.ndarray,
+                         P_post: np.ndarray, w_std: float, v_std: float, batch: int = 1) -> RomKalmanFilter:
+    """A `RomKalmanFilter` from stored gains and posteriors (W = w_std^2 I, V = v_std^2 I).
+
+    P_{k|k-1} is rebuilt from the posteriors: P_{0|-1} = 0, P_{k+1|k} = A P_{k|k} A' + B W B'.
+    """
+    W = np.eye(B.shape[2]) * w_std**2
+    V = np.eye(C.shape[1]) * v_std**2
+    P_prior = np.zeros_like(P_post)
+    P_prior[1:] = A @ P_post[:-1] @ A.transpose(0, 2, 1) + B @ W @ B.transpose(0, 2, 1)
+    return RomKalmanFilter(A, B, C, G, L, P_post, P_prior, W, V, batch=batch)
+
+
 def filter_from_design(design, batch: int = 1) -> RomKalmanFilter:
-    """A `RomKalmanFilter` for a loaded `design_file.Design` (W = w_std^2 I, V = v_std^2 I)."""
+    """A `RomKalmanFilter` for a loaded `design_file.Design`."""
     s = design.scenario
-    W = np.eye(s.n_u) * s.w_std**2
-    V = np.eye(s.n_y) * s.v_std**2
-    # P_{k|k-1} from the stored posteriors: P_{0|-1} = 0, P_{k+1|k} = A P_{k|k} A' + B W B'
-    P_prior = np.zeros_like(design.P_post)
-    P_prior[1:] = (design.A @ design.P_post[:-1] @ design.A.transpose(0, 2, 1)
-                   + design.B @ W @ design.B.transpose(0, 2, 1))
-    return RomKalmanFilter(design.A, design.B, design.C, design.G, design.L, design.P_post, P_prior,
-                           W, V, batch=batch)
+    return filter_from_schedule(design.A, design.B, design.C, design.G, design.L, design.P_post,
+                                s.w_std, s.v_std, batch)
