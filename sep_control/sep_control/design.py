@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -98,12 +98,7 @@ def run_design(s: Scenario, settings: DesignSettings | None = None, show_progres
 
     # 2. TV-ERA ------------------------------------------------------------
     t0 = time.perf_counter()
-    lags = st.p + st.q
-    X_ext = nominal_rollout(sim, extend_nominal(U, lags))
-    T_nom = X_ext[: s.n_steps + 1]
-    delta = st.impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
-    data = impulse_experiments(sim, U, lags, st.q, delta, X_ext, show_progress=show_progress)
-    real = tv_era(data, s.n_steps, st.p, st.q, st.n_r, st.sv_tol, show_progress=show_progress)
+    T_nom, data, real, delta = identify_rom(sim, U, st, show_progress)
     timings["identify_s"] = time.perf_counter() - t0
     markov_err = markov_relative_error(real, data.Y)
     log(f"TV-ERA: n_r = {int(real.dims.max())} (cap {st.n_r}), {data.experiments} impulse experiments, "
@@ -130,6 +125,29 @@ def run_design(s: Scenario, settings: DesignSettings | None = None, show_progres
     return Design(scenario=s, u_nom=U, y_nom=sim.observe(T_nom), T_nom=T_nom, belief_mean=belief.mean,
                   belief_std=belief.std, rom_dims=real.dims, A=real.A, B=real.B, C=real.C, G=real.G,
                   K=K, L=kf.L, P_post=kf.P_post, field_std=fstd, hankel_sv=real.hankel_sv, meta=meta)
+
+
+def identify_rom(sim: SlabSimulator, U: np.ndarray, st: DesignSettings, show_progress: bool = False):
+    """TV-ERA around the nominal input U: returns (T_nom (N+1, n_x), MarkovData, Realization, delta).
+
+    The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
+    k = N is complete; the impulse amplitude is `st.impulse` times the RMS nominal input.
+    """
+    N = U.shape[0]
+    lags = st.p + st.q
+    X_ext = nominal_rollout(sim, extend_nominal(U, lags))
+    delta = st.impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
+    data = impulse_experiments(sim, U, lags, st.q, delta, X_ext, show_progress=show_progress)
+    real = tv_era(data, N, st.p, st.q, st.n_r, st.sv_tol, show_progress=show_progress)
+    return X_ext[: N + 1], data, real, delta
+
+
+def with_rom(design: Design, real) -> Design:
+    """`design` with its ROM replaced by `real` and the LQG gains redesigned (same nominal)."""
+    s = design.scenario
+    K, kf = lqg_gains(real.A, real.B, real.C, s)
+    return replace(design, rom_dims=real.dims, A=real.A, B=real.B, C=real.C, G=real.G, K=K, L=kf.L,
+                   P_post=kf.P_post, field_std=field_std(real.G, kf.P_post), hankel_sv=real.hankel_sv)
 
 
 def markov_relative_error(real, Y: np.ndarray) -> float:

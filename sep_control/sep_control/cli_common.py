@@ -1,0 +1,48 @@
+"""Shared pieces of the offline command-line tools (design, evaluate, validate)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import NoReturn
+
+from sep_estimator.design_file import Design, DesignFileError, load_design
+from sep_plant.scenario import Scenario, ScenarioError, load_scenario
+
+
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Show defaults and keep the description's line breaks."""
+
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    """Print `error: message` to stderr and exit non-zero (no traceback)."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
+def add_threads(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--threads", type=int, default=1,
+                        help="BLAS threads. The work is many small matrices where extra threads "
+                             "oversubscribe the cores (see bench/); raise it on a big grid")
+
+
+def blas_threads(n: int):
+    """Context manager limiting BLAS threads (threadpoolctl)."""
+    from threadpoolctl import threadpool_limits
+
+    if n < 1:
+        fail(f"--threads must be >= 1, got {n}")
+    return threadpool_limits(limits=n)
+
+
+def scenario_or_exit(path: str | None) -> Scenario:
+    try:
+        return load_scenario(path)
+    except ScenarioError as exc:
+        fail(f"{exc}")
+
+
+def design_or_exit(path: str, scenario: Scenario | None = None) -> Design:
+    try:
+        return load_design(path, scenario)
+    except DesignFileError as exc:
+        fail(f"{exc}")
