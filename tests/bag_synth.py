@@ -156,7 +156,7 @@ def episode_messages(ep: SynthEpisode, skip=(), extra_topics=False):
         if extra_topics:
             out.append(("/rosout_like/extra", t + 1, string(f"noise {k}")))
             out.append(("/slab/unknown", t + 2, string("x")))
-    return [m for m in out if m[0] not in skip]
+    return [(t, ns, bytes(d)) for t, ns, d in out if t not in skip]
 
 
 def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topics=False) -> Path:

@@ -76,6 +76,7 @@ class RawConnection:
     msgtype: str
     msgdef: str = ""
     encoding: str = "cdr"
+    metadata: dict[str, str] = field(default_factory=dict)   # MCAP channel metadata (offered QoS)
 
 
 @dataclass
@@ -238,8 +239,13 @@ def _read_mcap(f: Path, want: set[str] | None) -> RawBag:
             cid, sid = struct.unpack_from("<HH", b, s)
             topic, o = _str(b, s + 4)
             enc, o = _str(b, o)
+            (ml,) = _U32(b, o)
+            meta, o, mend = {}, o + 4, o + 4 + ml
+            while o < mend:
+                key, o = _str(b, o)
+                meta[key], o = _str(b, o)
             name, msgdef = schemas.get(sid, ("", ""))
-            conns[cid] = RawConnection(cid, topic, name, msgdef, enc)
+            conns[cid] = RawConnection(cid, topic, name, msgdef, enc, meta)
 
     off = 8
     good_end = off
@@ -284,14 +290,15 @@ def _read_sqlite(f: Path, want: set[str] | None) -> RawBag:
     except sqlite3.Error as exc:
         raise BagError(f"{f}: cannot open sqlite3 bag ({exc}); nothing recovered") from None
     try:
-        rows = con.execute("SELECT id, name, type FROM topics").fetchall()
+        rows = con.execute("SELECT id, name, type, offered_qos_profiles FROM topics").fetchall()
         defs = {}
         try:
             defs = {t: d for t, d in con.execute(
                 "SELECT topic_type, encoded_message_definition FROM message_definitions")}
         except sqlite3.Error:
             pass
-        conns = {int(i): RawConnection(int(i), name, typ, defs.get(typ, "")) for i, name, typ in rows}
+        conns = {int(i): RawConnection(int(i), name, typ, defs.get(typ, ""), "cdr", {"offered_qos_profiles": q or ""})
+                 for i, name, typ, q in rows}
         sel = [c.id for c in conns.values() if want is None or c.topic in want]
         msgs = con.execute(
             f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({','.join('?' * len(sel))}) "
@@ -580,3 +587,29 @@ def field_points(T: np.ndarray, std: np.ndarray | None, x: np.ndarray) -> np.nda
     if std is not None:
         pts[:, 4] = std
     return np.ascontiguousarray(pts, dtype="<f8")
+
+
+def repair_bag(path: str | Path, out: str | Path, storage: str = "mcap") -> Path:
+    """Rewrite a (possibly truncated) bag as a complete rosbag2 bag at `out` holding every
+    message that can be recovered, so that tools needing the summary/metadata.yaml (rosbags'
+    AnyReader, ros2 bag) open it. Message bytes and log times are copied unchanged."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.metadata import parse_qos
+    from rosbags.typesys import Stores, get_typestore
+
+    raw = read_raw(path)
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(Path(out), version=9, storage_plugin=plugin) as w:
+        conns = {}
+        for cid, c in raw.connections.items():
+            try:
+                qos = parse_qos(c.metadata.get("offered_qos_profiles", "")) if c.metadata.get("offered_qos_profiles") else []
+            except Exception:  # noqa: BLE001 - QoS metadata is informative only
+                qos = []
+            kw = {"typestore": ts} if c.msgtype in ts.fielddefs else {"msgdef": c.msgdef, "rihs01": "RIHS01_" + "0" * 64}
+            conns[cid] = w.add_connection(c.topic, c.msgtype, serialization_format=c.encoding or "cdr",
+                                          offered_qos_profiles=qos, **kw)
+        for cid, t, data in zip(raw.conn_ids.tolist(), raw.log_times.tolist(), raw.data):
+            w.write(conns[cid], t, data)
+    return Path(out)
