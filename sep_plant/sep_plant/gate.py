@@ -1,0 +1,136 @@
+"""Checks of incoming contract messages, without ROS: lengths, names, finiteness, stamps, order.
+
+Every node gates what it receives through these functions before using it (the estimator
+its measurements and inputs, the plant its heat commands, the LQR its state estimates).
+A failed check gives a `Rejection` (a short category for counters and a sentence for logs);
+nodes count rejections per category and report them on /diagnostics.
+
+It lives in `sep_plant` (the package every other one depends on) because the plant gates its
+commands with the same code the estimator uses for measurements.  Pure Python/numpy.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+# Rejection categories (counter keys on /diagnostics).
+NON_FINITE = 'non_finite'
+WRONG_LENGTH = 'wrong_length'
+UNKNOWN_NAMES = 'unknown_names'
+BAD_NAMES = 'bad_names'            # missing, duplicated, or names/values length mismatch
+BAD_STAMP = 'bad_stamp'            # not on the k*dt grid, negative
+BEYOND_HORIZON = 'beyond_horizon'  # step outside 0..last
+STALE = 'stale'                    # older than the step being processed
+DUPLICATE = 'duplicate'            # a second message for a step already accepted
+AHEAD = 'ahead'                    # for a step the receiver has not reached (commands)
+CATEGORIES = (NON_FINITE, WRONG_LENGTH, UNKNOWN_NAMES, BAD_NAMES, BAD_STAMP, BEYOND_HORIZON,
+              STALE, DUPLICATE, AHEAD)
+
+
+@dataclass(frozen=True)
+class Rejection:
+    category: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f'{self.category}: {self.detail}'
+
+
+def check_vector(names: Sequence[str], values: Sequence[float], expected: Sequence[str],
+                 what: str = 'values') -> tuple[np.ndarray | None, Rejection | None]:
+    """Validate a named vector against the expected labels.
+
+    Returns (values in the order of `expected`, None) or (None, Rejection).  Names must be
+    exactly the expected labels (any order, no duplicates); every value must be finite.
+    """
+    n = len(expected)
+    vals = np.asarray(values, dtype=np.float64).ravel()
+    if vals.shape[0] != n:
+        return None, Rejection(WRONG_LENGTH, f'{what}: got {vals.shape[0]} values, expected {n}')
+    names = list(names)
+    if len(names) != n:
+        return None, Rejection(BAD_NAMES, f'{what}: got {len(names)} names for {n} values '
+                                          f'(names must be {list(expected)})')
+    if names != list(expected):
+        unknown = [m for m in names if m not in expected]
+        if unknown:
+            return None, Rejection(UNKNOWN_NAMES, f'{what}: unknown names {unknown} '
+                                                  f'(expected {list(expected)})')
+        if len(set(names)) != n:
+            dup = sorted({m for m in names if names.count(m) > 1})
+            return None, Rejection(BAD_NAMES, f'{what}: duplicated names {dup}')
+        order = [names.index(e) for e in expected]
+        vals = vals[order]
+    if not np.all(np.isfinite(vals)):
+        bad = [expected[i] for i in np.flatnonzero(~np.isfinite(vals))]
+        return None, Rejection(NON_FINITE, f'{what}: non-finite value (NaN/Inf) at {bad}')
+    return vals, None
+
+
+def step_of_stamp(ns: int, dt_ns: int, tol_ns: int | None = None) -> tuple[int | None, Rejection | None]:
+    """Step k of a stamp of `ns` nanoseconds on the grid k * dt_ns (tolerance: 1 % of dt)."""
+    if tol_ns is None:
+        tol_ns = max(1, dt_ns // 100)
+    k = (ns + dt_ns // 2) // dt_ns
+    if k < 0 or abs(ns - k * dt_ns) > tol_ns:
+        return None, Rejection(BAD_STAMP, f'stamp {ns * 1e-9:.9f} s is not a step of '
+                                          f'dt = {dt_ns * 1e-9:g} s')
+    return int(k), None
+
+
+def check_step(k: int, *, expected: int, last: int, allow_ahead: bool) -> Rejection | None:
+    """Order check of a message for step k.
+
+    expected: the step the receiver is about to process; last: the step of the newest
+    message accepted on this input (-1 if none); allow_ahead: whether steps after `expected`
+    are acceptable (a measurement after a gap) or refused (a command for a future step).
+    Steps beyond the horizon are checked by the caller with `check_horizon`.
+    """
+    if k == last:
+        return Rejection(DUPLICATE, f'second message for step {k}')
+    if k < last:
+        return Rejection(STALE, f'step {k} arrived after step {last} (out of order)')
+    if k < expected:
+        return Rejection(STALE, f'step {k} is older than the current step {expected}')
+    if k > expected and not allow_ahead:
+        return Rejection(AHEAD, f'step {k} is ahead of the current step {expected}')
+    return None
+
+
+def check_horizon(k: int, last_step: int) -> Rejection | None:
+    if not 0 <= k <= last_step:
+        return Rejection(BEYOND_HORIZON, f'step {k} is outside 0..{last_step}')
+    return None
+
+
+class RejectionLog:
+    """Counts rejections per category and remembers the last one."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[str] = Counter()
+        self.last: Rejection | None = None
+
+    def add(self, r: Rejection) -> None:
+        self.counts[r.category] += 1
+        self.last = r
+
+    @property
+    def total(self) -> int:
+        return int(sum(self.counts.values()))
+
+    def as_dict(self) -> dict[str, int]:
+        return {c: int(self.counts[c]) for c in CATEGORIES if self.counts[c]}
+
+
+def chi2_interval(dof: int, n: int, p: float = 0.95) -> tuple[float, float]:
+    """Two-sided interval of the mean of n chi-square(dof) samples (normal approximation of
+    the chi-square(n dof) / n), e.g. for a mean NIS; returns (lo, hi)."""
+    if n <= 0:
+        return 0.0, math.inf
+    z = {0.95: 1.959963984540054, 0.99: 2.5758293035489004}.get(p, 1.959963984540054)
+    sd = math.sqrt(2.0 * dof / n)
+    return max(0.0, dof - z * sd), dof + z * sd

@@ -1,0 +1,179 @@
+"""Helpers shared by the ROS 2 nodes of sep (plant, estimator, LQR, lqg): command-line front,
+parameter declaration with descriptors, process exit codes, BLAS thread limits, timing stats.
+
+ROS-side module (imports rclpy); the pure algorithm modules never import it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+# Process exit codes of the nodes (documented in the README).
+EXIT_OK = 0
+EXIT_FAILURE = 1          # unexpected error (traceback logged)
+EXIT_CONFIG = 2           # bad parameter, missing/corrupt/mismatched design or scenario file
+EXIT_TIMEOUT = 3          # lockstep: no command / no peer in time
+EXIT_INTERRUPTED = 130    # Ctrl-C / SIGTERM before the episode ended
+
+ROS_ARGS_HELP = ("ROS arguments follow --ros-args, e.g. --ros-args --params-file FILE "
+                 "-p NAME:=VALUE -r __ns:=/NAMESPACE --log-level debug")
+
+
+class StartError(Exception):
+    """A node cannot start (bad parameter, bad file, mismatch): logged, exit code EXIT_CONFIG."""
+
+    exit_code = EXIT_CONFIG
+
+
+class EpisodeError(Exception):
+    """The episode cannot go on (e.g. lockstep command timeout): logged, non-zero exit."""
+
+    def __init__(self, message: str, exit_code: int = EXIT_TIMEOUT):
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def parse_front(prog: str, description: str, argv: Sequence[str] | None,
+                add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+                parameters: str = '') -> tuple[argparse.Namespace, list[str]]:
+    """argparse front for a node: non-ROS options parsed here (``--help`` prints usage and
+    exits 0), everything after ``--ros-args`` passed on to rclpy.  Returns (options, args for
+    rclpy.init)."""
+    from rclpy.utilities import remove_ros_args
+
+    argv = list(sys.argv if argv is None else argv)
+    parser = argparse.ArgumentParser(
+        prog=prog, description=description,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=(parameters + '\n\n' if parameters else '') + ROS_ARGS_HELP)
+    if add_arguments:
+        add_arguments(parser)
+    own = remove_ros_args(args=argv)[1:]
+    opts = parser.parse_args(own)
+    return opts, argv
+
+
+def limit_blas_threads(n: int = 1):
+    """Limit BLAS/OpenMP pools to `n` threads for this process (the per-step linear algebra
+    of the nodes is tiny: extra threads only add wake-up latency).  Returns the controller."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is a pinned requirement
+        return None
+    return threadpool_limits(limits=n)
+
+
+def declare(node, name: str, default: Any, description: str, *, read_only: bool = True,
+            lo: float | int | None = None, hi: float | int | None = None,
+            constraints: str = '') -> Any:
+    """Declare a parameter with a ParameterDescriptor (type from `default`, optional range) and
+    return its value.  Range/type violations raise StartError naming the parameter."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    from rclpy.exceptions import ParameterException
+
+    desc = ParameterDescriptor(name=name, description=description, read_only=read_only,
+                               additional_constraints=constraints)
+    if isinstance(default, bool):
+        pass
+    elif isinstance(default, int) and (lo is not None or hi is not None):
+        desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+    elif isinstance(default, float) and (lo is not None or hi is not None):
+        desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                        step=0.0)]
+    try:
+        value = node.declare_parameter(name, default, desc).value
+    except ParameterException as exc:
+        rng = f' (allowed range [{lo}, {hi}])' if lo is not None else ''
+        raise StartError(f'bad parameter {name}: {exc}{rng}') from None
+    if isinstance(default, float) and isinstance(value, int):
+        value = float(value)
+    return value
+
+
+def percentiles(samples: Sequence[float]) -> dict[str, float | None]:
+    """p50/p99/max of a list of seconds (None when empty)."""
+    if len(samples) == 0:
+        return {'p50': None, 'p99': None, 'max': None, 'n': 0}
+    a = np.asarray(samples, dtype=float)
+    return {'p50': float(np.percentile(a, 50)), 'p99': float(np.percentile(a, 99)),
+            'max': float(a.max()), 'n': int(a.size)}
+
+
+def fmt_s(v: float | None) -> str:
+    if v is None or not math.isfinite(v):
+        return 'n/a'
+    return f'{v * 1e3:.3f} ms' if v >= 1e-3 else f'{v * 1e6:.0f} us'
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + '.tmp')
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=_plain) + '\n')
+    tmp.replace(p)
+    return p
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(type(v).__name__)
+
+
+def sim_time_default(args: list[str], value: bool = True) -> list[str]:
+    """rclpy args with ``use_sim_time`` defaulting to `value` (a user's own
+    ``-p use_sim_time:=...`` or params file given later still wins)."""
+    return [args[0], '--ros-args', '-p', f'use_sim_time:={str(value).lower()}', *args[1:]]
+
+
+def steady() -> float:
+    return time.perf_counter()
+
+
+def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str) -> int:
+    """rclpy.init, build the node with `make`, call its ``run()`` (returns an exit code), and
+    always destroy it and shut rclpy down.  Start errors and episode errors are logged as one
+    clear line; Ctrl-C / SIGTERM exit EXIT_INTERRUPTED after the node's ``interrupted()``."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.logging import get_logger
+
+    rclpy.init(args=args)
+    node = None
+    rc = EXIT_FAILURE
+    try:
+        node = make(args)
+        rc = node.run()
+    except StartError as exc:
+        get_logger(logger_name).error(f'refusing to start: {exc}')
+        rc = exc.exit_code
+    except EpisodeError as exc:
+        get_logger(logger_name).error(str(exc))
+        if node is not None and hasattr(node, 'finish'):
+            node.finish(status='error', error=str(exc))
+        rc = exc.exit_code
+    except (KeyboardInterrupt, ExternalShutdownException):
+        if node is not None and hasattr(node, 'finish'):
+            node.finish(status='interrupted')
+        else:
+            get_logger(logger_name).warning('interrupted')
+        rc = EXIT_INTERRUPTED
+    finally:
+        if node is not None:
+            try:
+                node.destroy_node()
+            except Exception:  # noqa: BLE001 - shutdown must not mask the exit code
+                pass
+        if rclpy.ok():
+            rclpy.shutdown()
+    return rc
