@@ -1,0 +1,109 @@
+"""Offline cost of sep: design vs Monte Carlo vs one simulator rollout, across grid sizes.
+
+Measured in one run, printed as a table with ratios (no assertions). For each grid
+n_x it times: one noise-free rollout of the N-step horizon; the whole design
+(optimization + identification + gains) and its stages; the Monte Carlo of each
+controller (runs per controller as given; the oracle only where its n_x^2 N matrices
+fit comfortably). Also compares BLAS thread counts on the n_x = 100 design, and
+reports the mean-only vs belief-space optimum.
+
+    python bench/bench_design.py                       # n_x = 100, 400, 1600
+    python bench/bench_design.py --grids 100 --runs 1000
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from sep_control.design import DesignSettings, run_design
+from sep_control.metrics import format_table
+from sep_control.montecarlo import simulate
+from sep_control.optimize import nominal_rollout
+from sep_control.oracle import oracle_lqg
+from sep_plant.scenario import Scenario
+from sep_plant.slab import SlabSimulator
+
+
+def timed(fn, *a, **kw):
+    t0 = time.perf_counter()
+    out = fn(*a, **kw)
+    return out, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--grids", type=int, nargs="+", default=[100, 400, 1600])
+    ap.add_argument("--runs", type=int, default=1000, help="Monte Carlo runs per controller at n_x = 100")
+    ap.add_argument("--runs-large", type=int, default=200, help="runs per controller on larger grids")
+    ap.add_argument("--oracle-max-nx", type=int, default=400)
+    ap.add_argument("--threads", type=int, default=1, help="BLAS threads for the main table")
+    args = ap.parse_args()
+
+    rows = {}
+    for n_x in args.grids:
+        s = Scenario(n_x=n_x)
+        sim = SlabSimulator(s)
+        runs = args.runs if n_x <= 100 else args.runs_large
+        with threadpool_limits(args.threads):
+            U0 = np.full((s.n_steps, s.n_u), s.u_init)
+            _, t_roll = timed(nominal_rollout, sim, U0)
+            _, t_roll = timed(nominal_rollout, sim, U0)     # second call: warm
+            design, t_design = timed(run_design, s, DesignSettings(), False, lambda m: None)
+            mc = {}
+            oracle = None
+            if n_x <= args.oracle_max_nx:
+                oracle, t_or = timed(oracle_lqg, design, sim)
+            for c in ("open_loop", "rom_lqg", "oracle_lqg"):
+                if c == "oracle_lqg" and oracle is None:
+                    continue
+                res, t = timed(simulate, design, c, 1, runs, oracle=oracle, keep_estimates=0, sim=sim)
+                mc[c] = (res.metrics(design), t)
+        tm = design.meta["timings"]
+        t_mc = mc["rom_lqg"][1]
+        row = {
+            "rollout_s": t_roll, "design_s": t_design, "optimize_s": tm["optimize_s"],
+            "identify_s": tm["identify_s"], "gains_s": tm["gains_s"], "runs": runs,
+            "mc_rom_s": t_mc, "mc_open_s": mc["open_loop"][1],
+            "mc_oracle_s": mc["oracle_lqg"][1] if "oracle_lqg" in mc else None,
+            "design/rollout": t_design / t_roll, "mc_rom/rollout": t_mc / t_roll,
+            "mc_per_run/rollout": t_mc / runs / t_roll,
+            "in_band_rom": mc["rom_lqg"][0]["in_band"], "in_band_open": mc["open_loop"][0]["in_band"],
+            "rom/oracle_cost": (mc["rom_lqg"][0]["cost_mean"] / mc["oracle_lqg"][0]["cost_mean"]
+                                if "oracle_lqg" in mc else None),
+            "J_mean_only": design.meta["optimizer"]["mean_only_cost"],
+            "J_nominal": design.meta["optimizer"]["nominal_cost"],
+            "Jb_before": design.meta["optimizer"]["belief_history"][0],
+            "Jb_after": design.meta["optimizer"]["belief_history"][-1],
+        }
+        rows[f"n_x={n_x}"] = row
+        print(f"n_x = {n_x}: design {t_design:.2f} s, MC rom {t_mc:.2f} s ({runs} runs)", flush=True)
+
+    print(f"\nTimes in seconds, BLAS threads = {args.threads}; ratios measured in this run")
+    print(format_table(rows, ["rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "runs", "mc_open_s",
+                              "mc_rom_s", "mc_oracle_s", "design/rollout", "mc_rom/rollout", "mc_per_run/rollout"]))
+    print("\nQuality at each grid")
+    print(format_table(rows, ["in_band_rom", "in_band_open", "rom/oracle_cost", "J_mean_only", "J_nominal",
+                              "Jb_before", "Jb_after"]))
+
+    if 100 in args.grids:
+        s = Scenario()
+        tt = {}
+        for th in (1, 2):
+            with threadpool_limits(th):
+                _, t = timed(run_design, s, DesignSettings(), False, lambda m: None)
+                d = _
+                _, t_mc = timed(simulate, d, "rom_lqg", 1, args.runs, keep_estimates=0)
+            tt[f"threads={th}"] = {"design_s": t, "mc_rom_s": t_mc}
+        base = tt["threads=1"]
+        for r in tt.values():
+            r["design_vs_1"] = r["design_s"] / base["design_s"]
+            r["mc_vs_1"] = r["mc_rom_s"] / base["mc_rom_s"]
+        print("\nBLAS threads at n_x = 100 (ratio to 1 thread)")
+        print(format_table(tt, ["design_s", "design_vs_1", "mc_rom_s", "mc_vs_1"]))
+
+
+if __name__ == "__main__":
+    main()
