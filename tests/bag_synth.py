@@ -159,7 +159,10 @@ def episode_messages(ep: SynthEpisode, skip=(), extra_topics=False):
     return [(t, ns, bytes(d)) for t, ns, d in out if t not in skip]
 
 
-def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topics=False) -> Path:
+def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topics=False,
+              chunk_per_step=False) -> Path:
+    """Write `ep` as a bag; chunk_per_step: close an MCAP chunk after every step (as the
+    recorder's periodic flushes do), so a cut file keeps every earlier step."""
     msgs = episode_messages(ep, skip=skip, extra_topics=extra_topics)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
@@ -171,6 +174,8 @@ def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topic
                                                 offered_qos_profiles=[_qos(topic == "/slab/scenario")])
         for topic, t, data in msgs:
             w.write(conns[topic], t, data)
+            if chunk_per_step and storage == "mcap" and topic == "/slab/heat_applied":
+                w.storage.close_chunk()
     return path
 
 

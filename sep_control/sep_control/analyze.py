@@ -10,7 +10,7 @@ Definitions (everything computed from the bag alone, plus the design for nominal
 * cost, in_band, rms, mean_dev_37_5 / mean_dev_62_5: `sep_control.metrics` on the recorded
   true field (slab/field) and the inputs the plant applied (slab/heat_applied; the commands
   when the bag has no heat_applied). For one episode mean_dev_* is max_i |T_k,i - Tnom_k,i|.
-* coverage_2sigma: share of node-steps k = 0..N with |T_hat - T| <= 2 std (slab/field_estimate
+* coverage_2sigma: share of node-steps k = 1..N (as `montecarlo.simulate`) with |T_hat - T| <= 2 std (slab/field_estimate
   vs slab/field); field_nees: mean of ((T_hat - T) / std)^2 over node-steps with std > 0
   (about 1 for a consistent filter).
 * latency (measurement-to-command): receive time of heat_command k minus receive time of
@@ -128,6 +128,7 @@ def episode_metrics(ep: Episode, s: Scenario | None, T_nom: np.ndarray | None) -
                     out[key] = M.mean_deviation(T[None], T_nom, k)
     err = ep.T_hat - ep.T
     ok = np.isfinite(err) & np.isfinite(ep.T_std)
+    ok[0] = False                        # k >= 1, as the offline Monte Carlo (T_0 is known exactly)
     if ok.any():
         out["coverage_2sigma"] = M.coverage_2sigma(err[ok], ep.T_std[ok])
         pos = ok & (ep.T_std > 0)
@@ -243,8 +244,8 @@ def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None
             out.update(cost_mean=float(np.mean(J)), cost_std=float(np.std(J)),
                        in_band=float(np.mean(M.in_band(T_runs, s))), rms=float(np.mean(M.rms_in_window(T_runs, s))))
         out["n_runs"] = len(full)
-    err = np.concatenate([r.err.ravel() for r in reports])
-    std = np.concatenate([r.episode.T_std.ravel() for r in reports])
+    err = np.concatenate([r.err[1:].ravel() for r in reports])
+    std = np.concatenate([r.episode.T_std[1:].ravel() for r in reports])
     ok = np.isfinite(err) & np.isfinite(std)
     if ok.any():
         out["coverage_2sigma"] = M.coverage_2sigma(err[ok], std[ok])

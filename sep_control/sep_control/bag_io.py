@@ -210,10 +210,16 @@ def _read_mcap(f: Path, want: set[str] | None) -> RawBag:
     def records(b, off: int, end: int, top: bool):
         while off < end:
             if off + 9 > end:
+                if not top:
+                    raise ValueError("record header overruns its chunk")
                 raise _Cut
             op, length = _OP_LEN(b, off)
+            if 0x10 < op < 0x80 or op == 0:
+                raise ValueError(f"invalid record opcode 0x{op:02x}")
             body = off + 9
             if body + length > end:
+                if not top:
+                    raise ValueError("record overruns its chunk")
                 raise _Cut
             yield op, body, body + length
             off = body + length
@@ -270,7 +276,10 @@ def _read_mcap(f: Path, want: set[str] | None) -> RawBag:
             good_end = e
             kept_before = len(data)
     except _Cut:
-        pass  # truncated: keep what was complete
+        if n > 16 and bytes(buf[n - 8:]) == _MAGIC:   # a whole file whose records do not fit: corrupt
+            raise BagError(f"{f}: corrupt MCAP: a record near byte {good_end} of {n} runs past the end of the "
+                           f"file; {kept_before} messages were readable before it") from None
+        # else truncated: keep what was complete
     except (struct.error, ValueError, UnicodeDecodeError, RuntimeError, OSError) as exc:
         raise BagError(f"{f}: corrupt MCAP record near byte {good_end} of {n} ({type(exc).__name__}: {exc}); "
                        f"{kept_before} messages were readable before it") from None
@@ -393,6 +402,9 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, *, namespac
     if not raw.complete and not allow_truncated:
         raise BagError(f"{name}: truncated bag: " + "; ".join(raw.notes) +
                        ". Analyse what was recovered with --allow-truncated")
+    if not len(raw):
+        raise BagError(f"{name}: no messages" + (" recovered: " + "; ".join(raw.notes) if raw.notes else "")
+                       + "; nothing to analyse")
     ts = get_typestore(Stores.ROS2_JAZZY)
     contract = contract_topics(namespace)
     by_key: dict[str, list[int]] = {}

@@ -180,7 +180,7 @@ def write_report(rep, out_dir: str | Path, figures: bool = True) -> Path:
     lines.append("Design file: " + ("given (nominal comparisons included)" if d is not None else
                                     "none (no nominal comparisons; pass --design)"))
     lines += ["", "## Metrics", "", markdown_table(metrics_rows(rep)), "", f"- {LATENCY_NOTE}.",
-              "- coverage_2sigma: share of node-steps with |T_hat - T| <= 2 std; field_nees: mean "
+              "- coverage_2sigma: share of node-steps k >= 1 with |T_hat - T| <= 2 std; field_nees: mean "
               "((T_hat - T)/std)^2 (about 1 when consistent).",
               "- deadline_misses / rejected_messages: last /diagnostics values (summed over episodes).", ""]
     problems = []
