@@ -1,7 +1,7 @@
 """`record`: record the sep topic graph into a rosbag2 bag (MCAP by default, sqlite3 selectable).
 
     record --out BAG_DIR [--topics T ...] [--storage mcap|sqlite3] [--namespace slab]
-           [--stop-after-idle S] [--no-stop-at-end] [--max-duration S] [--ros-args ...]
+           [--stop-after-idle S] [--no-stop-at-end] [--max-duration S] [--ready-file PATH] [--ros-args ...]
 
 What rosbag2's `ros2 bag record` does, for installs without rosbag2 (PyPI wheels): raw
 subscriptions (`raw=True`: the CDR bytes go into the bag untouched, no deserialization),
@@ -23,6 +23,10 @@ Robustness:
 * Stops by itself when the episode ends: `--final-grace` seconds after the plant's final
   measurement (step N of the recorded slab/scenario) arrives (disable with --no-stop-at-end),
   after `--stop-after-idle` seconds without messages, or after `--max-duration`.
+
+Start-up: volatile topics are only recorded from the moment the publisher and the recorder
+have matched; `--ready-file PATH` is created once every recorded topic is matched, so an
+orchestrator (the main job, tests) starts the episode after it and the bag holds step 0.
 
 QoS: contract topics are subscribed reliable/volatile with a deep keep-last queue (the
 scenario topic transient_local, to get the plant's latched scenario); if every publisher
@@ -240,7 +244,9 @@ def make_recorder_node(sink: BagSink, topics: dict[str, tuple[str, bool]] | None
             for topic, (msgtype, tl) in list(self.wanted.items()):
                 if msgtype:
                     self._subscribe(topic, msgtype, tl, reliable=True)
+            self.matched: set[str] = set()
             self.timer = self.create_timer(0.5, self._discover)
+            self.match_timer = self.create_timer(0.05, self._check_matched)
             self.get_logger().info(f"recording {len(self.wanted)} topics to {sink.out} ({sink.storage})")
 
         def _subscribe(self, topic, msgtype, transient, reliable):
@@ -258,6 +264,16 @@ def make_recorder_node(sink: BagSink, topics: dict[str, tuple[str, bool]] | None
                 self.destroy_subscription(old)
             sink.types[topic] = msgtype
             self.subs[topic] = self.create_subscription(_msg_class(msgtype), topic, cb, qos, raw=True)
+
+        def _check_matched(self):
+            """Note topics whose subscription is matched with at least one publisher."""
+            for topic, sub in self.subs.items():
+                if sub is not None and topic not in self.matched and sub.get_publisher_count() > 0:
+                    self.matched.add(topic)
+
+        def all_matched(self, topics=None) -> bool:
+            want = set(topics) if topics is not None else set(self.wanted)
+            return want <= self.matched
 
         def qos_lookup(self, topic):
             found = self.offered.get(topic)
@@ -308,6 +324,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--final-grace", type=float, default=1.0, metavar="S",
                    help="after the final step's measurement, record S more seconds (default 1)")
     p.add_argument("--max-duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--ready-file", metavar="PATH",
+                   help="create PATH once every recorded topic (or those of --ready-topics) is matched with a "
+                        "publisher: start the episode after it appears so the bag holds step 0 of every topic")
+    p.add_argument("--ready-topics", nargs="+", metavar="T",
+                   help="topics that --ready-file waits for (default: all recorded topics)")
     p.add_argument("--flush-interval", type=float, default=0.1, metavar="S",
                    help="make data crash-safe at least every S seconds while messages flow (default 0.1)")
     return p
@@ -360,9 +381,17 @@ def main(argv: list[str] | None = None) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         t0 = time.monotonic()
+        ready_topics = None
+        if args.ready_topics:
+            ready_topics = [t if t.startswith("/") else topic_name(t, args.namespace) for t in args.ready_topics]
+        ready_done = not args.ready_file
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.05)
             now = time.monotonic()
+            if not ready_done and node.all_matched(ready_topics):
+                ready_done = True
+                Path(args.ready_file).write_text(f"{len(node.matched)} topics matched\n")
+                node.get_logger().info(f"ready: {len(node.matched)} topics matched ({args.ready_file})")
             if sink.error is not None:
                 reason[0] = f"writer error: {sink.error}"
                 break

@@ -1,0 +1,114 @@
+"""End to end: a lockstep episode (plant + lqg processes) recorded by `record`, analysed offline.
+
+Acceptance (issue 4): the bag's metrics equal the live run's (the plant's own trajectory file
+through `metrics.summarize`) and the field trajectory from the bag equals the offline Monte
+Carlo run with the same seed/run (`montecarlo.simulate(design, 'rom_lqg', seed, [run])`).
+Small scenario for speed; isolated DDS domain (conftest.py); processes always cleaned up.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+REPO = Path(__file__).resolve().parent.parent
+SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep_control"))
+SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=19)
+SEED, RUN = 7, 2
+
+
+@pytest.fixture(scope="module")
+def small_design(tmp_path_factory):
+    from sep_control.design import run_design
+    from sep_estimator.design_file import save_design
+    from sep_plant.scenario import Scenario
+
+    d = tmp_path_factory.mktemp("e2e_design")
+    s = Scenario(**SMALL)
+    design = run_design(s, show_progress=False, log=lambda *a, **k: None)
+    path = save_design(d / "design.npz", design)
+    (d / "small.yaml").write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))
+    return path, d / "small.yaml"
+
+
+def _popen(args, cwd, name):
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
+    log = open(cwd / f"{name}.log", "w")
+    return subprocess.Popen([sys.executable, "-m", *args], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL)
+
+
+@pytest.fixture
+def procs():
+    started: list[subprocess.Popen] = []
+    yield started
+    for p in started:
+        if p.poll() is None:
+            p.kill()
+        p.wait(10)
+
+
+def _log(cwd, name):
+    return (cwd / f"{name}.log").read_text()
+
+
+def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design, procs):
+    from sep_control import metrics as M
+    from sep_control import montecarlo
+    from sep_control.analyze import analyze
+    from sep_estimator.design_file import load_design
+
+    design_path, scen = small_design
+    rec = _popen(["sep_control.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
+                  "--ready-topics", "heat_command", "state_estimate", "field_estimate", "--max-duration", "120"],
+                 tmp_path, "record")
+    procs.append(rec)
+    lqg = _popen(["sep_control.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
+    procs.append(lqg)
+    t0 = time.monotonic()
+    while not (tmp_path / "ready").exists():
+        assert time.monotonic() - t0 < 60, _log(tmp_path, "record") + _log(tmp_path, "lqg")
+        assert rec.poll() is None and lqg.poll() is None, _log(tmp_path, "record") + _log(tmp_path, "lqg")
+        time.sleep(0.05)
+    plant = _popen(["sep_plant.plant_node", "--ros-args", "-p", f"scenario_file:={scen}", "-p", f"seed:={SEED}",
+                    "-p", f"run:={RUN}", "-p", "wait_for_subscribers:=2", "-p", "wait_for_field_subscribers:=1",
+                    "-p", "trajectory_file:=traj.npz"], tmp_path, "plant")
+    procs.append(plant)
+    assert plant.wait(120) == 0, _log(tmp_path, "plant")
+    assert rec.wait(60) == 0, _log(tmp_path, "record")     # stops by itself after the final step
+    assert "episode ended" in _log(tmp_path, "record")
+    lqg.wait(30)
+
+    design = load_design(design_path)
+    rep = analyze(tmp_path / "bag", design)
+    ep = rep.episode
+    assert ep.complete and not ep.missing, (ep.missing, ep.notes)
+    live = np.load(tmp_path / "traj.npz")
+    # the bag holds exactly what the plant simulated and applied
+    np.testing.assert_array_equal(ep.T, live["T"])
+    np.testing.assert_array_equal(ep.u, live["U"])
+    np.testing.assert_array_equal(ep.y, live["Y"])
+    # metrics equal the live run's to printing precision (here: exactly)
+    ref = M.summarize(live["T"][None], live["U"][None], design.T_nom, design.scenario)
+    for k, v in ref.items():
+        assert M._fmt(rep.metrics[k]) == M._fmt(v), k
+        assert rep.metrics[k] == pytest.approx(v, rel=1e-12, abs=1e-12), k
+    assert rep.metrics["deadline_misses"] == 0 and rep.metrics["rejected_messages"] == 0
+    assert rep.metrics["latency_p50_s"] is not None and 0 < rep.metrics["latency_p50_s"] < 1.0
+    # the offline Monte Carlo run with the same seed/run: same trajectory, same estimates
+    mc = montecarlo.simulate(design, "rom_lqg", SEED, range(RUN, RUN + 1))
+    assert np.max(np.abs(ep.T - mc.T[0])) <= 1e-9
+    assert np.max(np.abs(ep.T_hat - mc.T_hat[0])) <= 1e-9
+    assert rep.metrics["coverage_2sigma"] == pytest.approx(mc.coverage_2sigma, abs=1e-12)
+    # the bag opens with rosbags' AnyReader too
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([tmp_path / "bag"]) as reader:
+        assert {c.topic for c in reader.connections} >= {"/slab/measurements", "/slab/heat_command", "/slab/field"}
