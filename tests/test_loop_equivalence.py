@@ -1,0 +1,82 @@
+"""Acceptance: a lockstep closed-loop episode over topics reproduces the offline closed-loop
+simulation (`sep_control.montecarlo.simulate`, same seed and run) to 1e-9 F over the whole
+trajectory; plant + lqg (two processes) and plant + estimator + lqr (three processes)."""
+import json
+
+import numpy as np
+import pytest
+
+from node_harness import field_matrix, joint_matrix, launcher, probe, reference_case, small_case  # noqa: F401
+from sep_control.montecarlo import simulate
+from sep_plant import contract as c
+
+pytestmark = pytest.mark.ros
+
+TOPICS = (c.FIELD, c.FIELD_ESTIMATE, c.HEAT_APPLIED, c.HEAT_COMMAND, c.MEASUREMENTS, c.STATE_ESTIMATE)
+
+
+def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run: int,
+                mode: str = 'lockstep', rtf: float = 10.0):
+    pr = probe().subscribe(*TOPICS, c.DIAGNOSTICS)
+    ctl = {'design_file': case.design_file, 'wait_for_scenario_s': 20.0}
+    if three:
+        est = launcher.start('estimator', params={**ctl, 'summary_file': tmp_path / 'est.json'})
+        lqr = launcher.start('lqr', params={**ctl, 'summary_file': tmp_path / 'lqr.json'})
+        controllers = [est, lqr]
+        subscribers = 3   # estimator, lqr (its watchdog), probe
+    else:
+        controllers = [launcher.start('lqg', params={**ctl, 'summary_file': tmp_path / 'lqg.json'})]
+        subscribers = 2
+    pr.wait_matched(subs=(c.FIELD_ESTIMATE, c.STATE_ESTIMATE, c.HEAT_COMMAND))
+    plant = launcher.start('plant', params={
+        'scenario_file': case.scenario_file, 'seed': seed, 'run': run, 'mode': mode,
+        'real_time_factor': rtf, 'wait_for_subscribers': subscribers,
+        'wait_for_field_subscribers': 1, 'summary_file': tmp_path / 'plant.json',
+        'command_timeout_s': 20.0})
+    assert plant.wait(120) == 0, plant.output()
+    for p in controllers:
+        assert p.wait(30) == 0, p.output()
+    s = case.scenario
+    pr.wait_for(lambda: len(pr.by_step(c.FIELD, s.dt)) == s.n_steps + 1, 10, 'all field messages')
+    pr.wait_for(lambda: len(pr.by_step(c.FIELD_ESTIMATE, s.dt)) == s.n_steps + 1, 10, 'all field estimates')
+    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == s.n_steps, 10,
+                f'all heat_applied (have {sorted(pr.by_step(c.HEAT_APPLIED, s.dt))})')
+    pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, s.dt)) == s.n_steps + 1, 10, 'all measurements')
+    summary = json.loads((tmp_path / 'plant.json').read_text())
+    return pr, summary
+
+
+def check_equivalence(pr, case, seed, run):
+    s, d = case.scenario, case.design
+    ref = simulate(d, 'rom_lqg', seed, range(run, run + 1))
+    T = field_matrix(pr, c.FIELD, s.dt, s.n_steps)
+    T_hat = field_matrix(pr, c.FIELD_ESTIMATE, s.dt, s.n_steps)
+    T_std = field_matrix(pr, c.FIELD_ESTIMATE, s.dt, s.n_steps, 'temperature_std')
+    U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, s.n_steps, 'effort')
+    Y = joint_matrix(pr, c.MEASUREMENTS, s.dt, s.n_steps + 1, 'position')
+    err_T = np.max(np.abs(T - ref.T[0]))
+    assert err_T <= 1e-9, f'max |T_topics - T_offline| = {err_T:.3e} F'
+    assert np.max(np.abs(U - ref.U[0])) <= 1e-9
+    assert np.max(np.abs(Y - ref.Y[0])) <= 1e-9
+    assert np.max(np.abs(T_hat - ref.T_hat[0])) <= 1e-9
+    assert np.max(np.abs(T_std - ref.T_std)) <= 1e-9
+    return err_T
+
+
+@pytest.mark.parametrize('three', [False, True], ids=['plant+lqg', 'plant+estimator+lqr'])
+def test_lockstep_equivalence_small(launcher, probe, small_case, tmp_path, three):
+    pr, summary = run_episode(launcher, probe, small_case, tmp_path, three=three, seed=7, run=3)
+    assert summary['status'] == 'completed' and summary['steps'] == small_case.scenario.n_steps
+    assert summary['deadline_misses'] == 0 and summary['rejected_messages'] == 0
+    check_equivalence(pr, small_case, 7, 3)
+    if three:
+        lqr = json.loads((tmp_path / 'lqr.json').read_text())
+        assert lqr['fallbacks'] == 0 and lqr['commands'] == small_case.scenario.n_steps
+
+
+def test_lockstep_equivalence_reference(launcher, probe, reference_case, tmp_path):
+    pr, summary = run_episode(launcher, probe, reference_case, tmp_path, three=False, seed=0, run=5)
+    assert summary['steps'] == 250
+    check_equivalence(pr, reference_case, 0, 5)
+    lqg = json.loads((tmp_path / 'lqg.json').read_text())
+    assert lqg['estimator']['updates'] == 251 and lqg['estimator']['nis_consistent'] in (True, None)
