@@ -130,6 +130,7 @@ class Probe:
         self.msgs: dict[str, list] = defaultdict(list)      # topic -> [(recv_time, msg)]
         self.subs = {}
         self.pubs = {}
+        self.hooks: dict[str, list] = defaultdict(list)   # topic -> [f(msg)] (in the spin thread)
         self._stop = False
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
@@ -163,6 +164,16 @@ class Probe:
     def _store(self, topic: str, msg) -> None:
         with self.lock:
             self.msgs[topic].append((time.perf_counter(), msg))
+        for fn in self.hooks[topic]:
+            fn(msg)
+
+    def on(self, topic: str, fn) -> None:
+        """Call fn(msg) for every message on a subscribed topic (in the spin thread)."""
+        self.hooks[topic].append(fn)
+
+    def count(self, t: str) -> int:
+        with self.lock:
+            return len(self.msgs[t])
 
     def publisher(self, t: str):
         from diagnostic_msgs.msg import DiagnosticArray

@@ -1,0 +1,332 @@
+"""Bad input and faults of the node graph (issue 3), each with a test: real node processes,
+with the in-process probe as a fake plant / fake controller where a fault must be injected."""
+import json
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from node_harness import (field_matrix, joint_matrix, launcher, probe, reference_case,  # noqa: F401
+                          small_case)
+from sep_estimator.tvkf import filter_from_design
+from sep_plant import contract as c
+
+pytestmark = pytest.mark.ros
+
+
+def last_status(pr, name_part):
+    st = pr.diagnostics(name_part)
+    return st[-1] if st else {}
+
+
+# ---------------------------------------------------------------- bad measurements
+def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, small_case):
+    """NaN, Inf, wrong length, unknown names: rejected, counted on /diagnostics, and the
+    estimator predicts without that update (its estimate equals a reference filter that
+    skips the step).  Stale, duplicate, off-grid and out-of-order stamps: rejected, filter
+    untouched."""
+    s, d = small_case.scenario, small_case.design
+    pr = probe().subscribe(c.HEAT_COMMAND, c.STATE_ESTIMATE, c.DIAGNOSTICS)
+    pr.publish(c.SCENARIO, c.scenario_msg(s))
+    lqg = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0,
+                                        'exit_at_end': False})
+    pr.publisher(c.MEASUREMENTS)
+    pr.publisher(c.HEAT_APPLIED)
+    pr.wait_matched(subs=(c.HEAT_COMMAND, c.STATE_ESTIMATE), pubs=(c.MEASUREMENTS, c.HEAT_APPLIED))
+
+    names = s.sensor_labels()
+    kf = filter_from_design(d)
+    rng = np.random.default_rng(1)
+
+    def y_of(k):
+        return d.y_nom[k] + rng.normal(0, 1, s.n_y)
+
+    def meas(k, y, nm=names, stamp_ns=None):
+        msg = c.joint_state(k, s.dt, nm, position=y)
+        if stamp_ns is not None:
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+        pr.publish(c.MEASUREMENTS, msg)
+
+    def estimate(k):
+        m = pr.wait_for(lambda: pr.by_step(c.STATE_ESTIMATE, s.dt).get(k), 10, f'estimate {k}')
+        return np.asarray(m.position)
+
+    def command(k):
+        m = pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(k), 10, f'command {k}')
+        return np.asarray(m.effort)
+
+    def apply(k):
+        u = command(k)
+        pr.publish(c.HEAT_APPLIED, c.joint_state(k, s.dt, s.heater_labels(), effort=u))
+        return u
+
+    def rejections():
+        return int(last_status(pr, 'estimator').get('rejected_messages', 0))
+
+    def expect_rejection(n):
+        pr.wait_for(lambda: rejections() >= n, 10, f'{n} rejections on /diagnostics')
+
+    # k = 0 good
+    y = y_of(0); meas(0, y); kf.update(0, y - d.y_nom[0])
+    np.testing.assert_allclose(estimate(0), kf.a[0], rtol=0, atol=1e-12)
+    bad = {1: (np.r_[np.nan, y_of(1)[1:]], names),          # NaN
+           2: (np.r_[y_of(2)[:2], np.inf, y_of(2)[3:]], names),  # Inf
+           3: (y_of(3)[:-1], names[:-1]),                    # wrong length
+           4: (y_of(4), names[:-1] + ['bogus'])}             # unknown names
+    n_rej = 0
+    for k in range(1, 5):
+        u = apply(k - 1); kf.predict(k - 1, u - d.u_nom[k - 1])
+        meas(k, *bad[k]); kf.skip(k)
+        n_rej += 1
+        np.testing.assert_allclose(estimate(k), kf.a[0], rtol=0, atol=1e-12)  # predicted, no update
+        expect_rejection(n_rej)
+    u = apply(4); kf.predict(4, u - d.u_nom[4])
+    y = y_of(5); meas(5, y); kf.update(5, y - d.y_nom[5])
+    np.testing.assert_allclose(estimate(5), kf.a[0], rtol=0, atol=1e-12)
+    n_est = pr.count(c.STATE_ESTIMATE)
+    meas(3, y_of(3)); n_rej += 1; expect_rejection(n_rej)                       # stale
+    meas(5, y_of(5)); n_rej += 1; expect_rejection(n_rej)                       # duplicate
+    meas(6, y_of(6), stamp_ns=c.stamp_ns(5, s.dt) + c.dt_ns(s.dt) // 2); n_rej += 1; expect_rejection(n_rej)  # off grid
+    assert pr.count(c.STATE_ESTIMATE) == n_est, 'a rejected stamp must not produce an estimate'
+    u = apply(5); kf.predict(5, u - d.u_nom[5])
+    y = y_of(6); meas(6, y); kf.update(6, y - d.y_nom[6])
+    np.testing.assert_allclose(estimate(6), kf.a[0], rtol=0, atol=1e-12)
+    # out of order: 8 before 7 (7 is missing when 8 arrives: skipped, nominal input for step 7
+    # since neither its command nor its applied input exist)
+    u = apply(6); kf.predict(6, u - d.u_nom[6])
+    y8 = y_of(8); meas(8, y8)
+    kf.skip(7); kf.predict(7, np.zeros(s.n_u)); kf.update(8, y8 - d.y_nom[8])
+    np.testing.assert_allclose(estimate(8), kf.a[0], rtol=0, atol=1e-12)
+    meas(7, y_of(7)); n_rej += 1; expect_rejection(n_rej)
+
+    st = last_status(pr, 'estimator')
+    assert st['_level'] == c.WARN and 'rejected' in st['_message']
+    reasons = json.loads(st['rejected_by_reason'])
+    assert reasons == {'non_finite': 2, 'wrong_length': 1, 'unknown_names': 1, 'stale': 2,
+                       'duplicate': 1, 'bad_stamp': 1}, reasons
+    assert int(st['skipped_updates']) == 4 and int(st['missing_measurements']) == 1
+    assert lqg.returncode is None, lqg.output()
+    out = lqg.output()
+    for word in ('non_finite', 'wrong_length', 'unknown names', 'out of order', 'second message',
+                 'not a step'):
+        assert word in out, word
+
+
+# ------------------------------------------------------------------ LQR fallback
+def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case):
+    s, d = small_case.scenario, small_case.design
+    pr = probe().subscribe(c.HEAT_COMMAND, c.DIAGNOSTICS)
+    pr.publish(c.SCENARIO, c.scenario_msg(s))
+    lqr = launcher.start('lqr', params={'design_file': small_case.design_file, 'estimate_timeout_s': 0.3,
+                                        'wait_for_scenario_s': 20.0, 'exit_at_end': False})
+    pr.publisher(c.MEASUREMENTS)
+    pr.publisher(c.STATE_ESTIMATE)
+    pr.wait_matched(subs=(c.HEAT_COMMAND,), pubs=(c.MEASUREMENTS, c.STATE_ESTIMATE))
+    labels = c.state_labels(d.n_r)
+    y = d.y_nom
+
+    def cmd(k, timeout=10):
+        return pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(k), timeout, f'command {k}')
+
+    # step 0: measurement, no estimate -> nominal after ~0.3 s
+    t0 = time.monotonic()
+    pr.publish(c.MEASUREMENTS, c.joint_state(0, s.dt, s.sensor_labels(), position=y[0]))
+    m = cmd(0)
+    assert time.monotonic() - t0 >= 0.25
+    np.testing.assert_array_equal(np.asarray(m.effort), d.u_nom[0])
+    # the late estimate of step 0 is counted and dropped (the plant already has a command)
+    pr.publish(c.STATE_ESTIMATE, c.joint_state(0, s.dt, labels, position=np.ones(d.n_r)))
+    pr.wait_for(lambda: int(last_status(pr, 'lqr').get('late_estimates', 0)) >= 1 or
+                'late' in lqr.output(), 10, 'late estimate noted')
+    # step 1: estimate in time -> LQR law
+    a = np.linspace(-0.1, 0.1, d.n_r)
+    pr.publish(c.MEASUREMENTS, c.joint_state(1, s.dt, s.sensor_labels(), position=y[1]))
+    pr.publish(c.STATE_ESTIMATE, c.joint_state(1, s.dt, labels, position=a))
+    np.testing.assert_allclose(np.asarray(cmd(1).effort), d.u_nom[1] + d.K[1] @ a, rtol=0, atol=1e-12)
+    # step 2: a bad (NaN) estimate is rejected; the watchdog sends the nominal
+    pr.publish(c.MEASUREMENTS, c.joint_state(2, s.dt, s.sensor_labels(), position=y[2]))
+    pr.publish(c.STATE_ESTIMATE, c.joint_state(2, s.dt, labels, position=np.full(d.n_r, np.nan)))
+    np.testing.assert_array_equal(np.asarray(cmd(2).effort), d.u_nom[2])
+    pr.wait_for(lambda: int(last_status(pr, 'lqr').get('fallbacks', 0)) == 2, 10, 'fallbacks on /diagnostics')
+    st = last_status(pr, 'lqr')
+    assert st['_level'] == c.WARN and 'nominal fallback' in st['_message']
+    assert int(st['rejected_messages']) == 1
+    assert 'no state estimate of step 0' in lqr.output()
+    assert len(pr.by_step(c.HEAT_COMMAND, s.dt)) == 3 and pr.count(c.HEAT_COMMAND) == 3
+
+
+# -------------------------------------------------------------- no command in time
+def test_lockstep_plant_times_out_without_command(launcher, probe, small_case, tmp_path):
+    pr = probe().subscribe(c.MEASUREMENTS)           # a "controller" that never answers
+    plant = launcher.start('plant', params={'scenario_file': small_case.scenario_file,
+                                            'command_timeout_s': 1.0,
+                                            'summary_file': tmp_path / 'plant.json'})
+    rc = plant.wait(30)
+    out = plant.output()
+    assert rc == 3, out
+    assert 'no valid heat_command stamped step 0' in out and 'command_timeout_s = 1 s' in out
+    summ = json.loads((tmp_path / 'plant.json').read_text())
+    assert summ['status'] == 'error' and summ['steps'] == 0
+
+
+def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe, small_case, tmp_path):
+    """A fake controller answers steps 0..9 (with a bad command before the good one at steps
+    2..5), then goes silent: the plant counts 30 deadline misses and holds command 9."""
+    s = small_case.scenario
+    pr = probe().subscribe(c.MEASUREMENTS, c.HEAT_APPLIED, c.DIAGNOSTICS)
+    pub = pr.publisher(c.HEAT_COMMAND)
+    heaters = s.heater_labels()
+
+    def u_of(k):
+        return np.full(s.n_u, 0.1 * (k + 1))
+
+    def answer(msg):
+        k = c.step_of_stamp(msg.header.stamp, s.dt)
+        if k >= 10:
+            return
+        bad = {2: c.joint_state(2, s.dt, heaters, effort=np.r_[np.nan, u_of(2)[1:]]),
+               3: c.joint_state(3, s.dt, heaters[:-1], effort=u_of(3)[:-1]),
+               4: c.joint_state(4, s.dt, ['x'] + heaters[1:], effort=u_of(4)),
+               5: c.joint_state(1, s.dt, heaters, effort=u_of(5))}      # stale stamp
+        if k in bad:
+            pub.publish(bad[k])
+        pub.publish(c.joint_state(k, s.dt, heaters, effort=u_of(k)))
+
+    pr.on(c.MEASUREMENTS, answer)
+    plant = launcher.start('plant', params={'scenario_file': small_case.scenario_file, 'mode': 'realtime',
+                                            'real_time_factor': 5.0, 'summary_file': tmp_path / 'plant.json',
+                                            'wait_for_subscribers': 1})
+    assert plant.wait(60) == 0, plant.output()
+    summ = json.loads((tmp_path / 'plant.json').read_text())
+    assert summ['deadline_misses'] == s.n_steps - 10, summ
+    assert summ['rejected_by_reason'] == {'non_finite': 1, 'wrong_length': 1, 'unknown_names': 1,
+                                          'stale': 1}, summ
+    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == s.n_steps, 10, 'all heat_applied')
+    U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, s.n_steps, 'effort')
+    np.testing.assert_array_equal(U[:10], np.array([u_of(k) for k in range(10)]))
+    np.testing.assert_array_equal(U[10:], np.tile(u_of(9), (s.n_steps - 10, 1)))
+    assert 'deadline miss at step 10' in plant.output()
+    pr.wait_for(lambda: pr.diagnostics('plant'), 5, 'plant diagnostics')
+    st = last_status(pr, 'plant')
+    assert int(st['deadline_misses']) == s.n_steps - 10 and int(st['rejected_messages']) == 4
+
+
+# ------------------------------------------------------- design / parameter refusal
+@pytest.fixture(scope='module')
+def other_files(tmp_path_factory):
+    root = tmp_path_factory.mktemp('other')
+    ref_yaml = root / 'reference.yaml'
+    ref_yaml.write_text('{}\n')
+    corrupt = root / 'corrupt.npz'
+    corrupt.write_bytes(b'PK\x03\x04 this is not a design file' * 10)
+    return {'reference_yaml': ref_yaml, 'corrupt': corrupt}
+
+
+@pytest.mark.parametrize('exe', ['estimator', 'lqr', 'lqg'])
+def test_design_for_another_scenario_refused(launcher, small_case, other_files, exe):
+    p = launcher.start(exe, params={'design_file': small_case.design_file,
+                                    'scenario_file': other_files['reference_yaml']})
+    rc = p.wait(30)
+    out = p.output()
+    assert rc == 2, out
+    assert 'designed for another plant' in out and 'n_x: 20 != 100' in out and 'n_steps: 40 != 250' in out
+
+
+def test_plant_scenario_topic_mismatch_refused(launcher, probe, small_case):
+    from sep_plant.scenario import Scenario
+    pr = probe()
+    pr.publish(c.SCENARIO, c.scenario_msg(Scenario(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20, dt=0.5)))
+    p = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0})
+    rc = p.wait(30)
+    out = p.output()
+    assert rc == 2, out
+    assert 'dt: 0.25 != 0.5' in out and '/slab/scenario' in out
+
+
+@pytest.mark.parametrize('case', ['corrupt', 'missing', 'absent'])
+def test_corrupt_or_missing_design_refused(launcher, other_files, tmp_path, case):
+    params = {'corrupt': {'design_file': other_files['corrupt']},
+              'missing': {'design_file': tmp_path / 'nope.npz'},
+              'absent': {}}[case]
+    p = launcher.start('lqg', params=params)
+    rc = p.wait(30)
+    out = p.output()
+    assert rc == 2, out
+    assert {'corrupt': 'corrupt or not a design file', 'missing': 'design file not found',
+            'absent': 'design_file is required'}[case] in out
+
+
+@pytest.mark.parametrize('exe,params,expect', [
+    ('plant', {'mode': 'bogus'}, "bad parameter mode: 'bogus'"),
+    ('plant', {'real_time_factor': 0.0}, 'bad parameter real_time_factor'),
+    ('plant', {'seed': -1}, 'bad parameter seed'),
+    ('plant', {'command_timeout_s': 'soon'}, 'bad parameter command_timeout_s'),
+    ('plant', {'scenario_file': '/nonexistent/scenario.yaml'}, 'scenario file not found'),
+    ('lqr', {'estimate_timeout_s': -1.0}, 'bad parameter estimate_timeout_s'),
+], ids=['mode', 'rtf', 'seed', 'type', 'scenario_file', 'estimate_timeout'])
+def test_bad_parameter_refused(launcher, small_case, exe, params, expect):
+    if exe != 'plant':
+        params = {'design_file': small_case.design_file, **params}
+    p = launcher.start(exe, params=params)
+    rc = p.wait(30)
+    out = p.output()
+    assert rc == 2, out
+    assert expect in out and 'refusing to start' in out, out
+
+
+# ----------------------------------------------------------------- Ctrl-C
+@pytest.mark.parametrize('exe', ['plant', 'lqg'])
+def test_sigint_clean_shutdown(launcher, small_case, tmp_path, exe):
+    params = ({'scenario_file': small_case.scenario_file} if exe == 'plant'
+              else {'design_file': small_case.design_file})
+    p = launcher.start(exe, params={**params, 'summary_file': tmp_path / 's.json'})
+    time.sleep(0.5)
+    deadline = time.monotonic() + 30
+    while 'plant:' not in p.output() and 'estimator:' not in p.output() and time.monotonic() < deadline:
+        time.sleep(0.1)     # started (logged its start line)
+    p.signal(signal.SIGINT)
+    rc = p.wait(15)
+    out = p.output()
+    assert rc == 130, out
+    assert 'Traceback' not in out, out
+    summ = json.loads((tmp_path / 's.json').read_text())
+    assert summ['status'] == 'interrupted'
+
+
+# ------------------------------------------------- estimator killed and restarted
+def test_estimator_killed_and_restarted_mid_episode(launcher, probe, reference_case, tmp_path):
+    """Three processes in lockstep; the estimator is killed (SIGKILL) at step >= 50 and a new
+    one started: the LQR sends nominal inputs meanwhile, the new estimator joins with
+    restart_at(k) and the episode completes."""
+    case, s = reference_case, reference_case.scenario
+    pr = probe().subscribe(c.MEASUREMENTS, c.STATE_ESTIMATE, c.HEAT_COMMAND)
+    ctl = {'design_file': case.design_file}
+    est1 = launcher.start('estimator', params=ctl, name='estimator_first')
+    lqr = launcher.start('lqr', params={**ctl, 'estimate_timeout_s': 0.1, 'summary_file': tmp_path / 'lqr.json'})
+    pr.wait_matched(subs=(c.STATE_ESTIMATE, c.HEAT_COMMAND))
+    killed = {}
+
+    def kill_at_50(msg):
+        k = c.step_of_stamp(msg.header.stamp, s.dt)
+        if k >= 50 and not killed:
+            est1.signal(signal.SIGKILL)
+            killed['k'] = k
+    pr.on(c.MEASUREMENTS, kill_at_50)
+    plant = launcher.start('plant', params={'scenario_file': case.scenario_file, 'seed': 1,
+                                            'wait_for_subscribers': 3, 'summary_file': tmp_path / 'plant.json'})
+    pr.wait_for(lambda: killed, 60, 'step 50')
+    est1.wait(10)
+    est2 = launcher.start('estimator', params={**ctl, 'summary_file': tmp_path / 'est2.json'},
+                          name='estimator_restarted')
+    assert plant.wait(120) == 0, plant.output()
+    assert est2.wait(30) == 0, est2.output()
+    assert lqr.wait(30) == 0, lqr.output()
+    summ = json.loads((tmp_path / 'plant.json').read_text())
+    assert summ['status'] == 'completed' and summ['steps'] == s.n_steps
+    e2 = json.loads((tmp_path / 'est2.json').read_text())
+    l = json.loads((tmp_path / 'lqr.json').read_text())
+    assert e2['restarts'] == 1 and e2['updates'] > 10 and e2['steps'] == s.n_steps
+    assert l['fallbacks'] >= 1 and l['commands'] + l['fallbacks'] == s.n_steps
+    assert min(l['fallback_steps']) >= killed['k'] - 1
+    assert 'joining the episode at step' in est2.output()
