@@ -286,16 +286,27 @@ def make_case(root: Path, name: str, **scenario_kw) -> Case:
     return Case(s, sf, design, df)
 
 
+# Fixtures imported into several test modules are instantiated once per module: the cases
+# are cached here so that each design is computed once per session.
+_CASES: dict[str, Case] = {}
+
+
+def _cached_case(tmp_path_factory, name: str, **kw) -> Case:
+    if name not in _CASES:
+        _CASES[name] = make_case(tmp_path_factory.mktemp(f'{name}_case'), name, **kw)
+    return _CASES[name]
+
+
 @pytest.fixture(scope='session')
 def small_case(tmp_path_factory) -> Case:
     """n_x = 20, N = 40 scenario (its design takes ~0.2 s)."""
-    return make_case(tmp_path_factory.mktemp('small_case'), 'small', **SMALL)
+    return _cached_case(tmp_path_factory, 'small', **SMALL)
 
 
 @pytest.fixture(scope='session')
 def reference_case(tmp_path_factory) -> Case:
     """The shipped reference scenario and its design (~8 s)."""
-    return make_case(tmp_path_factory.mktemp('reference_case'), 'reference')
+    return _cached_case(tmp_path_factory, 'reference')
 
 
 @pytest.fixture

@@ -159,6 +159,7 @@ def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case)
 # -------------------------------------------------------------- no command in time
 def test_lockstep_plant_times_out_without_command(launcher, probe, small_case, tmp_path):
     pr = probe().subscribe(c.MEASUREMENTS)           # a "controller" that never answers
+    pr.publisher(c.HEAT_COMMAND)
     plant = launcher.start('plant', params={'scenario_file': small_case.scenario_file,
                                             'command_timeout_s': 1.0,
                                             'summary_file': tmp_path / 'plant.json'})

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 
-from sep_plant.node_util import (limit_blas_threads, parse_front, run_node, sim_time_default,
+from sep_plant.node_util import (limit_blas_threads, make_executor, parse_front, run_node, sim_time_default,
                                  write_json)
 from sep_estimator.estimator_node import PARAMETERS as EST_PARAMETERS
 from sep_estimator.estimator_node import EstimatorNode
@@ -27,9 +27,7 @@ PARAMETERS = EST_PARAMETERS.replace('estimator.yaml', 'lqg.yaml') + """
 
 
 class LqgProcess:
-    def __init__(self):
-        from rclpy.executors import SingleThreadedExecutor
-
+    def __init__(self, executor: str = 'events'):
         self.est = EstimatorNode(subscribe_command=False)
         self.lqr = LqrNode(design=self.est.design, standalone=False)
         if self.lqr.design_file != self.est.design_file:
@@ -37,7 +35,7 @@ class LqgProcess:
                                  f'estimator\'s; using the estimator\'s ({self.est.design_file})')
         self.est.on_estimate = self.lqr.on_estimate
         self.lqr.on_command = self.est.note_command
-        self.executor = SingleThreadedExecutor()
+        self.executor = make_executor(executor)
         self.executor.add_node(self.est.node)
         self.executor.add_node(self.lqr.node)
 
@@ -69,10 +67,10 @@ class LqgProcess:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _, args = parse_front('lqg', 'Estimator + LQR in one process (sep_control): the low-latency '
+    opts, args = parse_front('lqg', 'Estimator + LQR in one process (sep_control): the low-latency '
                           'controller of the sep closed loop.', argv, None, PARAMETERS)
     limit_blas_threads(1)
-    return run_node(lambda a: LqgProcess(), sim_time_default(args), 'lqg')
+    return run_node(lambda a: LqgProcess(opts.executor), sim_time_default(args), 'lqg')
 
 
 if __name__ == '__main__':

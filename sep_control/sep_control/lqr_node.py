@@ -21,7 +21,7 @@ import numpy as np
 
 from sep_plant import contract as c
 from sep_plant import gate
-from sep_plant.node_util import (declare, fmt_s, limit_blas_threads, parse_front, percentiles,
+from sep_plant.node_util import (declare, fmt_s, limit_blas_threads, make_executor, parse_front, percentiles,
                                  run_node, sim_time_default, steady)
 from sep_estimator.ros_common import DesignedNode, scenario_summary, spin_episode
 
@@ -191,10 +191,9 @@ class LqrNode(DesignedNode):
 
 
 class _Process:
-    def __init__(self):
-        from rclpy.executors import SingleThreadedExecutor
+    def __init__(self, executor: str):
         self.lqr = LqrNode()
-        self.executor = SingleThreadedExecutor()
+        self.executor = make_executor(executor)
         self.executor.add_node(self.lqr.node)
 
     def run(self) -> int:
@@ -211,11 +210,11 @@ class _Process:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _, args = parse_front('lqr', 'Time-varying LQR node (sep_control): heater commands from '
+    opts, args = parse_front('lqr', 'Time-varying LQR node (sep_control): heater commands from '
                           'slab/state_estimate, nominal fallback when estimates are late.',
                           argv, None, PARAMETERS)
     limit_blas_threads(1)
-    return run_node(lambda a: _Process(), sim_time_default(args), 'lqr')
+    return run_node(lambda a: _Process(opts.executor), sim_time_default(args), 'lqr')
 
 
 if __name__ == '__main__':

@@ -34,7 +34,7 @@ import numpy as np
 
 from sep_plant import contract as c
 from sep_plant import gate
-from sep_plant.node_util import (fmt_s, limit_blas_threads, parse_front, percentiles, run_node,
+from sep_plant.node_util import (fmt_s, limit_blas_threads, make_executor, parse_front, percentiles, run_node,
                                  sim_time_default, steady)
 
 from .ros_common import DesignedNode, scenario_summary, spin_episode
@@ -97,9 +97,33 @@ class EstimatorNode(DesignedNode):
         self.sub_cmd = (node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND,
                                                  self._on_command, c.LOOP_QOS)
                         if subscribe_command else None)
+        self._warm_up()
         self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(self.s)}), '
                       f'namespace {node.get_namespace()}, use_sim_time '
                       f"{node.get_parameter('use_sim_time').value}")
+
+    def _warm_up(self) -> None:
+        """Run every per-step code path once on throwaway objects (first calls into numpy,
+        LAPACK and the message type support are slow), so step 0 meets a real-time deadline."""
+        from rclpy.serialization import serialize_message
+        from sep_estimator.tvkf import filter_from_design
+
+        d = self.design
+        kf = filter_from_design(d)
+        a = kf.update(0, np.zeros(self.s.n_y))
+        np.clip(d.u_nom[0] + a @ d.K[0].T, self.s.u_min, self.s.u_max)   # the LQR law's ops
+        kf.field_std(precomputed=d.field_std)
+        kf.predict(0, np.zeros(self.s.n_u))
+        kf.skip(1)
+        kf.field_std()
+        y = d.y_nom[0]
+        gate.check_vector(self.sensors, y, self.sensors)
+        for msg in (c.joint_state(0, self.s.dt, self.labels, position=a[0]),
+                    c.joint_state(0, self.s.dt, self.heaters, effort=d.u_nom[0]),
+                    c.field_cloud(0, self.s.dt, self.x_grid, d.T_nom[0] + d.G[0] @ a[0], d.field_std[0])):
+            serialize_message(msg)
+        C = d.C[0]
+        np.linalg.solve(C @ kf.P @ C.T + self.v_var * np.eye(C.shape[0]), y)
 
     # -------------------------------------------------------------- helpers
     def _reject(self, what: str, rej: gate.Rejection, k: int | None = None) -> None:
@@ -323,10 +347,9 @@ def c_decl(node, name, default, description):
 class _Process:
     """One estimator in its own process."""
 
-    def __init__(self):
-        from rclpy.executors import SingleThreadedExecutor
+    def __init__(self, executor: str):
         self.est = EstimatorNode()
-        self.executor = SingleThreadedExecutor()
+        self.executor = make_executor(executor)
         self.executor.add_node(self.est.node)
 
     def run(self) -> int:
@@ -343,10 +366,10 @@ class _Process:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _, args = parse_front('estimator', 'ROM Kalman filter node (sep_estimator): estimates the '
+    opts, args = parse_front('estimator', 'ROM Kalman filter node (sep_estimator): estimates the '
                           'slab state and field from slab/measurements.', argv, None, PARAMETERS)
     limit_blas_threads(1)
-    return run_node(lambda a: _Process(), sim_time_default(args), 'estimator')
+    return run_node(lambda a: _Process(opts.executor), sim_time_default(args), 'estimator')
 
 
 if __name__ == '__main__':

@@ -12,8 +12,8 @@ from __future__ import annotations
 from typing import Iterable, Sequence
 
 from sep_plant import contract as c
-from sep_plant.node_util import (EXIT_OK, StartError, declare, fmt_s, percentiles, steady,
-                                 write_json)
+from sep_plant.node_util import (EXIT_OK, StartError, declare, flush_publishers, fmt_s, percentiles,
+                                 steady, write_json)
 
 _DESIGN_CACHE: dict[str, object] = {}
 
@@ -160,13 +160,8 @@ class DesignedNode:
     def publishers(self) -> Iterable:
         return [self.pub_diag]
 
-    def flush(self, timeout_s: float = 2.0) -> None:
-        from rclpy.duration import Duration
-        for pub in self.publishers():
-            try:
-                pub.wait_for_all_acked(Duration(seconds=timeout_s))
-            except Exception:  # noqa: BLE001 - context already shut down
-                return
+    def flush(self, budget_s: float = 0.5) -> None:
+        flush_publishers(self.publishers(), budget_s)
 
     def destroy_node(self) -> None:
         self.node.destroy_node()

@@ -54,11 +54,36 @@ def parse_front(prog: str, description: str, argv: Sequence[str] | None,
         prog=prog, description=description,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=(parameters + '\n\n' if parameters else '') + ROS_ARGS_HELP)
+    add_executor_option(parser)
     if add_arguments:
         add_arguments(parser)
     own = remove_ros_args(args=argv)[1:]
     opts = parser.parse_args(own)
     return opts, argv
+
+
+EXECUTORS = ('events', 'single')
+
+
+def add_executor_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--executor', choices=EXECUTORS,
+                        default=os.environ.get('SEP_EXECUTOR', 'events'),
+                        help="rclpy executor: 'events' (rclpy.experimental.EventsExecutor, C++ "
+                             "event queue, the low-latency default) or 'single' "
+                             "(SingleThreadedExecutor); env SEP_EXECUTOR sets the default")
+
+
+def make_executor(kind: str = 'events'):
+    """A single-threaded executor of the given kind (falls back to SingleThreadedExecutor when
+    this rclpy has no EventsExecutor)."""
+    from rclpy.executors import SingleThreadedExecutor
+    if kind == 'events':
+        try:
+            from rclpy.experimental import EventsExecutor
+            return EventsExecutor()
+        except ImportError:  # pragma: no cover - older rclpy
+            pass
+    return SingleThreadedExecutor()
 
 
 def limit_blas_threads(n: int = 1):
@@ -133,7 +158,26 @@ def _plain(v: Any) -> Any:
 def sim_time_default(args: list[str], value: bool = True) -> list[str]:
     """rclpy args with ``use_sim_time`` defaulting to `value` (a user's own
     ``-p use_sim_time:=...`` or params file given later still wins)."""
-    return [args[0], '--ros-args', '-p', f'use_sim_time:={str(value).lower()}', *args[1:]]
+    return [args[0], '--ros-args', '-p', f'use_sim_time:={str(value).lower()}', '--', *args[1:]]
+
+
+def flush_publishers(publishers, budget_s: float = 0.5) -> bool:
+    """Wait (at most `budget_s` in total) until reliable subscribers acknowledged everything
+    published: the last messages of an episode reach bags and peers before the writers go.
+    Samples are delivered on publish on one host; acknowledgements can lag by a heartbeat
+    period, hence a bounded wait rather than an unbounded one."""
+    from rclpy.duration import Duration
+    t_end = time.perf_counter() + budget_s
+    ok = True
+    for pub in publishers:
+        left = t_end - time.perf_counter()
+        if left <= 0:
+            return False
+        try:
+            ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
+        except Exception:  # noqa: BLE001 - context already shut down (Ctrl-C)
+            return False
+    return ok
 
 
 def steady() -> float:

@@ -31,8 +31,9 @@ import numpy as np
 
 from . import contract as c
 from . import gate
+from .slab import clip_inputs
 from .node_util import (EXIT_OK, EpisodeError, StartError, declare, fmt_s, limit_blas_threads,
-                        parse_front, percentiles, run_node, steady, write_json)
+                        flush_publishers, make_executor, parse_front, percentiles, run_node, steady, write_json)
 
 MODES = ('lockstep', 'realtime')
 
@@ -55,8 +56,7 @@ PARAMETERS = """parameters (set with --ros-args -p NAME:=VALUE or --params-file 
 class PlantNode:
     """The plant; wraps an rclpy Node (created in __init__)."""
 
-    def __init__(self, args: list[str], summary_json: str | None = None):
-        from rclpy.executors import SingleThreadedExecutor
+    def __init__(self, args: list[str], summary_json: str | None = None, executor: str = 'events'):
         from rclpy.node import Node
 
         from .noise import noise_sequences
@@ -121,7 +121,8 @@ class PlantNode:
         self.pub_diag = node.create_publisher(DiagnosticArray, c.DIAGNOSTICS, c.DIAGNOSTICS_QOS)
         self.sub_cmd = node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND,
                                                 self._on_command, c.LOOP_QOS)
-        self.executor = SingleThreadedExecutor()
+        self.executor = make_executor(executor)
+        self.executor_kind = executor
         self.executor.add_node(node)
 
         # episode state
@@ -226,15 +227,20 @@ class PlantNode:
     def _wait_for_peers(self) -> None:
         need_y, need_f = self.p['wait_for_subscribers'], self.p['wait_for_field_subscribers']
         t_end = steady() + self.p['start_timeout_s']
+        # with subscribers required, also a heat_command publisher (a command sent before
+        # its writer matched our reader would be lost)
         ok = lambda: (self.pub_y.get_subscription_count() >= need_y
-                      and self.pub_field.get_subscription_count() >= need_f)
+                      and self.pub_field.get_subscription_count() >= need_f
+                      and (need_y == 0 or self.sub_cmd.get_publisher_count() >= 1))
         if need_y or need_f:
             self.log.info(f'waiting for {need_y} measurement subscriber(s)'
-                          + (f' and {need_f} field subscriber(s)' if need_f else ''))
+                          + (f', {need_f} field subscriber(s)' if need_f else '')
+                          + ' and a heat_command publisher')
         if not self._spin_until(t_end, ok):
             raise EpisodeError(
                 f"no controller: {self.pub_y.get_subscription_count()} of {need_y} measurement "
-                f"subscribers and {self.pub_field.get_subscription_count()} of {need_f} field "
+                f"subscribers, {self.sub_cmd.get_publisher_count()} heat_command publishers and "
+                f"{self.pub_field.get_subscription_count()} of {need_f} field "
                 f"subscribers after start_timeout_s = {self.p['start_timeout_s']:g} s "
                 f"(is the estimator/lqg running in namespace {self.node.get_namespace()} with "
                 f"the same ROS_DOMAIN_ID?)")
@@ -256,7 +262,8 @@ class PlantNode:
                 break
             have = lambda: self.pending is not None
             if realtime:
-                if not self._spin_until(t0 + (k + 1) * period, have):
+                self._spin_until(t0 + (k + 1) * period)      # the tick: steps on schedule
+                if not have():
                     self.deadline_misses += 1
                     self.log.warning(f'deadline miss at step {k}: no valid command within '
                                      f'{fmt_s(period)}; holding the last applied input',
@@ -273,7 +280,6 @@ class PlantNode:
                         f"within command_timeout_s = {self.p['command_timeout_s']:g} s{why}; is the "
                         f"lqg (or estimator + lqr) running on {self.node.get_namespace()}?")
                 u = self.pending
-            from .slab import clip_inputs
             u_app = clip_inputs(u, self.s)
             self.pending = None
             self.held = u_app
@@ -324,12 +330,7 @@ class PlantNode:
                      scenario=np.frombuffer(self.s.to_json().encode(), dtype=np.uint8),
                      seed=self.p['seed'], run=self.p['run'])
         # Let reliable subscribers receive the last messages before the writers go away.
-        from rclpy.duration import Duration
-        for pub in (self.pub_y, self.pub_u, self.pub_field, self.pub_clock, self.pub_diag):
-            try:
-                pub.wait_for_all_acked(Duration(seconds=2.0))
-            except Exception:  # noqa: BLE001 - context already shut down (Ctrl-C)
-                break
+        flush_publishers((self.pub_y, self.pub_field, self.pub_u, self.pub_clock, self.pub_diag))
 
     def destroy_node(self) -> None:
         self.executor.shutdown(timeout_sec=0.1)
@@ -344,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
     opts, args = parse_front('plant', 'Simulated heat slab (sep_plant): the plant node of the '
                              'sep closed loop.', argv, add, PARAMETERS)
     limit_blas_threads(1)
-    return run_node(lambda a: PlantNode(a, opts.summary_json), args, 'plant')
+    return run_node(lambda a: PlantNode(a, opts.summary_json, opts.executor), args, 'plant')
 
 
 if __name__ == '__main__':

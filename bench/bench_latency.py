@@ -1,0 +1,276 @@
+"""Latency and compute benchmark of the online loop (issue 3 acceptance).
+
+Measured in one run, on this machine:
+
+1. bare rclpy ping-pong between two processes: JointState with 5 named float64 values out
+   (the size of slab/measurements), JointState with 5 named values back (slab/heat_command),
+   same QoS (reliable, keep-last 10), a SingleThreadedExecutor spin_once loop on the pinging
+   side exactly like the plant's;
+2. the measurement-to-command round trip through plant <-> lqg (two processes, lockstep, the
+   reference design), as measured by the plant (publish of y_k -> command k received), and
+   the same in real time at real_time_factor 10;
+3. per-step compute of estimator + LQR (the pure calls: KF update, LQR law, KF predict; and
+   the node's per-step work with field reconstruction and message building), with BLAS
+   limited to 1 thread (what the nodes do) and with the default thread pools.
+
+Prints a table with ratios; ``--json PATH`` writes the numbers.  Targets: round trip within
+1.5x of the bare ping-pong, compute under 50 us per step.
+
+    PYTHONPATH=sep_plant:sep_estimator:sep_control python bench/bench_latency.py
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    src = os.pathsep.join(str(ROOT / p) for p in ('sep_plant', 'sep_estimator', 'sep_control'))
+    env['PYTHONPATH'] = src + (os.pathsep + env['PYTHONPATH'] if env.get('PYTHONPATH') else '')
+    env.setdefault('ROS_DOMAIN_ID', str(random.randint(102, 200)))
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    return env
+
+
+def pct(a) -> dict:
+    a = np.asarray(a, dtype=float)
+    return {'p50': float(np.percentile(a, 50)), 'p99': float(np.percentile(a, 99)),
+            'mean': float(a.mean()), 'n': int(a.size)}
+
+
+# ------------------------------------------------------------------------- ping-pong
+def pong_main() -> int:
+    import rclpy
+    from rclpy.node import Node
+
+    from sep_plant import contract as c
+
+    rclpy.init()
+    node = Node('pong')
+    heaters = [f'heater_{j}' for j in range(5)]
+    pub = node.create_publisher(c.TOPIC_TYPES[c.HEAT_COMMAND], 'bench_pong', c.LOOP_QOS)
+
+    def on_ping(msg):
+        out = c.TOPIC_TYPES[c.HEAT_COMMAND]()
+        out.header = msg.header
+        out.name = heaters
+        out.effort = np.asarray(msg.position) * 0.5
+        pub.publish(out)
+
+    node.create_subscription(c.TOPIC_TYPES[c.MEASUREMENTS], 'bench_ping', on_ping, c.LOOP_QOS)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, Exception):  # noqa: BLE001 - killed by the parent
+        pass
+    return 0
+
+
+def ping_pong(n: int, env: dict) -> dict:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from sep_plant import contract as c
+
+    pong = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), '--pong'], env=env,
+                            start_new_session=True)
+    try:
+        rclpy.init()
+        node = Node('ping')
+        ex = SingleThreadedExecutor()
+        ex.add_node(node)
+        got = {}
+        pub = node.create_publisher(c.TOPIC_TYPES[c.MEASUREMENTS], 'bench_ping', c.LOOP_QOS)
+        node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], 'bench_pong',
+                                 lambda m: got.__setitem__(c.step_of_stamp(m.header.stamp, 0.25),
+                                                           time.perf_counter()), c.LOOP_QOS)
+        sensors = [f'sensor_{j}' for j in range(5)]
+        t_end = time.perf_counter() + 30
+        while pub.get_subscription_count() < 1 and time.perf_counter() < t_end:
+            ex.spin_once(timeout_sec=0.05)
+        ex.spin_once(timeout_sec=0.5)
+        rtt = []
+        y = np.linspace(149, 151, 5)
+        for k in range(n + 50):
+            t0 = time.perf_counter()
+            pub.publish(c.joint_state(k, 0.25, sensors, position=y))
+            while k not in got and time.perf_counter() - t0 < 2.0:
+                ex.spin_once(timeout_sec=2.0)
+            if k in got and k >= 50:          # 50 warm-up round trips
+                rtt.append(got[k] - t0)
+        node.destroy_node()
+        rclpy.shutdown()
+        return pct(rtt)
+    finally:
+        pong.kill()
+        pong.wait()
+
+
+# ------------------------------------------------------------------------ plant <-> lqg
+def loop_round_trip(design_file: Path, scenario_file: Path | None, env: dict, mode: str,
+                    tmp: Path) -> dict:
+    summary = tmp / f'plant_{mode}.json'
+    scen = ['-p', f'scenario_file:={scenario_file}'] if scenario_file else []
+    lqg = subprocess.Popen([sys.executable, '-m', 'sep_control.lqg_node', '--ros-args',
+                            '-p', f'design_file:={design_file}'], env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        rc = subprocess.run([sys.executable, '-m', 'sep_plant.plant_node', '--summary-json', str(summary),
+                             '--ros-args', *scen, '-p', f'mode:={mode}', '-p', 'real_time_factor:=10.0',
+                             '-p', 'publish_field:=true'], env=env, capture_output=True, text=True,
+                            timeout=300).returncode
+        if rc != 0:
+            raise RuntimeError(f'plant exited {rc}')
+        lqg.wait(timeout=30)
+    finally:
+        if lqg.poll() is None:
+            lqg.kill()
+            lqg.wait()
+    s = json.loads(summary.read_text())
+    return {'p50': s['latency_p50_s'], 'p99': s['latency_p99_s'], 'max': s['latency_max_s'],
+            'deadline_misses': s['deadline_misses'], 'n': s['n_steps']}
+
+
+# ---------------------------------------------------------------------------- compute
+def compute_per_step(design, repeats: int = 20) -> dict:
+    from sep_control.lqr import command
+    from sep_estimator.tvkf import filter_from_design
+    from sep_plant import contract as c
+
+    s = design.scenario
+    rng = np.random.default_rng(0)
+    dy = rng.normal(0, 1, (s.n_steps + 1, s.n_y))
+    x = s.grid()
+    labels = c.state_labels(design.n_r)
+    heaters = s.heater_labels()
+    core, node = [], []
+    for _ in range(repeats):
+        kf = filter_from_design(design)
+        for k in range(s.n_steps + 1):
+            t0 = time.perf_counter()
+            a = kf.update(k, dy[k])
+            if k < s.n_steps:
+                u = command(design.u_nom[k], design.K[k], a, s.u_min, s.u_max)
+                kf.predict(k, u - design.u_nom[k])
+            t1 = time.perf_counter()
+            core.append(t1 - t0)
+        kf = filter_from_design(design)
+        for k in range(s.n_steps + 1):
+            t0 = time.perf_counter()
+            a = kf.update(k, dy[k])
+            if k < s.n_steps:
+                u = command(design.u_nom[k], design.K[k], a, s.u_min, s.u_max)
+                c.joint_state(k, s.dt, heaters, effort=u[0])
+            c.joint_state(k, s.dt, labels, position=a[0])
+            T_hat = design.T_nom[k] + design.G[k] @ a[0]
+            c.field_cloud(k, s.dt, x, T_hat, kf.field_std(precomputed=design.field_std))
+            if k < s.n_steps:
+                kf.predict(k, u - design.u_nom[k])
+            node.append(time.perf_counter() - t0)
+    return {'core': pct(core), 'node': pct(node)}
+
+
+def compute_threads(design) -> dict:
+    from threadpoolctl import threadpool_info, threadpool_limits
+    default = compute_per_step(design)
+    with threadpool_limits(limits=1):
+        one = compute_per_step(design)
+    pools = [f"{p['internal_api']}:{p['num_threads']}" for p in threadpool_info()]
+    return {'blas_1': one, 'blas_default': default, 'pools': pools}
+
+
+# ------------------------------------------------------------------------------- main
+def fmt(v) -> str:
+    return '-' if v is None else (f'{v * 1e3:8.3f} ms' if v >= 1e-3 else f'{v * 1e6:8.1f} us')
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--design', type=Path, help='design file of the reference scenario (default: design it, ~8 s)')
+    ap.add_argument('--scenario', type=Path, help='scenario file of --design (default: reference)')
+    ap.add_argument('--pings', type=int, default=500, help='ping-pong round trips')
+    ap.add_argument('--no-realtime', action='store_true', help='skip the 6.25 s real-time episode')
+    ap.add_argument('--json', type=Path, help='write the results as JSON')
+    ap.add_argument('--pong', action='store_true', help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.pong:
+        return pong_main()
+    env = _env()
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    from sep_estimator.design_file import load_design, save_design
+    from sep_plant.scenario import load_scenario
+
+    tmp = Path(tempfile.mkdtemp(prefix='sep_bench_latency_'))
+    scenario = load_scenario(args.scenario)
+    if args.design:
+        design_file = args.design
+        design = load_design(design_file, expect_scenario=scenario)
+    else:
+        from sep_control.design import run_design
+        t0 = time.perf_counter()
+        design = run_design(scenario, show_progress=False, log=lambda m: None)
+        design_file = save_design(tmp / 'design.npz', design)
+        print(f'design: {time.perf_counter() - t0:.1f} s (n_x={scenario.n_x}, N={scenario.n_steps}, n_r={design.n_r})')
+
+    print(f'ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}')
+    res = {}
+    res['ping_pong_before'] = ping_pong(args.pings, env)
+    res['loop_lockstep'] = loop_round_trip(design_file, args.scenario, env, 'lockstep', tmp)
+    if not args.no_realtime:
+        res['loop_realtime_rtf10'] = loop_round_trip(design_file, args.scenario, env, 'realtime', tmp)
+    res['ping_pong_after'] = ping_pong(args.pings, env)
+    pp = {'p50': min(res['ping_pong_before']['p50'], res['ping_pong_after']['p50']),
+          'p99': min(res['ping_pong_before']['p99'], res['ping_pong_after']['p99'])}
+    res['compute'] = compute_threads(design)
+
+    print('\nmeasurement -> command round trip (wall clock, this machine)')
+    print(f"{'':34s} {'p50':>11s} {'p99':>11s}  {'p50/ping':>8s} {'p99/ping':>8s}")
+    rows = [('bare rclpy ping-pong (before)', res['ping_pong_before']),
+            ('bare rclpy ping-pong (after)', res['ping_pong_after']),
+            ('plant <-> lqg, lockstep', res['loop_lockstep'])]
+    if 'loop_realtime_rtf10' in res:
+        rows.append(('plant <-> lqg, realtime rtf 10', res['loop_realtime_rtf10']))
+    for name, r in rows:
+        print(f"{name:34s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}  "
+              f"{r['p50'] / pp['p50']:8.2f} {r['p99'] / pp['p99']:8.2f}")
+    for key in ('loop_lockstep', 'loop_realtime_rtf10'):
+        if key in res:
+            print(f"  {key}: deadline misses {res[key]['deadline_misses']}, max {fmt(res[key]['max'])}")
+    cp = res['compute']
+    print('\nper-step compute of estimator + LQR (pure calls; reference design, n_r = '
+          f'{design.n_r}, n_x = {scenario.n_x})')
+    print(f"{'':52s} {'mean':>11s} {'p50':>11s} {'p99':>11s}")
+    for label, key in (('KF update + LQR law + KF predict, BLAS 1 thread', ('blas_1', 'core')),
+                       ('KF update + LQR law + KF predict, BLAS default', ('blas_default', 'core')),
+                       ('+ field reconstruction and messages, BLAS 1', ('blas_1', 'node')),
+                       ('+ field reconstruction and messages, BLAS default', ('blas_default', 'node'))):
+        r = cp[key[0]][key[1]]
+        print(f"{label:52s} {fmt(r['mean']):>11s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}")
+    print(f"  thread pools: {', '.join(cp['pools'])}")
+    ratio = res['loop_lockstep']['p50'] / pp['p50']
+    print(f"\ntarget round trip <= 1.5x ping-pong: lockstep p50 ratio {ratio:.2f} -> "
+          f"{'met' if ratio <= 1.5 else 'NOT met'}; target compute < 50 us: "
+          f"{fmt(cp['blas_1']['core']['p50'])} -> {'met' if cp['blas_1']['core']['p50'] < 50e-6 else 'NOT met'}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
