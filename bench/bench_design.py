@@ -59,7 +59,8 @@ def main() -> None:
             for c in ("open_loop", "rom_lqg", "oracle_lqg"):
                 if c == "oracle_lqg" and oracle is None:
                     continue
-                res, t = timed(simulate, design, c, 1, runs, oracle=oracle, keep_estimates=0, sim=sim)
+                res, t = timed(simulate, design, c, 1, runs, oracle=oracle, keep_estimates=0, sim=sim,
+                               keep_trajectories=0)
                 mc[c] = (res.metrics(design), t)
         tm = design.meta["timings"]
         t_mc = mc["rom_lqg"][1]
@@ -95,7 +96,7 @@ def main() -> None:
             with threadpool_limits(th):
                 _, t = timed(run_design, s, DesignSettings(), False, lambda m: None)
                 d = _
-                _, t_mc = timed(simulate, d, "rom_lqg", 1, args.runs, keep_estimates=0)
+                _, t_mc = timed(simulate, d, "rom_lqg", 1, args.runs, keep_estimates=0, keep_trajectories=0)
             tt[f"threads={th}"] = {"design_s": t, "mc_rom_s": t_mc}
         base = tt["threads=1"]
         for r in tt.values():

@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
             oracle_s = time.perf_counter() - t0
         for name in progress(args.controllers, desc="Monte Carlo", enabled=not args.quiet):
             t0 = time.perf_counter()
-            res = simulate(design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1, sim=sim)
+            res = simulate(design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1, sim=sim,
+                           keep_trajectories=1)
             rows[name] = res.metrics(design)
             rows[name]["seconds"] = time.perf_counter() - t0
             results[name] = res
@@ -92,12 +93,13 @@ def rom_sweep(design, sim, oracle, args) -> list[dict]:
     from .tvera import tv_era
 
     oracle_cost = simulate(design, "oracle_lqg", args.seed, args.sweep_runs, oracle=oracle, keep_estimates=0,
-                           sim=sim).metrics(design)["cost_mean"]
+                           sim=sim, keep_trajectories=0).metrics()["cost_mean"]
     rows = []
     for n_r in progress(args.sweep_orders, desc="ROM sweep", enabled=not args.quiet):
         real = tv_era(data, design.n_steps, settings.p, settings.q, n_r, settings.sv_tol)
         d = with_rom(design, real)
-        m = simulate(d, "rom_lqg", args.seed, args.sweep_runs, keep_estimates=0, sim=sim).metrics(d)
+        m = simulate(d, "rom_lqg", args.seed, args.sweep_runs, keep_estimates=0, sim=sim,
+                     keep_trajectories=0).metrics()
         rows.append({"n_r": n_r, "n_r_used": int(real.dims.max()),
                      "markov_rel_error": markov_relative_error(real, data.Y),
                      "cost_mean": m["cost_mean"], "cost_oracle": oracle_cost, "in_band": m["in_band"]})
@@ -113,7 +115,7 @@ def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
     s = design.scenario
     paths = [figures.fig_nominal(out / "nominal_belief_and_control.png", s, design.belief_mean,
                                  design.belief_std, design.u_nom)]
-    means = {name: r.T.mean(axis=0) for name, r in results.items()}
+    means = {name: r.T_mean for name, r in results.items()}
     if means:
         paths.append(figures.fig_mean_vs_nominal(out / "closed_loop_mean_vs_nominal.png", s, design.T_nom, means))
     closed = results.get("rom_lqg") or results.get("oracle_lqg")

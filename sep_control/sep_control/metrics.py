@@ -70,6 +70,58 @@ def summarize(T_runs: np.ndarray, U_runs: np.ndarray, T_nom: np.ndarray, s: Scen
     return out
 
 
+class MetricsAccumulator:
+    """The `summarize` metrics computed step by step, without storing (M, N+1, n_x) trajectories.
+
+    Feed `add_state(k, T_k)` for k = 0..N and `add_input(k, u_k)` for k = 0..N-1 (batched over
+    M runs); `result()` equals `summarize` on the stacked arrays. Memory O(M + N n_x), so a
+    Monte Carlo on a large grid does not need M N n_x numbers.
+    """
+
+    def __init__(self, s: Scenario, T_nom: np.ndarray, runs: int):
+        self.s, self.T_nom, self.M = s, T_nom, runs
+        self.q = s.q_weights()
+        self.cost = np.zeros(runs)
+        self.band_ok = np.ones(runs, dtype=bool)
+        self.sq_sum = np.zeros(runs)
+        self.k_marks = [(step_at(s, 37.5), "mean_dev_37_5"), (step_at(s, 62.5), "mean_dev_62_5")]
+        self.mean_dev: dict[str, float] = {}
+        self.mean_traj = np.zeros_like(T_nom)
+
+    def add_state(self, k: int, T_k: np.ndarray) -> None:
+        s = self.s
+        err = T_k - s.t_target
+        sq = np.mean(err**2, axis=-1)
+        if k >= 1:
+            self.cost += self.q[k] * sq
+        if k >= s.k_band:
+            self.band_ok &= np.all(np.abs(err) <= s.band, axis=-1)
+            self.sq_sum += sq
+        mean_k = np.mean(T_k, axis=0)
+        self.mean_traj[k] = mean_k
+        for k_mark, name in self.k_marks:
+            if k == k_mark:
+                self.mean_dev[name] = float(np.max(np.abs(mean_k - self.T_nom[k])))
+
+    def add_input(self, k: int, u_k: np.ndarray) -> None:
+        self.cost += self.s.r_u * np.sum(u_k**2, axis=-1)
+
+    def result(self, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        n_win = self.s.n_steps + 1 - self.s.k_band
+        out: dict[str, Any] = {
+            "cost_mean": float(np.mean(self.cost)),
+            "cost_std": float(np.std(self.cost)),
+            "in_band": float(np.mean(self.band_ok)),
+            "rms": float(np.mean(np.sqrt(self.sq_sum / n_win))),
+            "mean_dev_37_5": self.mean_dev.get("mean_dev_37_5"),
+            "mean_dev_62_5": self.mean_dev.get("mean_dev_62_5"),
+            "n_runs": int(self.M),
+        }
+        if extra:
+            out.update(extra)
+        return out
+
+
 def format_table(rows: Mapping[str, Mapping[str, Any]], keys: Iterable[str] | None = None) -> str:
     """Plain-text table: one row per controller/episode, one column per metric."""
     keys = list(keys) if keys is not None else [k for k in JSON_KEYS if any(k in r for r in rows.values())]

@@ -24,29 +24,35 @@ from sep_plant.noise import noise_sequences
 from sep_plant.slab import SlabSimulator, clip_inputs
 
 from .lqr import command
-from .metrics import coverage_2sigma, summarize
+from .metrics import MetricsAccumulator
 from .oracle import LinearLQG, oracle_lqg, rom_lqg
 
 
 @dataclass
 class MonteCarloResult:
     controller: str
-    T: np.ndarray          # (M, N+1, n_x) true field
+    T: np.ndarray          # (M_keep, N+1, n_x) true field of the first M_keep runs (all by default)
     U: np.ndarray          # (M, N, n_u) applied inputs (after limits, before process noise)
     Y: np.ndarray          # (M, N+1, n_y) measurements
-    T_hat: np.ndarray      # (M_keep, N+1, n_x) reconstructed field of the first M_keep runs
+    T_hat: np.ndarray      # (M_est, N+1, n_x) reconstructed field of the first M_est runs
     T_std: np.ndarray      # (N+1, n_x) its per-node std (same for every run)
+    T_mean: np.ndarray     # (N+1, n_x) mean true field over all runs
     coverage_2sigma: float  # over all runs, nodes and steps k >= 1
+    summary: dict          # DESIGN.md §3 metrics over all runs (streamed, see MetricsAccumulator)
 
-    def metrics(self, design: Design) -> dict:
-        return summarize(self.T, self.U, design.T_nom, design.scenario,
-                         {"coverage_2sigma": self.coverage_2sigma})
+    def metrics(self, design: Design | None = None) -> dict:
+        return dict(self.summary)
 
 
 def simulate(design: Design, controller: str, seed: int, runs: int | range | list[int],
              oracle: LinearLQG | None = None, keep_estimates: int | None = None,
-             sim: SlabSimulator | None = None) -> MonteCarloResult:
-    """Run `controller` ('open_loop', 'rom_lqg' or 'oracle_lqg') for the given runs."""
+             sim: SlabSimulator | None = None, keep_trajectories: int | None = None) -> MonteCarloResult:
+    """Run `controller` ('open_loop', 'rom_lqg' or 'oracle_lqg') for the given runs.
+
+    Metrics are accumulated step by step over all runs; the full field trajectories (and
+    estimates) are kept for the first `keep_trajectories` (`keep_estimates`) runs, all by
+    default. Keep few on large grids: M N n_x numbers add up.
+    """
     if controller not in ("open_loop", "rom_lqg", "oracle_lqg"):
         raise ValueError(f"unknown controller {controller!r}: use open_loop, rom_lqg or oracle_lqg")
     s = design.scenario
@@ -61,15 +67,18 @@ def simulate(design: Design, controller: str, seed: int, runs: int | range | lis
     feedback = controller != "open_loop"
     kf = filter_from_schedule(lqg.A, lqg.B, lqg.C, lqg.G, lqg.L, lqg.P_post, s.w_std, s.v_std, batch=M)
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
+    n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
+    acc = MetricsAccumulator(s, design.T_nom, M)
 
-    T = np.empty((M, N + 1, s.n_x))
+    T = np.empty((n_traj, N + 1, s.n_x))
     U = np.empty((M, N, s.n_u))
     Y = np.empty((M, N + 1, s.n_y))
     T_hat = np.empty((n_keep, N + 1, s.n_x))
     covered = 0
     x = sim.initial_state(M)
     for k in range(N + 1):
-        T[:, k] = x
+        T[:, k] = x[:n_traj]
+        acc.add_state(k, x)
         Y[:, k] = sim.observe(x) + v[:, k]
         a = kf.update(k, Y[:, k] - design.y_nom[k])
         est = design.T_nom[k] + a @ lqg.G[k].T
@@ -83,10 +92,10 @@ def simulate(design: Design, controller: str, seed: int, runs: int | range | lis
         else:
             u = clip_inputs(np.broadcast_to(design.u_nom[k], (M, s.n_u)), s)
         U[:, k] = u
+        acc.add_input(k, u)
         x = sim.step(x, u, w[:, k])
         kf.predict(k, u - design.u_nom[k])
     coverage = covered / (M * N * s.n_x)
-    return MonteCarloResult(controller, T, U, Y, T_hat, lqg.field_std.copy(), coverage)
-
-
-__all__ = ["MonteCarloResult", "simulate", "coverage_2sigma"]
+    summary = acc.result({"coverage_2sigma": coverage})
+    return MonteCarloResult(controller, T, U, Y, T_hat, lqg.field_std.copy(), acc.mean_traj, coverage,
+                            summary)
