@@ -86,8 +86,6 @@ def test_design_missing_scenario_file(tmp_path, capsys):
     assert code not in (0, None) and "nope.yaml" in err and "not found" in err
 
 
-@pytest.mark.xfail(strict=True, reason="library bug: load_scenario lets UnicodeDecodeError escape for a "
-                                        "non-UTF-8 file, so `design` dies with a traceback")
 def test_design_binary_scenario_file(tmp_path, capsys):
     """A design file passed as --scenario by mistake: a clean error, not a traceback."""
     p = tmp_path / "design.npz"

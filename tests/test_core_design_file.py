@@ -17,13 +17,6 @@ from sep_plant.scenario import Scenario
 SCENARIO = Scenario(n_x=8, n_steps=5, k_band=3, lqr_k_switch=2, u_min=-2.0, u_max=math.inf, dt=0.5)
 N_R, N_SV = 3, 4
 
-# Known library bugs (reported; strict xfail until fixed):
-BUG_LOAD_EXC = pytest.mark.xfail(strict=True, reason=(
-    "library bug: load_design lets zlib.error, NotImplementedError, RuntimeError (encrypted flag), "
-    "tokenize.TokenError, MemoryError and TypeError (plain .npy) escape instead of DesignFileError"))
-BUG_META_OVERRIDE = pytest.mark.xfail(strict=True, reason=(
-    "library bug: save_design writes {format, version, n_r, **d.meta}, so the stale n_r/format/version "
-    "that load_design leaves in Design.meta override the real ones"))
 
 
 def synthetic_design(s: Scenario = SCENARIO, seed: int = 0) -> Design:
@@ -170,7 +163,6 @@ def test_truncated_at_every_length_refused(design_path, tmp_path):
         refused(p)
 
 
-@BUG_LOAD_EXC
 def test_flipped_bytes_refused_or_harmless(design_path, tmp_path):
     """Flip bytes all over the file (headers, compressed data, central directory): the loader
     either refuses with DesignFileError or, where the flipped byte is unprotected metadata (a
@@ -212,7 +204,6 @@ def central_directory_entry(raw: bytes, name: str) -> int:
     raise AssertionError(f"{name} not in the central directory")
 
 
-@BUG_LOAD_EXC
 @pytest.mark.parametrize("member", ["A.npy", "meta.npy", "rom_dims.npy"])
 def test_flipped_byte_in_compressed_data_refused(design_path, tmp_path, member):
     """A flip inside the deflate stream of one member: depending on where it lands, an invalid
@@ -228,8 +219,8 @@ def test_flipped_byte_in_compressed_data_refused(design_path, tmp_path, member):
 
 
 @pytest.mark.parametrize("field,value", [
-    pytest.param(10, 99, marks=BUG_LOAD_EXC), (10, 14), pytest.param(8, 0x01, marks=BUG_LOAD_EXC),
-    pytest.param(8, 0x20, marks=BUG_LOAD_EXC), pytest.param(8, 0x40, marks=BUG_LOAD_EXC)])
+    (10, 99), (10, 14), (8, 0x01),
+    (8, 0x20), (8, 0x40)])
 def test_unsupported_zip_features_refused(design_path, tmp_path, field, value):
     """Central-directory compression method (10) or flags (8) that zipfile cannot handle:
     an unknown method, LZMA, encryption, compressed patched data, strong encryption (zipfile raises
@@ -250,7 +241,6 @@ def test_random_bytes_refused(tmp_path, seed, prefix):
     refused(p)
 
 
-@BUG_LOAD_EXC
 def test_plain_npy_file_refused(tmp_path):
     """A single-array .npy (np.load returns an ndarray, not an archive)."""
     p = tmp_path / "array.npz"
@@ -398,9 +388,8 @@ def _npy_bytes(header: str, data: bytes = b"") -> bytes:
 
 
 @pytest.mark.parametrize("header", [
-    pytest.param("{'descr': '<f8', 'fortran_order': False, 'shape': (1099511627776,), }",   # 8 TiB claimed
-                 marks=BUG_LOAD_EXC),
-    pytest.param("{'descr': '<f8', 'fortran_order': False, 'shape': (3,", marks=BUG_LOAD_EXC),   # unbalanced
+    "{'descr': '<f8', 'fortran_order': False, 'shape': (1099511627776,), }",   # 8 TiB claimed
+    "{'descr': '<f8', 'fortran_order': False, 'shape': (3,",   # unbalanced
     "{'descr': '<f8', 'fortran_order': False, 'shape': (-3,), }",
     "{'descr': '|O', 'fortran_order': False, 'shape': (3,), }",
     "{'descr': __import__('os').getcwd(), 'fortran_order': False, 'shape': (3,), }",
@@ -421,7 +410,6 @@ def test_crafted_npy_headers_refused(design_path, tmp_path, header, member):
     refused(p)
 
 
-@BUG_META_OVERRIDE
 def test_a_loaded_design_with_a_new_rom_saves_and_loads(tmp_path):
     """Load a design, replace its ROM by one of another order (what `with_rom` does for the
     n_r sweep), save it again: the file must describe the new ROM, not the loaded meta's n_r."""

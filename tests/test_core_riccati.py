@@ -275,8 +275,6 @@ def test_output_weights_and_command():
     np.testing.assert_array_equal(command(u0, K, a * 100, -1.0, 2.0), np.clip(u0 + 100 * a @ K.T, -1.0, 2.0))
 
 
-@pytest.mark.xfail(strict=True, reason="library bug: RomKalmanFilter.predict does not advance self.P while on "
-                                        "schedule, so field_std() before the update uses P_{k-1|k-1}")
 def test_field_std_between_predict_and_update_is_the_prior_std():
     """After predict(k-1) the estimate is a_{k|k-1}: its field std is sqrt(diag(G_k P_{k|k-1} G_k')),
     on schedule as well as off it (the covariance must follow the estimate it describes)."""

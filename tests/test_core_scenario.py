@@ -10,10 +10,6 @@ from sep_plant.scenario import PLANT_KEYS, Scenario, ScenarioError, load_scenari
 REPO = Path(__file__).resolve().parent.parent
 REFERENCE_YAML = REPO / "sep_plant" / "scenarios" / "reference.yaml"
 
-BUG_NON_UTF8 = pytest.mark.xfail(strict=True, reason="library bug: load_scenario lets UnicodeDecodeError "
-                                   "escape for a non-UTF-8 file (read_text outside the try)")
-BUG_KEY_SORT = pytest.mark.xfail(strict=True, reason="library bug: Scenario.from_dict sorts unknown keys of mixed "
-                                 "types (int and str) and raises TypeError")
 
 
 def write(tmp_path, text, name="scenario.yaml"):
@@ -172,7 +168,6 @@ def test_derived_grid_quantities():
     assert s.heater_labels() == [f"heater_{j}" for j in range(5)]
 
 
-@BUG_NON_UTF8
 def test_binary_file_is_a_scenario_error(tmp_path):
     """A file that is not UTF-8 text (e.g. a design .npz passed as --scenario by mistake)."""
     p = tmp_path / "design.npz"
@@ -181,7 +176,6 @@ def test_binary_file_is_a_scenario_error(tmp_path):
         load_scenario(p)
 
 
-@BUG_KEY_SORT
 def test_unknown_keys_of_mixed_types_are_named(tmp_path):
     p = write(tmp_path, "1: 2\nfoo: 3\nn_x: 40\n")
     with pytest.raises(ScenarioError) as exc:

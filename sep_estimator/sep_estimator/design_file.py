@@ -88,8 +88,8 @@ def save_design(path: str | Path, d: Design) -> Path:
         arr = getattr(d, name)
         if arr.shape != shape:
             raise ValueError(f"design array {name} has shape {arr.shape}, expected {shape}")
-    meta = {"format": FORMAT, "version": VERSION, "scenario": json.loads(d.scenario.to_json()),
-            "n_r": d.n_r, **d.meta}
+    meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": json.loads(d.scenario.to_json()),
+            "n_r": d.n_r}
     arrays = {name: np.ascontiguousarray(getattr(d, name)) for name in expect}
     arrays["rom_dims"] = arrays["rom_dims"].astype(np.int64)
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
@@ -107,6 +107,7 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     if not path.is_file():
         raise DesignFileError(f"design file not found: {path} (create one with `design --out {path}`)")
     try:
+        _check_members(path)
         with np.load(path, allow_pickle=False) as z:
             names = set(z.files)
             if "meta" not in names:
@@ -114,7 +115,7 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
             raw = {name: z[name] for name in names}   # reading each member checks its CRC
     except DesignFileError:
         raise
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
+    except Exception as exc:  # zlib, zipfile, numpy header parsing: all mean "corrupt"
         raise DesignFileError(f"{path}: corrupt or not a design file ({type(exc).__name__}: {exc}); "
                               "re-run `design` to regenerate it") from None
     try:
@@ -152,6 +153,28 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     if expect_scenario is not None:
         check_matches(design, expect_scenario, str(path))
     return design
+
+
+def _check_members(path: Path) -> None:
+    """Refuse before numpy allocates anything: every member must be an .npy array whose header
+    declares no more bytes than the member holds, and no object dtype (pickles)."""
+    if not zipfile.is_zipfile(path):
+        raise DesignFileError(f"{path}: not a design file (not an .npz archive)")
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                else:
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            if dtype.hasobject:
+                raise DesignFileError(f"{path}: member {info.filename} holds Python objects; refused "
+                                      "(design files never contain pickles)")
+            need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+            if need > info.file_size:
+                raise DesignFileError(f"{path}: member {info.filename} declares {need} bytes but holds "
+                                      f"{info.file_size}: corrupt file")
 
 
 def check_matches(design: Design, plant: Scenario, where: str = "design file") -> None:

@@ -112,7 +112,9 @@ class RomKalmanFilter:
         """Time update from k to k+1 with the applied input deviation du_k, (M, n_u) or (n_u,)."""
         self._expect(k, posterior=True)
         self.a = self.a @ self.A[k].T + np.atleast_2d(du) @ self.B[k].T
-        if not self.on_schedule:
+        if self.on_schedule:
+            self.P = self.P_prior_sched[k + 1]
+        else:
             self.P = _predict(self.P, self.A[k], self.B[k], self.W)
         self.k, self.posterior = k + 1, False
         return self.a

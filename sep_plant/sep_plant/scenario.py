@@ -143,7 +143,7 @@ class Scenario:
         if not isinstance(data, Mapping):
             raise ScenarioError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
         known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(data) - set(known))
+        unknown = sorted(set(data) - set(known), key=str)
         if unknown:
             raise ScenarioError(f"{source}: unknown key(s) {unknown}; known keys: {sorted(known)}")
         kwargs: dict[str, Any] = {}
@@ -195,9 +195,11 @@ def load_scenario(path: str | Path | None) -> Scenario:
     if not p.is_file():
         raise ScenarioError(f"scenario file not found: {p}")
     try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"{p}: not valid YAML: {exc}") from None
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{p}: not a YAML scenario file: {exc}") from None
+    except OSError as exc:
+        raise ScenarioError(f"{p}: cannot read: {exc}") from None
     if data is None:
         data = {}
     if isinstance(data, Mapping) and "scenario" in data and len(data) == 1:
