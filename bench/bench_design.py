@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 from sep_control.design import DesignSettings, run_design
 from sep_control.metrics import format_table
 from sep_control.montecarlo import simulate
-from sep_control.optimize import nominal_rollout
+from sep_control.optimize import nominal_rollout, optimize
 from sep_control.oracle import oracle_lqg
 from sep_plant.scenario import Scenario
 from sep_plant.slab import SlabSimulator
@@ -40,6 +40,8 @@ def main() -> None:
     ap.add_argument("--runs-large", type=int, default=200, help="runs per controller on larger grids")
     ap.add_argument("--oracle-max-nx", type=int, default=400)
     ap.add_argument("--threads", type=int, default=1, help="BLAS threads for the main table")
+    ap.add_argument("--gd-iter", type=int, default=60,
+                    help="gradient-descent iterations in the GN vs GD comparison (0: skip)")
     args = ap.parse_args()
 
     rows = {}
@@ -88,6 +90,20 @@ def main() -> None:
     print("\nQuality at each grid")
     print(format_table(rows, ["in_band_rom", "in_band_open", "rom/oracle_cost", "J_mean_only", "J_nominal",
                               "Jb_before", "Jb_after"]))
+
+    if 100 in args.grids and args.gd_iter > 0:
+        s = Scenario()
+        sim = SlabSimulator(s)
+        opt_rows = {}
+        with threadpool_limits(args.threads):
+            for method, iters in (("gn", None), ("gd", args.gd_iter)):
+                r, t = timed(optimize, sim, s, method=method, max_iter=iters, show_progress=False)
+                opt_rows[method] = {"iterations": r.iterations, "cost": r.cost, "seconds": t,
+                                    "experiments": r.experiments}
+        for r in opt_rows.values():
+            r["cost/gn_cost"] = r["cost"] / opt_rows["gn"]["cost"]
+        print("\nMean-only optimizer at n_x = 100 from u = 0.1: Gauss-Newton/LM vs gradient descent")
+        print(format_table(opt_rows, ["iterations", "experiments", "cost", "cost/gn_cost", "seconds"]))
 
     if 100 in args.grids:
         s = Scenario()
