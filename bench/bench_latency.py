@@ -53,11 +53,12 @@ def pct(a) -> dict:
 
 
 # ------------------------------------------------------------------------- ping-pong
-def pong_main() -> int:
+def pong_main(executor: str) -> int:
     import rclpy
     from rclpy.node import Node
 
     from sep_plant import contract as c
+    from sep_plant.node_util import make_executor
 
     rclpy.init()
     node = Node('pong')
@@ -72,26 +73,30 @@ def pong_main() -> int:
         pub.publish(out)
 
     node.create_subscription(c.TOPIC_TYPES[c.MEASUREMENTS], 'bench_ping', on_ping, c.LOOP_QOS)
+    ex = make_executor(executor)
+    ex.add_node(node)
     try:
-        rclpy.spin(node)
+        while rclpy.ok():
+            ex.spin_once(timeout_sec=0.5)
     except (KeyboardInterrupt, Exception):  # noqa: BLE001 - killed by the parent
         pass
     return 0
 
 
-def ping_pong(n: int, env: dict) -> dict:
+def ping_pong(n: int, env: dict, executor: str, period: float = 0.0) -> dict:
+    """Round trips back to back (period 0, like lockstep) or one every `period` seconds."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
     from sep_plant import contract as c
+    from sep_plant.node_util import make_executor
 
-    pong = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), '--pong'], env=env,
-                            start_new_session=True)
+    pong = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), '--pong', executor],
+                            env=env, start_new_session=True)
     try:
         rclpy.init()
         node = Node('ping')
-        ex = SingleThreadedExecutor()
+        ex = make_executor(executor)
         ex.add_node(node)
         got = {}
         pub = node.create_publisher(c.TOPIC_TYPES[c.MEASUREMENTS], 'bench_ping', c.LOOP_QOS)
@@ -105,7 +110,11 @@ def ping_pong(n: int, env: dict) -> dict:
         ex.spin_once(timeout_sec=0.5)
         rtt = []
         y = np.linspace(149, 151, 5)
+        t_start = time.perf_counter()
         for k in range(n + 50):
+            if period:
+                while time.perf_counter() < t_start + k * period:
+                    ex.spin_once(timeout_sec=max(0.0, t_start + k * period - time.perf_counter()))
             t0 = time.perf_counter()
             pub.publish(c.joint_state(k, 0.25, sensors, position=y))
             while k not in got and time.perf_counter() - t0 < 2.0:
@@ -122,14 +131,15 @@ def ping_pong(n: int, env: dict) -> dict:
 
 # ------------------------------------------------------------------------ plant <-> lqg
 def loop_round_trip(design_file: Path, scenario_file: Path | None, env: dict, mode: str,
-                    tmp: Path) -> dict:
-    summary = tmp / f'plant_{mode}.json'
+                    tmp: Path, executor: str) -> dict:
+    summary = tmp / f'plant_{mode}_{executor}.json'
     scen = ['-p', f'scenario_file:={scenario_file}'] if scenario_file else []
-    lqg = subprocess.Popen([sys.executable, '-m', 'sep_control.lqg_node', '--ros-args',
+    lqg = subprocess.Popen([sys.executable, '-m', 'sep_control.lqg_node', '--executor', executor, '--ros-args',
                             '-p', f'design_file:={design_file}'], env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        rc = subprocess.run([sys.executable, '-m', 'sep_plant.plant_node', '--summary-json', str(summary),
+        rc = subprocess.run([sys.executable, '-m', 'sep_plant.plant_node', '--executor', executor,
+                             '--summary-json', str(summary),
                              '--ros-args', *scen, '-p', f'mode:={mode}', '-p', 'real_time_factor:=10.0',
                              '-p', 'publish_field:=true'], env=env, capture_output=True, text=True,
                             timeout=300).returncode
@@ -206,10 +216,10 @@ def main(argv=None) -> int:
     ap.add_argument('--pings', type=int, default=500, help='ping-pong round trips')
     ap.add_argument('--no-realtime', action='store_true', help='skip the 6.25 s real-time episode')
     ap.add_argument('--json', type=Path, help='write the results as JSON')
-    ap.add_argument('--pong', action='store_true', help=argparse.SUPPRESS)
+    ap.add_argument('--pong', choices=('events', 'single'), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.pong:
-        return pong_main()
+        return pong_main(args.pong)
     env = _env()
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
     from sep_estimator.design_file import load_design, save_design
@@ -229,28 +239,34 @@ def main(argv=None) -> int:
 
     print(f'ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}')
     res = {}
-    res['ping_pong_before'] = ping_pong(args.pings, env)
-    res['loop_lockstep'] = loop_round_trip(design_file, args.scenario, env, 'lockstep', tmp)
+    period = scenario.dt / 10.0
+    for ex in ('events', 'single'):
+        res[f'ping_pong_{ex}'] = ping_pong(args.pings, env, ex)
+        res[f'loop_lockstep_{ex}'] = loop_round_trip(design_file, args.scenario, env, 'lockstep', tmp, ex)
     if not args.no_realtime:
-        res['loop_realtime_rtf10'] = loop_round_trip(design_file, args.scenario, env, 'realtime', tmp)
-    res['ping_pong_after'] = ping_pong(args.pings, env)
-    pp = {'p50': min(res['ping_pong_before']['p50'], res['ping_pong_after']['p50']),
-          'p99': min(res['ping_pong_before']['p99'], res['ping_pong_after']['p99'])}
+        res['ping_pong_paced_events'] = ping_pong(min(args.pings, 250), env, 'events', period)
+        res['loop_realtime_rtf10_events'] = loop_round_trip(design_file, args.scenario, env, 'realtime',
+                                                            tmp, 'events')
+    res['ping_pong_events_after'] = ping_pong(args.pings, env, 'events')
     res['compute'] = compute_threads(design)
 
-    print('\nmeasurement -> command round trip (wall clock, this machine)')
-    print(f"{'':34s} {'p50':>11s} {'p99':>11s}  {'p50/ping':>8s} {'p99/ping':>8s}")
-    rows = [('bare rclpy ping-pong (before)', res['ping_pong_before']),
-            ('bare rclpy ping-pong (after)', res['ping_pong_after']),
-            ('plant <-> lqg, lockstep', res['loop_lockstep'])]
-    if 'loop_realtime_rtf10' in res:
-        rows.append(('plant <-> lqg, realtime rtf 10', res['loop_realtime_rtf10']))
-    for name, r in rows:
-        print(f"{name:34s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}  "
-              f"{r['p50'] / pp['p50']:8.2f} {r['p99'] / pp['p99']:8.2f}")
-    for key in ('loop_lockstep', 'loop_realtime_rtf10'):
-        if key in res:
-            print(f"  {key}: deadline misses {res[key]['deadline_misses']}, max {fmt(res[key]['max'])}")
+    print('\nmeasurement -> command round trip (wall clock, this machine); ratios against the bare')
+    print('ping-pong with the same executor and the same pacing')
+    print(f"{'':44s} {'p50':>11s} {'p99':>11s}  {'p50/ping':>8s} {'p99/ping':>8s}")
+    rows = [('bare ping-pong, EventsExecutor', 'ping_pong_events', 'ping_pong_events'),
+            ('bare ping-pong, EventsExecutor (again)', 'ping_pong_events_after', 'ping_pong_events'),
+            ('plant <-> lqg lockstep, EventsExecutor', 'loop_lockstep_events', 'ping_pong_events'),
+            ('bare ping-pong, SingleThreadedExecutor', 'ping_pong_single', 'ping_pong_single'),
+            ('plant <-> lqg lockstep, SingleThreaded', 'loop_lockstep_single', 'ping_pong_single')]
+    if not args.no_realtime:
+        rows += [('bare ping-pong every 25 ms, Events', 'ping_pong_paced_events', 'ping_pong_paced_events'),
+                 ('plant <-> lqg realtime rtf 10, Events', 'loop_realtime_rtf10_events', 'ping_pong_paced_events')]
+    for name, key, base in rows:
+        r, b = res[key], res[base]
+        print(f"{name:44s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}  "
+              f"{r['p50'] / b['p50']:8.2f} {r['p99'] / b['p99']:8.2f}")
+    for key in [k for k in res if k.startswith('loop_')]:
+        print(f"  {key}: deadline misses {res[key]['deadline_misses']}, max {fmt(res[key]['max'])}")
     cp = res['compute']
     print('\nper-step compute of estimator + LQR (pure calls; reference design, n_r = '
           f'{design.n_r}, n_x = {scenario.n_x})')
@@ -262,7 +278,7 @@ def main(argv=None) -> int:
         r = cp[key[0]][key[1]]
         print(f"{label:52s} {fmt(r['mean']):>11s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}")
     print(f"  thread pools: {', '.join(cp['pools'])}")
-    ratio = res['loop_lockstep']['p50'] / pp['p50']
+    ratio = res['loop_lockstep_events']['p50'] / res['ping_pong_events']['p50']
     print(f"\ntarget round trip <= 1.5x ping-pong: lockstep p50 ratio {ratio:.2f} -> "
           f"{'met' if ratio <= 1.5 else 'NOT met'}; target compute < 50 us: "
           f"{fmt(cp['blas_1']['core']['p50'])} -> {'met' if cp['blas_1']['core']['p50'] < 50e-6 else 'NOT met'}")

@@ -85,6 +85,9 @@ class EstimatorNode(DesignedNode):
         self.nis_n = 0
         self.compute_s: list[float] = []
         self._prior = None
+        # innovation covariance inverses S_k^-1 = (C_k P_{k|k-1} C_k' + V)^-1 of the schedule (NIS)
+        C, Pp = d.C, self.kf.P_prior_sched
+        self.S_inv = np.linalg.inv(C @ Pp @ C.transpose(0, 2, 1) + self.v_var * np.eye(self.s.n_y))
 
         self.pub_est = node.create_publisher(c.TOPIC_TYPES[c.STATE_ESTIMATE], c.STATE_ESTIMATE, c.LOOP_QOS)
         self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE], c.FIELD_ESTIMATE, c.FIELD_QOS)
@@ -199,8 +202,7 @@ class EstimatorNode(DesignedNode):
             self.n_skipped += 1
             self._prior = None
         else:
-            self._prior = (k, self.kf.a.copy(), self.kf.P_prior_sched[k] if self.kf.on_schedule
-                           else self.kf.P.copy(), y)
+            self._prior = (k, self.kf.a.copy(), None if self.kf.on_schedule else self.kf.P.copy(), y)
             a = self.kf.update(k, y - self.design.y_nom[k])
             self.meas_kind[k] = 'update'
             self.n_updates += 1
@@ -230,8 +232,11 @@ class EstimatorNode(DesignedNode):
         self._prior = None
         C = self.design.C[k]
         innov = y - self.design.y_nom[k] - C @ a[0]
-        S = C @ P @ C.T + self.v_var * np.eye(C.shape[0])
-        val = float(innov @ np.linalg.solve(S, innov))
+        if P is None:                                   # on schedule: precomputed S_k^-1
+            val = float(innov @ self.S_inv[k] @ innov)
+        else:
+            S = C @ P @ C.T + self.v_var * np.eye(C.shape[0])
+            val = float(innov @ np.linalg.solve(S, innov))
         self.nis.append(val)
         self.nis_sum += val
         self.nis_n += 1

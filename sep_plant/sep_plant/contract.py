@@ -228,11 +228,11 @@ def field_cloud(k: int, dt: float, x: np.ndarray, temperature: np.ndarray,
                 std: np.ndarray | None = None) -> PointCloud2:
     """The fixed-layout PointCloud2 of a field at step k (std None -> zeros, the true field)."""
     n = x.shape[0]
-    buf = np.zeros((n, len(CLOUD_FIELDS)), dtype=_CLOUD_DTYPE)
+    buf = np.empty((n, len(CLOUD_FIELDS)), dtype=_CLOUD_DTYPE)
     buf[:, 0] = x
+    buf[:, 1:3] = 0.0
     buf[:, 3] = np.ravel(temperature)
-    if std is not None:
-        buf[:, 4] = np.ravel(std)
+    buf[:, 4] = 0.0 if std is None else np.ravel(std)
     msg = PointCloud2()
     msg.header = header(k, dt)
     msg.height = 1
