@@ -1,0 +1,152 @@
+"""Unit tests of the pure message gate (sep_plant.gate) and the topic contract's message
+builders/parsers (sep_plant.contract: stamps, fixed PointCloud2 layout, diagnostics)."""
+import math
+
+import numpy as np
+import pytest
+
+from sep_plant import gate
+
+NAMES = ['sensor_0', 'sensor_1', 'sensor_2']
+
+
+def test_check_vector_accepts_and_reorders():
+    v, rej = gate.check_vector(NAMES, [1.0, 2.0, 3.0], NAMES)
+    assert rej is None and v.tolist() == [1.0, 2.0, 3.0]
+    v, rej = gate.check_vector(['sensor_2', 'sensor_0', 'sensor_1'], [3.0, 1.0, 2.0], NAMES)
+    assert rej is None and v.tolist() == [1.0, 2.0, 3.0]
+
+
+@pytest.mark.parametrize('names,values,category', [
+    (NAMES, [1.0, math.nan, 3.0], gate.NON_FINITE),
+    (NAMES, [1.0, 2.0, -math.inf], gate.NON_FINITE),
+    (NAMES[:2], [1.0, 2.0], gate.WRONG_LENGTH),
+    (NAMES, [1.0, 2.0, 3.0, 4.0], gate.WRONG_LENGTH),
+    (['sensor_0', 'sensor_1', 'heater_9'], [1.0, 2.0, 3.0], gate.UNKNOWN_NAMES),
+    (['sensor_0', 'sensor_0', 'sensor_1'], [1.0, 2.0, 3.0], gate.BAD_NAMES),
+    ([], [1.0, 2.0, 3.0], gate.BAD_NAMES),
+])
+def test_check_vector_rejects(names, values, category):
+    v, rej = gate.check_vector(names, values, NAMES, 'measurement')
+    assert v is None and rej.category == category and 'measurement' in rej.detail
+
+
+def test_step_of_stamp_grid_and_tolerance():
+    dt = 250_000_000
+    assert gate.step_of_stamp(0, dt) == (0, None)
+    assert gate.step_of_stamp(250 * dt, dt) == (250, None)
+    assert gate.step_of_stamp(7 * dt + dt // 200, dt)[0] == 7          # within 1 %
+    k, rej = gate.step_of_stamp(7 * dt + dt // 2, dt)
+    assert k is None and rej.category == gate.BAD_STAMP
+    assert gate.step_of_stamp(-dt, dt)[1].category == gate.BAD_STAMP
+
+
+def test_check_step_order():
+    assert gate.check_step(5, expected=5, last=4, allow_ahead=False) is None
+    assert gate.check_step(5, expected=5, last=5, allow_ahead=True).category == gate.DUPLICATE
+    assert gate.check_step(3, expected=6, last=5, allow_ahead=True).category == gate.STALE
+    assert 'out of order' in gate.check_step(3, expected=6, last=5, allow_ahead=True).detail
+    assert gate.check_step(4, expected=5, last=-1, allow_ahead=True).category == gate.STALE
+    assert gate.check_step(8, expected=5, last=4, allow_ahead=True) is None          # gap: allowed
+    assert gate.check_step(8, expected=5, last=4, allow_ahead=False).category == gate.AHEAD
+    assert gate.check_horizon(11, 10).category == gate.BEYOND_HORIZON
+    assert gate.check_horizon(10, 10) is None
+
+
+def test_rejection_log_and_chi2():
+    log = gate.RejectionLog()
+    log.add(gate.Rejection(gate.STALE, 'a'))
+    log.add(gate.Rejection(gate.STALE, 'b'))
+    log.add(gate.Rejection(gate.NON_FINITE, 'c'))
+    assert log.total == 3 and log.as_dict() == {'non_finite': 1, 'stale': 2}
+    assert str(log.last) == 'non_finite: c'
+    lo, hi = gate.chi2_interval(5, 50, 0.99)
+    assert lo < 5 < hi and hi - 5 == pytest.approx(5 - lo)
+    # the mean of 50 chi2(5) samples falls inside the 99 % interval in ~99 % of trials
+    rng = np.random.default_rng(0)
+    means = rng.chisquare(5, (2000, 50)).mean(axis=1)
+    assert 0.97 < np.mean((means >= lo) & (means <= hi)) <= 1.0
+
+
+def test_gate_module_is_pure():
+    import ast
+    import inspect
+    tree = ast.parse(inspect.getsource(gate))
+    mods = {n.names[0].name.split('.')[0] for n in ast.walk(tree) if isinstance(n, ast.Import)}
+    mods |= {n.module.split('.')[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    assert not mods & {'rclpy', 'sensor_msgs', 'std_msgs', 'diagnostic_msgs'}, mods
+
+
+# ------------------------------------------------------------------------ contract
+c = pytest.importorskip('sep_plant.contract')
+
+
+def test_stamps_are_integer_nanoseconds_without_drift():
+    dt = 0.1       # not exact in binary
+    assert c.stamp_ns(10**6, dt) == 10**6 * 100_000_000
+    t = c.stamp(250, 0.25)
+    assert (t.sec, t.nanosec) == (62, 500_000_000)
+    for k in (0, 1, 149, 150, 250, 10**6):
+        assert c.step_of_stamp(c.stamp(k, dt), dt) == k
+    assert c.step_of_stamp(c.stamp_ns(3, 0.25) + 125_000_000, 0.25) is None
+    h = c.header(3, 0.25)
+    assert h.frame_id == 'slab' and (h.stamp.sec, h.stamp.nanosec) == (0, 750_000_000)
+
+
+def test_joint_state_builder():
+    m = c.joint_state(4, 0.25, ['heater_0', 'heater_1'], effort=np.array([1.5, -2.0]))
+    assert list(m.name) == ['heater_0', 'heater_1'] and list(m.effort) == [1.5, -2.0]
+    assert len(m.position) == 0 and c.step_of_stamp(m.header.stamp, 0.25) == 4
+
+
+def test_point_cloud_layout_fixed_and_decodable_without_ros():
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    x = np.arange(7) / 7.0
+    T = 150.0 + np.arange(7)
+    std = 0.1 * np.arange(7)
+    m = c.field_cloud(12, 0.25, x, T, std)
+    assert (m.height, m.width, m.point_step, m.row_step) == (1, 7, 40, 280)
+    assert m.is_dense and not m.is_bigendian and m.header.frame_id == 'slab'
+    assert [(f.name, f.offset, f.datatype, f.count) for f in m.fields] == [
+        ('x', 0, PointField.FLOAT64, 1), ('y', 8, 8, 1), ('z', 16, 8, 1),
+        ('temperature', 24, 8, 1), ('temperature_std', 32, 8, 1)]
+    # an independent reader: numpy structured dtype on the raw bytes
+    m2 = deserialize_message(serialize_message(m), PointCloud2)
+    rec = np.frombuffer(bytes(m2.data), dtype=np.dtype([(n, '<f8') for n in c.CLOUD_FIELDS]))
+    np.testing.assert_array_equal(rec['x'], x)
+    np.testing.assert_array_equal(rec['temperature'], T)
+    np.testing.assert_array_equal(rec['temperature_std'], std)
+    assert not rec['y'].any() and not rec['z'].any()
+    parsed = c.parse_field_cloud(m2)
+    np.testing.assert_array_equal(parsed['temperature'], T)
+    truth = c.parse_field_cloud(c.field_cloud(0, 0.25, x, T))
+    assert not truth['temperature_std'].any()
+    m2.fields[3].datatype = PointField.FLOAT32
+    with pytest.raises(c.CloudLayoutError):
+        c.parse_field_cloud(m2)
+
+
+def test_diagnostics_builder():
+    arr = c.diagnostics(c.stamp(3, 0.25), [c.Health(name='/slab/plant', level=c.WARN, message='2 misses',
+                                                    values={'deadline_misses': 2, 'ok': True,
+                                                            'by': {'stale': 1}, 'x': 0.5})])
+    st = arr.status[0]
+    assert st.name == '/slab/plant' and st.message == '2 misses' and c.level_of(st) == c.WARN
+    assert c.diagnostic_values(st) == {'deadline_misses': '2', 'ok': 'true', 'by': '{"stale": 1}', 'x': '0.5'}
+
+
+def test_scenario_roundtrip_and_topic_names():
+    from sep_plant.scenario import Scenario
+    s = Scenario(n_x=20, u_max=5.0)
+    assert c.parse_scenario(c.scenario_msg(s)) == s
+    topics = c.all_topics()
+    assert topics['/slab/measurements'] == 'sensor_msgs/msg/JointState'
+    assert topics['/slab/field'] == 'sensor_msgs/msg/PointCloud2'
+    assert topics['/clock'] == 'rosgraph_msgs/msg/Clock' and '/diagnostics' in topics
+    assert c.topic('heat_command', 'other') == '/other/heat_command'
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    assert c.SCENARIO_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert all(c.TOPIC_QOS[t].reliability == ReliabilityPolicy.RELIABLE
+               for t in (c.MEASUREMENTS, c.HEAT_COMMAND, c.HEAT_APPLIED, c.STATE_ESTIMATE))
