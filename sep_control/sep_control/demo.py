@@ -195,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
                       '-p', f'real_time_factor:={args.rtf}', '-p', f'seed:={args.seed}',
                       '-p', f'run:={args.run}', '-p', f'summary_file:={files["plant"]}',
                       '-p', f'trajectory_file:={traj}',
-                      '-p', f'wait_for_subscribers:={3 if args.three else 1}',
+                      # estimator (+ lqr's watchdog) (+ recorder) must hear step 0
+                      '-p', f'wait_for_subscribers:={(2 if args.three else 1) + (1 if record else 0)}',
                       '-p', f'wait_for_field_subscribers:={1 if record else 0}']
         if scenario_file:
             plant_args += ['-p', f'scenario_file:={scenario_file}']
