@@ -254,7 +254,7 @@ def test_corrupt_or_missing_design_refused(launcher, other_files, tmp_path, case
     rc = p.wait(30)
     out = p.output()
     assert rc == 2, out
-    assert {'corrupt': 'corrupt or not a design file', 'missing': 'design file not found',
+    assert {'corrupt': 'not a design file', 'missing': 'design file not found',
             'absent': 'design_file is required'}[case] in out
 
 

@@ -260,7 +260,10 @@ def episode_metrics(design, traj: Path, files: dict, three: bool) -> dict:
                 'rejected_messages': plant['rejected_messages'] + est['rejected_messages'] + lqr['rejected_messages'],
                 'latency_p50_s': plant['latency_p50_s'], 'latency_p99_s': plant['latency_p99_s'],
                 'lqr_fallbacks': lqr['fallbacks'], 'wall_s': plant['wall_s'], 'nis_mean': est.get('nis_mean'),
-                'estimator_compute_p50_s': est.get('compute_p50_s')})
+                'estimator_compute_p50_s': est.get('compute_p50_s'),
+                'rejected_by_node': {'plant': plant.get('rejected_by_reason', {}),
+                                     'estimator': est.get('rejected_by_reason', {}),
+                                     'lqr': lqr.get('rejected_by_reason', {})}})
     return out
 
 
