@@ -96,6 +96,7 @@ class BagSink:
         self.last_msg: float | None = None
         self.final_seen: float | None = None  # monotonic time the final step's measurement arrived
         self.n_steps: int | None = None
+        self.last_meas_ns = -1                # latest measurement stamp seen
         self.dt_ns: int | None = None
         self.final_topic = topic_name("measurements")
         self.scenario_topic = topic_name("scenario")
@@ -165,11 +166,13 @@ class BagSink:
                     self.last_msg = now
                     if topic == self.scenario_topic:
                         self._note_scenario(data)
-                    elif topic == self.final_topic and self.n_steps is not None and self.final_seen is None:
-                        if len(data) >= 12:
-                            sec, nsec = struct.unpack_from("<iI", data, 4)
-                            if round((sec * 1_000_000_000 + nsec) / self.dt_ns) >= self.n_steps:
-                                self.final_seen = now
+                    elif topic == self.final_topic and len(data) >= 12:
+                        sec, nsec = struct.unpack_from("<iI", data, 4)
+                        self.last_meas_ns = max(self.last_meas_ns, sec * 1_000_000_000 + nsec)
+                    # the scenario may arrive after the final measurement (discovery order)
+                    if (self.final_seen is None and self.n_steps is not None
+                            and round(self.last_meas_ns / self.dt_ns) >= self.n_steps):
+                        self.final_seen = now
                 if dirty and self._q.empty() and time.monotonic() - last_flush >= self.flush_interval:
                     _flush(writer)
                     dirty = False
