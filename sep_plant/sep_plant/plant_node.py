@@ -4,8 +4,8 @@ Publishes /clock (simulated time k*dt), slab/measurements (y_k), slab/heat_appli
 at step k), slab/field (true field), slab/scenario (its scenario as JSON, latched) and
 /diagnostics; subscribes slab/heat_command.  One episode of N steps per process, then exit 0.
 
-Per step k = 0..N: publish y_k = h(T_k) + v_k (then /clock and the field); if k < N get the
-command u_k, apply clip(u_k), publish it on heat_applied, T_{k+1} = f(T_k, u + w_k).  The noise
+Per step k = 0..N: publish /clock and y_k = h(T_k) + v_k; if k < N get the command u_k, apply
+clip(u_k), publish it on heat_applied, publish the field T_k, T_{k+1} = f(T_k, u + w_k).  The noise
 of (seed, run) is run `run` of `noise_sequences(scenario, seed, runs)`, the numbers the offline
 Monte Carlo uses for that run, so a lockstep episode reproduces it exactly.
 
@@ -176,12 +176,18 @@ class PlantNode:
 
     # ---------------------------------------------------------------- output
     def _publish_step(self, k: int, T: np.ndarray) -> None:
+        """/clock k, then y_k: the controllers' clock reads k*dt when y_k arrives.  The field
+        (analysis only) is published later by `_publish_field`, off the measurement-to-command
+        path: serializing n_x points here would delay taking the command."""
         y = self.sim.observe(T) + self.v[k]
         self.Y[k] = y
         self.T[k] = T
-        self.t_pub[k] = steady()
-        self.pub_y.publish(c.joint_state(k, self.s.dt, self.sensors, position=y))
+        msg = c.joint_state(k, self.s.dt, self.sensors, position=y)
         self.pub_clock.publish(c.clock_msg(k, self.s.dt))
+        self.t_pub[k] = steady()
+        self.pub_y.publish(msg)
+
+    def _publish_field(self, k: int, T: np.ndarray) -> None:
         if self.p['publish_field']:
             self.pub_field.publish(c.field_cloud(k, self.s.dt, self.x_grid, T))
 
@@ -259,6 +265,7 @@ class PlantNode:
             self.k = k
             self._publish_step(k, T)
             if k == self.N:
+                self._publish_field(k, T)
                 break
             have = lambda: self.pending is not None
             if realtime:
@@ -285,6 +292,7 @@ class PlantNode:
             self.held = u_app
             self.U[k] = u_app
             self.pub_u.publish(c.joint_state(k, self.s.dt, self.heaters, effort=u_app))
+            self._publish_field(k, T)
             T = self.sim.step(T, u_app, self.w[k])
         self.k = self.N
         self.finish('completed')
