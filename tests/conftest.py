@@ -71,3 +71,14 @@ def colcon_install(tmp_path_factory) -> ColconInstall:
         pytest.fail(f'colcon build failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}')
     install = base / 'install'
     return ColconInstall(install=install, env=sourced_env(install, clean_env()))
+
+
+@pytest.fixture
+def procs():
+    """A list to append started subprocesses to; every one still running is killed afterwards."""
+    started: list[subprocess.Popen] = []
+    yield started
+    for p in started:
+        if p.poll() is None:
+            p.kill()
+        p.wait(10)

@@ -45,16 +45,6 @@ def _popen(args, cwd, name):
                             stdin=subprocess.DEVNULL)
 
 
-@pytest.fixture
-def procs():
-    started: list[subprocess.Popen] = []
-    yield started
-    for p in started:
-        if p.poll() is None:
-            p.kill()
-        p.wait(10)
-
-
 def _log(cwd, name):
     return (cwd / f"{name}.log").read_text()
 

@@ -33,16 +33,6 @@ def start_recorder(out: Path, *args: str) -> subprocess.Popen:
 
 
 @pytest.fixture
-def procs():
-    started: list[subprocess.Popen] = []
-    yield started
-    for p in started:
-        if p.poll() is None:
-            p.kill()
-        p.wait(10)
-
-
-@pytest.fixture
 def ros():
     import rclpy
     from rclpy.node import Node
