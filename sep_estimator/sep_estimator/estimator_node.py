@@ -213,7 +213,8 @@ class EstimatorNode(DesignedNode):
             self.on_estimate(k, a)
         self.pub_est.publish(c.joint_state(k, self.s.dt, self.labels, position=a))
         self.compute_s.append(steady() - t_recv)
-        if self.publish_field:
+        # the cloud is n_x points: build it only when someone listens (viewers, recorder)
+        if self.publish_field and self.pub_field.get_subscription_count() > 0:
             d = self.design
             T_hat = d.T_nom[k] + d.G[k] @ a
             std = self.kf.field_std(precomputed=d.field_std)

@@ -188,7 +188,7 @@ class PlantNode:
         self.pub_y.publish(msg)
 
     def _publish_field(self, k: int, T: np.ndarray) -> None:
-        if self.p['publish_field']:
+        if self.p['publish_field'] and self.pub_field.get_subscription_count() > 0:
             self.pub_field.publish(c.field_cloud(k, self.s.dt, self.x_grid, T))
 
     def health(self) -> c.Health:
