@@ -21,7 +21,8 @@ from threadpoolctl import threadpool_limits
 from sep_control.design import DesignSettings, run_design
 from sep_control.metrics import format_table
 from sep_control.montecarlo import simulate
-from sep_control.optimize import nominal_rollout, optimize
+from sep_control.optimize import (nominal_rollout, optimize, rom_normal_equations,
+                                  sensitivity_normal_equations)
 from sep_control.oracle import oracle_lqg
 from sep_plant.scenario import Scenario
 from sep_plant.slab import SlabSimulator
@@ -64,6 +65,10 @@ def main() -> None:
                 res, t = timed(simulate, design, c, 1, runs, oracle=oracle, keep_estimates=0, sim=sim,
                                keep_trajectories=0)
                 mc[c] = (res.metrics(design), t)
+            # one Gauss-Newton linearization at the optimum, each Jacobian
+            X = nominal_rollout(sim, design.u_nom)
+            _, t_ne_sens = timed(sensitivity_normal_equations, sim, design.u_nom, X, s)
+            _, t_ne_rom = timed(rom_normal_equations, sim, design.u_nom, s, X)
         tm = design.meta["timings"]
         t_mc = mc["rom_lqg"][1]
         row = {
@@ -73,6 +78,7 @@ def main() -> None:
             "mc_oracle_s": mc["oracle_lqg"][1] if "oracle_lqg" in mc else None,
             "design/rollout": t_design / t_roll, "mc_rom/rollout": t_mc / t_roll,
             "mc_per_run/rollout": t_mc / runs / t_roll,
+            "gn_sens_s": t_ne_sens, "gn_rom_s": t_ne_rom, "sens/rom": t_ne_sens / t_ne_rom,
             "in_band_rom": mc["rom_lqg"][0]["in_band"], "in_band_open": mc["open_loop"][0]["in_band"],
             "rom/oracle_cost": (mc["rom_lqg"][0]["cost_mean"] / mc["oracle_lqg"][0]["cost_mean"]
                                 if "oracle_lqg" in mc else None),
@@ -87,6 +93,8 @@ def main() -> None:
     print(f"\nTimes in seconds, BLAS threads = {args.threads}; ratios measured in this run")
     print(format_table(rows, ["rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "runs", "mc_open_s",
                               "mc_rom_s", "mc_oracle_s", "design/rollout", "mc_rom/rollout", "mc_per_run/rollout"]))
+    print("\nOne Gauss-Newton linearization: sensitivity Jacobian vs TV-ERA (ROM) Jacobian (design --jacobian)")
+    print(format_table(rows, ["gn_sens_s", "gn_rom_s", "sens/rom"]))
     print("\nQuality at each grid")
     print(format_table(rows, ["in_band_rom", "in_band_open", "rom/oracle_cost", "J_mean_only", "J_nominal",
                               "Jb_before", "Jb_after"]))

@@ -34,6 +34,7 @@ from .tvera import extend_nominal, impulse_experiments, rom_markov_all, tv_era
 class DesignSettings:
     """Knobs of the offline design (defaults: DESIGN.md)."""
     method: str = "gn"              # "gn" (Levenberg-Marquardt) or "gd" (paper's gradient descent)
+    jacobian: str = "sensitivity"   # "sensitivity" (N n_u experiments) or "rom" (TV-ERA model, large grids)
     belief: bool = True             # refine the mean-only optimum in belief space
     max_iter: int | None = None     # optimizer iterations (None: 10 for gn, 60 for gd)
     belief_iter: int = 2            # belief-space GN iterations after the mean-only optimum
@@ -50,6 +51,8 @@ class DesignSettings:
     def check(self) -> None:
         if self.method not in ("gn", "gd"):
             raise ValueError(f"method must be 'gn' or 'gd', got {self.method!r}")
+        if self.jacobian not in ("sensitivity", "rom"):
+            raise ValueError(f"jacobian must be 'sensitivity' or 'rom', got {self.jacobian!r}")
         for name in ("n_r", "p", "q", "ensemble"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -81,15 +84,18 @@ def run_design(s: Scenario, settings: DesignSettings | None = None, show_progres
 
     # 1. nominal trajectory --------------------------------------------------
     t0 = time.perf_counter()
+    rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse}
     opt = optimize(sim, s, method=st.method, objective="nominal", max_iter=st.max_iter,
-                   eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress)
-    log(f"mean-only {st.method}: J = {opt.cost:.6g} after {opt.iterations} iterations "
+                   eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
+                   jacobian=st.jacobian, rom=rom)
+    log(f"mean-only {st.method} ({st.jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
         f"({opt.experiments} experiments, {opt.seconds:.2f} s)")
     U, mean_only_cost = opt.U, opt.cost
     belief_hist: list[float] = []
     if st.belief:
         bopt = optimize(sim, s, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
-                        eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress)
+                        eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
+                        jacobian=st.jacobian, rom=rom)
         log(f"belief-space gn: J_b = {bopt.history[0]:.8g} -> {bopt.cost:.8g} "
             f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
         U, belief_hist = bopt.U, bopt.history

@@ -121,6 +121,44 @@ def sensitivity_normal_equations(sim: SlabSimulator, U: np.ndarray, Xbar: np.nda
     return NormalEquations(JtJ, Jtr, n, run_steps)
 
 
+def rom_normal_equations(sim: SlabSimulator, U: np.ndarray, s: Scenario, residual_field: np.ndarray,
+                         p: int = 15, q: int = 15, n_r: int = 20, sv_tol: float = 1e-10,
+                         impulse: float = 0.01) -> NormalEquations:
+    """J'J and J'r from a TV-ERA model of the field around U (the cheaper Jacobian).
+
+    The field sensitivities dT_k/du_j are taken from the identified ROM, G_k A_{k-1} ... A_{j+1} B_j,
+    instead of N n_u experiments of average length N/2: the TV-ERA experiments are 2 N n_u runs
+    of p+q steps, and the normal equations cost O(N^3 n_u^2 n_r) flops whatever n_x is:
+        M_k = [A_{k-1} M_{k-1}, B_{k-1}]   (n_r x k n_u: the state response to every past input)
+        J'J += M_k' (w_k G_k' G_k) M_k,   J'r += M_k' w_k G_k' (T_k - T*),   w_k = q_k / n_x.
+    """
+    from .tvera import extend_nominal, impulse_experiments, tv_era
+
+    N, n_u = U.shape
+    n = N * n_u
+    lags = p + q
+    X_ext = nominal_rollout(sim, extend_nominal(U, lags))
+    delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
+    data = impulse_experiments(sim, U, lags, q, delta, X_ext)
+    real = tv_era(data, N, p, q, n_r, sv_tol)
+    res = residual_field - s.t_target
+    w = s.q_weights() / s.n_x
+    JtJ = np.zeros((n, n))
+    Jtr = np.zeros(n)
+    M = np.zeros((real.A.shape[1], n))
+    for k in range(1, N + 1):
+        m = n_u * k
+        M[:, :m - n_u] = real.A[k - 1] @ M[:, :m - n_u]
+        M[:, m - n_u:m] = real.B[k - 1]
+        Gk = real.G[k]
+        Mk = M[:, :m]
+        JtJ[:m, :m] += Mk.T @ ((w[k] * (Gk.T @ Gk)) @ Mk)
+        Jtr[:m] += Mk.T @ (w[k] * (Gk.T @ res[k]))
+    JtJ[np.diag_indices(n)] += s.r_u
+    Jtr += s.r_u * U.ravel()
+    return NormalEquations(JtJ, Jtr, data.experiments, data.experiments * lags)
+
+
 # --------------------------------------------------------------- optimizer
 @dataclass
 class OptimizationResult:
@@ -137,17 +175,23 @@ class OptimizationResult:
 def optimize(sim: SlabSimulator, s: Scenario, U0: np.ndarray | None = None, method: str = "gn",
              objective: str = "nominal", max_iter: int | None = None, tol: float = 1e-7,
              eps: float = 1e-4, step_size: float = 1e-3, members: int = 200, seed: int = 0,
-             show_progress: bool = True) -> OptimizationResult:
+             show_progress: bool = True, jacobian: str = "sensitivity",
+             rom: dict | None = None) -> OptimizationResult:
     """Minimize the nominal (``objective='nominal'``) or belief-space (``'belief'``) cost.
 
     method ``gn`` (Levenberg-Marquardt) or ``gd`` (gradient descent with step `step_size`
-    and backtracking). Stops after `max_iter` iterations or when an accepted step lowers
-    the objective by less than `tol` relative.
+    and backtracking). `jacobian` ``sensitivity`` (N n_u impulse-sensitivity experiments) or
+    ``rom`` (a TV-ERA model identified at every iteration, settings `rom` passed to
+    `rom_normal_equations`; cheaper on large grids). Stops after `max_iter` iterations or when
+    an accepted step lowers the objective by less than `tol` relative. Every step is accepted
+    on the true objective, whichever Jacobian proposed it.
     """
     if method not in ("gn", "gd"):
         raise ValueError(f"method must be 'gn' or 'gd', got {method!r}")
     if objective not in ("nominal", "belief"):
         raise ValueError(f"objective must be 'nominal' or 'belief', got {objective!r}")
+    if jacobian not in ("sensitivity", "rom"):
+        raise ValueError(f"jacobian must be 'sensitivity' or 'rom', got {jacobian!r}")
     max_iter = max_iter if max_iter is not None else (10 if method == "gn" else 60)
     t0 = time.perf_counter()
     U = np.full((s.n_steps, s.n_u), s.u_init) if U0 is None else np.array(U0, dtype=float)
@@ -165,7 +209,10 @@ def optimize(sim: SlabSimulator, s: Scenario, U0: np.ndarray | None = None, meth
     lam, alpha = 1e-3, step_size
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
     for it in bar:
-        ne = sensitivity_normal_equations(sim, U, X, s, eps, field_for_residual, gram=(method == "gn"))
+        if jacobian == "rom":
+            ne = rom_normal_equations(sim, U, s, field_for_residual, **(rom or {}))
+        else:
+            ne = sensitivity_normal_equations(sim, U, X, s, eps, field_for_residual, gram=(method == "gn"))
         result.experiments += ne.experiments
         accepted = False
         for _ in range(12):
