@@ -26,8 +26,8 @@ from sep_plant.slab import SlabSimulator
 from . import __version__
 from .lqr import output_weights, tv_lqr
 from .metrics import nominal_cost
-from .optimize import nominal_rollout, optimize, run_belief
-from .tvera import extend_nominal, impulse_experiments, rom_markov_all, tv_era
+from .optimize import optimize, run_belief
+from .tvera import identify, rom_markov_all
 
 
 @dataclass
@@ -134,18 +134,8 @@ def run_design(s: Scenario, settings: DesignSettings | None = None, show_progres
 
 
 def identify_rom(sim: SlabSimulator, U: np.ndarray, st: DesignSettings, show_progress: bool = False):
-    """TV-ERA around the nominal input U: returns (T_nom (N+1, n_x), MarkovData, Realization, delta).
-
-    The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
-    k = N is complete; the impulse amplitude is `st.impulse` times the RMS nominal input.
-    """
-    N = U.shape[0]
-    lags = st.p + st.q
-    X_ext = nominal_rollout(sim, extend_nominal(U, lags))
-    delta = st.impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
-    data = impulse_experiments(sim, U, lags, st.q, delta, X_ext, show_progress=show_progress)
-    real = tv_era(data, N, st.p, st.q, st.n_r, st.sv_tol, show_progress=show_progress)
-    return X_ext[: N + 1], data, real, delta
+    """`tvera.identify` with the design's settings: (T_nom, MarkovData, Realization, delta)."""
+    return identify(sim, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress)
 
 
 def with_rom(design: Design, real) -> Design:

@@ -16,7 +16,8 @@ import numpy as np
 from sep_plant.scenario import Scenario
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -25,17 +26,18 @@ def _plt():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
+    """Lay out, write as PNG (110 dpi) and close `fig`."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    _plt().close(fig)
+    pyplot().close(fig)
     return path
 
 
 def fig_nominal(path: Path, s: Scenario, belief_mean: np.ndarray, belief_std: np.ndarray,
                 u_nom: np.ndarray) -> Path:
-    plt = _plt()
+    plt = pyplot()
     x = s.grid() / s.length
     t = np.arange(s.n_steps + 1) * s.dt
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
@@ -51,13 +53,13 @@ def fig_nominal(path: Path, s: Scenario, belief_mean: np.ndarray, belief_std: np
         b.step(t[:-1], u_nom[:, j], where="post", label=f"heater {j} @ {s.heater_centers[j]:.1f} L")
     b.set(xlabel="t [s]", ylabel="u", title="Optimal open-loop control")
     b.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def fig_mean_vs_nominal(path: Path, s: Scenario, T_nom: np.ndarray,
                         means: Mapping[str, np.ndarray]) -> Path:
     """`means[name]` is the mean trajectory (N+1, n_x) of a controller over the runs."""
-    plt = _plt()
+    plt = pyplot()
     x = s.grid() / s.length
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, time_s in zip(axes, (37.5, 62.5)):
@@ -69,13 +71,13 @@ def fig_mean_vs_nominal(path: Path, s: Scenario, T_nom: np.ndarray,
         ax.set(xlabel="x / L", title=f"t = {k * s.dt:.1f} s")
     axes[0].set_ylabel("T [F]")
     axes[0].legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def fig_estimation(path: Path, s: Scenario, T_nom: np.ndarray, T_cl: np.ndarray, T_hat: np.ndarray,
                    T_std: np.ndarray, T_ol: np.ndarray, positions: Sequence[float] = (0.4, 0.9)) -> Path:
     """One run: estimation error T_hat - T with +-2 sigma, and T - T_nom closed vs open loop."""
-    plt = _plt()
+    plt = pyplot()
     t = np.arange(s.n_steps + 1) * s.dt
     xg = s.grid()
     fig, axes = plt.subplots(1, len(positions), figsize=(11, 4), sharey=True)
@@ -88,12 +90,12 @@ def fig_estimation(path: Path, s: Scenario, T_nom: np.ndarray, T_cl: np.ndarray,
         ax.set(xlabel="t [s]", title=f"x = {xg[i] / s.length:.2f} L")
     np.atleast_1d(axes)[0].set_ylabel("[F]")
     np.atleast_1d(axes)[0].legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def fig_rom_sweep(path: Path, hankel_sv: np.ndarray, k: int, rows: Sequence[Mapping]) -> Path:
     """rows: dicts with n_r, n_r_used, markov_rel_error, cost_mean (ROM-LQG), cost_oracle."""
-    plt = _plt()
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     sv = hankel_sv[k][hankel_sv[k] > 0]
     a.semilogy(np.arange(1, sv.size + 1), sv / sv[0], "o-", ms=3)
@@ -110,4 +112,4 @@ def fig_rom_sweep(path: Path, hankel_sv: np.ndarray, k: int, rows: Sequence[Mapp
     h1, l1 = b.get_legend_handles_labels()
     h2, l2 = b2.get_legend_handles_labels()
     b.legend(h1 + h2, l1 + l2, fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)

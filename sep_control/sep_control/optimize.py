@@ -40,6 +40,7 @@ from sep_plant.slab import SlabSimulator
 
 from .metrics import nominal_cost
 from .progress import progress
+from .tvera import identify
 
 
 # ------------------------------------------------------------------ helpers
@@ -132,15 +133,9 @@ def rom_normal_equations(sim: SlabSimulator, U: np.ndarray, s: Scenario, residua
         M_k = [A_{k-1} M_{k-1}, B_{k-1}]   (n_r x k n_u: the state response to every past input)
         J'J += M_k' (w_k G_k' G_k) M_k,   J'r += M_k' w_k G_k' (T_k - T*),   w_k = q_k / n_x.
     """
-    from .tvera import extend_nominal, impulse_experiments, tv_era
-
     N, n_u = U.shape
     n = N * n_u
-    lags = p + q
-    X_ext = nominal_rollout(sim, extend_nominal(U, lags))
-    delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
-    data = impulse_experiments(sim, U, lags, q, delta, X_ext)
-    real = tv_era(data, N, p, q, n_r, sv_tol)
+    _, data, real, _ = identify(sim, U, p, q, n_r, sv_tol, impulse)
     res = residual_field - s.t_target
     w = s.q_weights() / s.n_x
     JtJ = np.zeros((n, n))
@@ -156,7 +151,7 @@ def rom_normal_equations(sim: SlabSimulator, U: np.ndarray, s: Scenario, residua
         Jtr[:m] += Mk.T @ (w[k] * (Gk.T @ res[k]))
     JtJ[np.diag_indices(n)] += s.r_u
     Jtr += s.r_u * U.ravel()
-    return NormalEquations(JtJ, Jtr, data.experiments, data.experiments * lags)
+    return NormalEquations(JtJ, Jtr, data.experiments, data.experiments * (p + q))
 
 
 # --------------------------------------------------------------- optimizer

@@ -16,18 +16,10 @@ import numpy as np
 
 from sep_control import metrics as M
 from sep_control.analyze import AggregateReport, EpisodeReport
+from sep_control.figures import pyplot, save_figure
 
 LATENCY_NOTE = ("latency = receive time of slab/heat_command k minus receive time of slab/measurements k, "
                 "both in the recorder's clock (bag log time)")
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _reports(rep) -> list[EpisodeReport]:
@@ -48,7 +40,7 @@ def fig_field(rep, path: Path) -> Path | None:
     s = reps[0].scenario
     if s is None or not np.isfinite(reps[0].episode.T).any():
         return None
-    plt = _plt()
+    plt = pyplot()
     design = reps[0].design
     x = _x(reps[0])
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
@@ -69,10 +61,7 @@ def fig_field(rep, path: Path) -> Path | None:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("T [F]")
     axes[0].legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def fig_estimation(rep, path: Path) -> Path | None:
@@ -80,7 +69,7 @@ def fig_estimation(rep, path: Path) -> Path | None:
     r0 = reps[0]
     if not np.isfinite(r0.err).any():
         return None
-    plt = _plt()
+    plt = pyplot()
     x = _x(r0)
     L = r0.scenario.length if r0.scenario is not None else (x[-1] + (x[1] - x[0]))
     dt = r0.episode.dt
@@ -99,10 +88,7 @@ def fig_estimation(rep, path: Path) -> Path | None:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("estimation error [F]")
     axes[0].legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def fig_inputs(rep, path: Path) -> Path | None:
@@ -111,7 +97,7 @@ def fig_inputs(rep, path: Path) -> Path | None:
     U = np.stack([r.inputs for r in reps])
     if not np.isfinite(U).any():
         return None
-    plt = _plt()
+    plt = pyplot()
     design = r0.design
     t = np.arange(U.shape[1]) * r0.episode.dt
     fig, ax = plt.subplots(figsize=(10, 4))
@@ -128,10 +114,7 @@ def fig_inputs(rep, path: Path) -> Path | None:
     ax.set_title("applied inputs (solid" + (", mean over runs" if len(reps) > 1 else "") + ") vs nominal (dashed)")
     ax.grid(alpha=0.3)
     ax.legend(ncol=min(U.shape[2], 5), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _fmt(v: Any) -> str:

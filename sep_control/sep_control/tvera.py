@@ -95,6 +95,22 @@ def impulse_experiments(sim: SlabSimulator, U: np.ndarray, lags: int, field_lags
     return MarkovData(Y, Yf, delta, 2 * N * n_u)
 
 
+def identify(sim: SlabSimulator, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
+             impulse: float = 0.01, show_progress: bool = False):
+    """TV-ERA around the nominal input U: returns (T_nom (N+1, n_x), MarkovData, Realization, delta).
+
+    The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
+    k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input.
+    """
+    N = U.shape[0]
+    lags = p + q
+    X_ext = sim.rollout(sim.initial_state()[None], extend_nominal(U, lags)[None])[0]
+    delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
+    data = impulse_experiments(sim, U, lags, q, delta, X_ext, show_progress=show_progress)
+    real = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress)
+    return X_ext[: N + 1], data, real, delta
+
+
 @dataclass
 class Realization:
     """Zero-padded time-varying ROM (see design_file for the index conventions)."""
