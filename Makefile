@@ -1,6 +1,7 @@
 # sep: build, test and demo entry points.  `make test` is the one test command.
 #
-#   make venv    create .venv (python3.11, else python3) and install requirements.txt
+#   make venv    create .venv (python3.11, else python3), install requirements.txt and the
+#                example plant package (examples/burgers)
 #   make build   colcon build of ros_ws/ (the ros2-run layout under ros_ws/install)
 #   make test    build, then pytest over tests/ and every <pkg>/test/ that exists
 #   make demo    build, then run the `demo` executable from the install space
@@ -45,15 +46,20 @@ all: build
 
 venv: $(STAMP)
 
+# The worked example of a user's own plant (examples/burgers): installed into the venv like a
+# user would install theirs, so its `sep.plants` entry point is found (and tested).
+EXAMPLE_PLANTS := $(ROOT)/examples/burgers
+
 # Re-run pip whenever requirements.txt changes; the stamp lives inside .venv, so removing
 # .venv also forces a fresh install.
-$(STAMP): $(ROOT)/requirements.txt
+$(STAMP): $(ROOT)/requirements.txt $(addsuffix /pyproject.toml,$(EXAMPLE_PLANTS))
 	@if [ ! -x "$(PY)" ]; then \
 	  if [ -z "$(BASE_PYTHON)" ]; then echo "error: need python3.11 (or python3 >= 3.10) to create .venv" >&2; exit 1; fi; \
 	  echo "creating $(VENV) with $(BASE_PYTHON)"; \
 	  "$(BASE_PYTHON)" -m venv "$(VENV)"; \
 	fi
 	"$(PY)" -m pip install --disable-pip-version-check --progress-bar off -q -r "$(ROOT)/requirements.txt"
+	"$(PY)" -m pip install --disable-pip-version-check --progress-bar off -q --no-deps $(addprefix -e ,$(EXAMPLE_PLANTS))
 	@touch "$@"
 
 build: venv

@@ -1,14 +1,17 @@
 """Bag analysis speed and the recorder's effect on the real-time loop (issue 4; no assertions).
 
-1. analysis: synthetic bags of the reference scenario (n_x = 100, N = 250: a 62.5 s episode,
-   contract layout, written with rosbags) -> `analyze` per bag (target < 2 s), `analyze` +
-   report with figures, and `aggregate` + report over `--bags` bags (target: 50 bags < 30 s).
+1. analysis: synthetic bags of the reference scenario (the slab, n_x = 100, N = 250: a 62.5 s
+   episode, contract layout, written with rosbags) -> `analyze` per bag (target < 2 s), `analyze`
+   + report with figures, and `aggregate` + report over `--bags` bags (target: 50 bags < 30 s);
+   then one synthetic 2-D grid-plant bag (`--grid`, with its image topics) analysed with its
+   heat-map report.
 2. recorder: plant (real-time mode) + lqg processes for one episode, with and without the
    `record` process; prints the plant's deadline misses and measurement->command latency.
    Uses `--design` if given, else designs a small scenario on the fly (`--rt-scenario`).
 
     python bench/bench_analyze.py                      # both parts
     python bench/bench_analyze.py --skip-recorder --bags 50
+    python bench/bench_analyze.py --skip-recorder --bags 2          # smoke run
     python bench/bench_analyze.py --skip-analysis --rtf 10 --repeats 2
 """
 from __future__ import annotations
@@ -28,14 +31,14 @@ for p in ("tests", "sep_plant", "sep_estimator", "sep_control"):
 SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep_control"))
 
 
-def bench_analysis(n_bags: int, work: Path) -> None:
-    from bag_synth import fake_design, synthetic_episode, write_bag
+def bench_analysis(n_bags: int, work: Path, grid: tuple[int, ...]) -> None:
+    from bag_synth import fake_design, grid_episode, synthetic_episode, write_bag
     from sep_control.analyze import aggregate, analyze
     from sep_control.report import write_report
     from sep_estimator.design_file import save_design
-    from sep_plant.scenario import Scenario
+    from sep_plant.scenario import reference
 
-    s = Scenario()
+    s = reference()
     t0 = time.perf_counter()
     eps = [synthetic_episode(s, seed=i) for i in range(min(n_bags, 5))]
     bags = [write_bag(work / f"ep{i:03d}", eps[i % len(eps)]) for i in range(n_bags)]
@@ -60,6 +63,15 @@ def bench_analysis(n_bags: int, work: Path) -> None:
     write_report(agg, work / "agg_report")
     print(f"aggregate {n_bags} bags: {t_agg:.2f} s analysis, {time.perf_counter() - t:.2f} s with report "
           f"(target < 30 s for 50)")
+
+    g = grid_episode(grid, n_steps=250)
+    bag = write_bag(work / "grid", g)
+    t = time.perf_counter()
+    rep = analyze(bag, fake_design(g))
+    t_grid = time.perf_counter() - t
+    write_report(rep, work / "grid_report")
+    print(f"grid plant {' x '.join(map(str, grid))} ({g.info.n_field} nodes, {rep.episode.n_steps} steps, images): "
+          f"analyze {t_grid:.3f} s, {time.perf_counter() - t:.3f} s with the heat-map report")
 
 
 def _run_episode(work: Path, design: Path, scen: Path | None, rtf: float, record: bool, tag: str) -> dict:
@@ -100,24 +112,36 @@ def _run_episode(work: Path, design: Path, scen: Path | None, rtf: float, record
                 p.wait(10)
 
 
+def rt_scenario_of(spec: str):
+    """The slab scenario of 'key=value,...' (problem keys to the problem, the rest to the plant)."""
+    from sep_plant.problem import Problem
+    from sep_plant.scenario import Scenario
+
+    kw = {k: int(v) for k, v in (kv.split("=") for kv in spec.split(","))}
+    problem = {k: v for k, v in kw.items() if k in Problem.__dataclass_fields__}
+    plant = {k: v for k, v in kw.items() if k not in problem}
+    return Scenario("slab", plant, Problem(**problem)).canonical()
+
+
 def bench_recorder(work: Path, design: str | None, rtf: float, repeats: int, rt_scenario: str) -> None:
     os.environ.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     scen = None
     if design is None:
+        import yaml
+
         from sep_control.design import run_design
         from sep_estimator.design_file import save_design
-        from sep_plant.scenario import Scenario
 
-        kw = dict(kv.split("=") for kv in rt_scenario.split(","))
-        kw = {k: int(v) for k, v in kw.items()}
-        s = Scenario(**kw)
+        s = rt_scenario_of(rt_scenario)
         t = time.perf_counter()
-        d = run_design(s, show_progress=False, log=lambda *a, **k: None)
+        d = run_design(s.plant, s.problem, show_progress=False, log=lambda *a, **k: None)
         design = str(save_design(work / "rt_design.npz", d))
         scen = work / "rt.yaml"
-        scen.write_text("".join(f"{k}: {v}\n" for k, v in kw.items()))
-        print(f"designed scenario {kw} in {time.perf_counter() - t:.1f} s")
+        data = s.to_dict()
+        data.pop("format"), data.pop("version")
+        scen.write_text(yaml.safe_dump(data))
+        print(f"designed scenario {rt_scenario} in {time.perf_counter() - t:.1f} s")
     print(f"real-time episodes at real_time_factor {rtf}: plant + lqg, with / without the recorder")
     print(f"{'run':<18} {'steps':>5} {'deadline_misses':>15} {'lat p50 ms':>10} {'lat p99 ms':>10} {'wall s':>7}")
     for r in range(repeats):
@@ -144,13 +168,14 @@ def main() -> None:
     ap.add_argument("--design", help="design file for the real-time part (reference scenario)")
     ap.add_argument("--rtf", type=float, default=10.0, help="plant real_time_factor (default 10: 25 ms steps)")
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--grid", default="40x30", help="grid of the synthetic 2-D plant bag (default 40x30)")
     ap.add_argument("--rt-scenario", default="n_x=100,n_steps=250",
                     help="scenario designed on the fly when --design is not given (default: the reference grid)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_analyze_") as tmp:
         work = Path(tmp)
         if not args.skip_analysis:
-            bench_analysis(args.bags, work)
+            bench_analysis(args.bags, work, tuple(int(n) for n in args.grid.split("x")))
         if not args.skip_recorder:
             bench_recorder(work, args.design, args.rtf, args.repeats, args.rt_scenario)
 

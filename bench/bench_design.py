@@ -21,11 +21,10 @@ from threadpoolctl import threadpool_limits
 from sep_control.design import DesignSettings, run_design
 from sep_control.metrics import format_table
 from sep_control.montecarlo import simulate
-from sep_control.optimize import (nominal_rollout, optimize, rom_normal_equations,
-                                  sensitivity_normal_equations)
+from sep_control.optimize import objective_of, optimize, rom_normal_equations, sensitivity_normal_equations
 from sep_control.oracle import oracle_lqg
-from sep_plant.scenario import Scenario
-from sep_plant.slab import SlabSimulator
+from sep_plant.protocol import nominal_states
+from sep_plant.scenario import reference
 
 
 def timed(fn, *a, **kw):
@@ -47,14 +46,14 @@ def main() -> None:
 
     rows = {}
     for n_x in args.grids:
-        s = Scenario(n_x=n_x)
-        sim = SlabSimulator(s)
+        scen = reference().with_plant(n_x=n_x)
+        sim, s = scen.plant, scen.problem
         runs = args.runs if n_x <= 100 else args.runs_large
         with threadpool_limits(args.threads):
-            U0 = np.full((s.n_steps, s.n_u), s.u_init)
-            _, t_roll = timed(nominal_rollout, sim, U0)
-            _, t_roll = timed(nominal_rollout, sim, U0)     # second call: warm
-            design, t_design = timed(run_design, s, DesignSettings(), False, lambda m: None)
+            U0 = s.u_start(sim.n_u)
+            _, t_roll = timed(nominal_states, sim, U0)
+            _, t_roll = timed(nominal_states, sim, U0)     # second call: warm
+            design, t_design = timed(run_design, sim, s, DesignSettings(), False, lambda m: None)
             mc = {}
             oracle = None
             if n_x <= args.oracle_max_nx:
@@ -62,13 +61,15 @@ def main() -> None:
             for c in ("open_loop", "rom_lqg", "oracle_lqg"):
                 if c == "oracle_lqg" and oracle is None:
                     continue
-                res, t = timed(simulate, design, c, 1, runs, oracle=oracle, keep_estimates=0, sim=sim,
+                res, t = timed(simulate, sim, design, c, 1, runs, oracle=oracle, keep_estimates=0,
                                keep_trajectories=0)
-                mc[c] = (res.metrics(design), t)
+                mc[c] = (res.metrics(), t)
             # one Gauss-Newton linearization at the optimum, each Jacobian
-            X = nominal_rollout(sim, design.u_nom)
-            _, t_ne_sens = timed(sensitivity_normal_equations, sim, design.u_nom, X, s)
-            _, t_ne_rom = timed(rom_normal_equations, sim, design.u_nom, s, X)
+            u = design.nominal.u
+            X = nominal_states(sim, u)
+            obj = objective_of(sim, s)
+            _, t_ne_sens = timed(sensitivity_normal_equations, sim, u, X, obj)
+            _, t_ne_rom = timed(rom_normal_equations, sim, u, obj, X)
         tm = design.meta["timings"]
         t_mc = mc["rom_lqg"][1]
         row = {
@@ -100,8 +101,7 @@ def main() -> None:
                               "Jb_before", "Jb_after"]))
 
     if 100 in args.grids and args.gd_iter > 0:
-        s = Scenario()
-        sim = SlabSimulator(s)
+        sim, s = reference().plant, reference().problem
         opt_rows = {}
         with threadpool_limits(args.threads):
             for method, iters in (("gn", None), ("gd", args.gd_iter)):
@@ -114,13 +114,12 @@ def main() -> None:
         print(format_table(opt_rows, ["iterations", "experiments", "cost", "cost/gn_cost", "seconds"]))
 
     if 100 in args.grids:
-        s = Scenario()
+        sim, s = reference().plant, reference().problem
         tt = {}
         for th in (1, 2):
             with threadpool_limits(th):
-                _, t = timed(run_design, s, DesignSettings(), False, lambda m: None)
-                d = _
-                _, t_mc = timed(simulate, d, "rom_lqg", 1, args.runs, keep_estimates=0, keep_trajectories=0)
+                d, t = timed(run_design, sim, s, DesignSettings(), False, lambda m: None)
+                _, t_mc = timed(simulate, sim, d, "rom_lqg", 1, args.runs, keep_estimates=0, keep_trajectories=0)
             tt[f"threads={th}"] = {"design_s": t, "mc_rom_s": t_mc}
         base = tt["threads=1"]
         for r in tt.values():

@@ -157,40 +157,38 @@ def loop_round_trip(design_file: Path, scenario_file: Path | None, env: dict, mo
 
 # ---------------------------------------------------------------------------- compute
 def compute_per_step(design, repeats: int = 20) -> dict:
+    """Per-step compute of the estimator core + LQR law ('core'), and with the messages the lqg
+    builds (command, estimate, field cloud) ('node')."""
     from sep_control.lqr import command
-    from sep_estimator.tvkf import filter_from_design
+    from sep_estimator.estimator_core import EstimatorCore
     from sep_plant import contract as c
 
-    s = design.scenario
+    info, nom, K = design.info, design.nominal, design.lqg.K
+    N = design.n_steps
+    lo, hi = design.problem.limits(info.n_u)
     rng = np.random.default_rng(0)
-    dy = rng.normal(0, 1, (s.n_steps + 1, s.n_y))
-    x = s.grid()
+    y = nom.y + rng.normal(0, 1, (N + 1, info.n_y))
     labels = c.state_labels(design.n_r)
-    heaters = s.heater_labels()
+    heaters = list(info.input_names)
+    cloud = c.CloudBuilder(design.field_xyz, info.field_name)
     core, node = [], []
     for _ in range(repeats):
-        kf = filter_from_design(design)
-        for k in range(s.n_steps + 1):
-            t0 = time.perf_counter()
-            a = kf.update(k, dy[k])
-            if k < s.n_steps:
-                u = command(design.u_nom[k], design.K[k], a, s.u_min, s.u_max)
-                kf.predict(k, u - design.u_nom[k])
-            t1 = time.perf_counter()
-            core.append(t1 - t0)
-        kf = filter_from_design(design)
-        for k in range(s.n_steps + 1):
-            t0 = time.perf_counter()
-            a = kf.update(k, dy[k])
-            if k < s.n_steps:
-                u = command(design.u_nom[k], design.K[k], a, s.u_min, s.u_max)
-                c.joint_state(k, s.dt, heaters, effort=u[0])
-            c.joint_state(k, s.dt, labels, position=a[0])
-            T_hat = design.T_nom[k] + design.G[k] @ a[0]
-            c.field_cloud(k, s.dt, x, T_hat, kf.field_std(precomputed=design.field_std))
-            if k < s.n_steps:
-                kf.predict(k, u - design.u_nom[k])
-            node.append(time.perf_counter() - t0)
+        for build_messages, out in ((False, core), (True, node)):
+            est = EstimatorCore(design.lqg, nom.u, nom.y, nom.field)
+            for k in range(N + 1):
+                t0 = time.perf_counter()
+                a, _ = est.measurement(k, y[k])
+                if k < N:
+                    u = command(nom.u[k], K[k], a, lo, hi)
+                    if build_messages:
+                        c.joint_state(k, info.dt, heaters, effort=u)
+                if build_messages:
+                    c.joint_state(k, info.dt, labels, position=a)
+                    f, std = est.field_estimate()
+                    cloud.build(k, info.dt, f, std)
+                if k < N:
+                    est.applied(k, u)
+                out.append(time.perf_counter() - t0)
     return {'core': pct(core), 'node': pct(node)}
 
 
@@ -233,13 +231,13 @@ def main(argv=None) -> int:
     else:
         from sep_control.design import run_design
         t0 = time.perf_counter()
-        design = run_design(scenario, show_progress=False, log=lambda m: None)
+        design = run_design(scenario.plant, scenario.problem, show_progress=False, log=lambda m: None)
         design_file = save_design(tmp / 'design.npz', design)
-        print(f'design: {time.perf_counter() - t0:.1f} s (n_x={scenario.n_x}, N={scenario.n_steps}, n_r={design.n_r})')
+        print(f'design: {time.perf_counter() - t0:.1f} s (n_x={design.info.n_x}, N={design.n_steps}, n_r={design.n_r})')
 
     print(f'ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}')
     res = {}
-    period = scenario.dt / 10.0
+    period = design.info.dt / 10.0
     for ex in ('events', 'single'):
         res[f'ping_pong_{ex}'] = ping_pong(args.pings, env, ex)
         res[f'loop_lockstep_{ex}'] = loop_round_trip(design_file, args.scenario, env, 'lockstep', tmp, ex)
@@ -269,7 +267,7 @@ def main(argv=None) -> int:
         print(f"  {key}: deadline misses {res[key]['deadline_misses']}, max {fmt(res[key]['max'])}")
     cp = res['compute']
     print('\nper-step compute of estimator + LQR (pure calls; reference design, n_r = '
-          f'{design.n_r}, n_x = {scenario.n_x})')
+          f'{design.n_r}, n_x = {design.info.n_x})')
     print(f"{'':52s} {'mean':>11s} {'p50':>11s} {'p99':>11s}")
     for label, key in (('KF update + LQR law + KF predict, BLAS 1 thread', ('blas_1', 'core')),
                        ('KF update + LQR law + KF predict, BLAS default', ('blas_default', 'core')),

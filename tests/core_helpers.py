@@ -7,9 +7,12 @@ against an independent reference:
 * `dense_step` / `dense_jacobians`: the backward-Euler slab step with K frozen at T_k as a
   dense linear solve, and its exact (analytic) Jacobians.
 * `linear_system`: random stable LTI/LTV test systems; `kalman_filter`: the textbook KF.
-* `coarse_scenario`: the reference physics on a coarse grid / time step (see its docstring).
+* `flat`: a scenario from sep 0.1's flat slab keys (the slab and its problem in one mapping);
+  `coarse_scenario`: the reference physics on a coarse grid / time step (see its docstring).
 * `cached_design` / `cached_oracle`: run_design / oracle_lqg results cached per process (tests
   treat them as read-only), so several test files share one design per scenario.
+
+The slab helpers take a `SlabPlant` (its keys are attributes: n_x, length, k0, beta, ...).
 * `one_blas_thread`: a fixture limiting BLAS to one thread (import it into a test module).
 """
 from __future__ import annotations
@@ -20,7 +23,10 @@ import math
 import numpy as np
 import pytest
 
+from sep_plant.plants.slab import SlabPlant
 from sep_plant.scenario import Scenario
+
+Slab = SlabPlant
 
 
 # --------------------------------------------------------------- slab model
@@ -38,19 +44,19 @@ def d2_matrix(n_x: int, h: float) -> np.ndarray:
     return D / h**2
 
 
-def conductivity(s: Scenario, T: np.ndarray) -> np.ndarray:
+def conductivity(s: SlabPlant, T: np.ndarray) -> np.ndarray:
     """K(x_i, T_i) = k0 (1 + beta (T - t_ref)/t_scale)(1 + gamma x/L)."""
     x = np.arange(s.n_x) * s.length / s.n_x
     return s.k0 * (1.0 + s.beta * (T - s.t_ref) / s.t_scale) * (1.0 + s.gamma * x / s.length)
 
 
-def conductivity_dT(s: Scenario) -> np.ndarray:
+def conductivity_dT(s: SlabPlant) -> np.ndarray:
     """dK/dT at every node (K is affine in T)."""
     x = np.arange(s.n_x) * s.length / s.n_x
     return s.k0 * s.beta / s.t_scale * (1.0 + s.gamma * x / s.length)
 
 
-def heater_matrix(s: Scenario) -> np.ndarray:
+def heater_matrix(s: SlabPlant) -> np.ndarray:
     """b_j(x_i): unit-mass Gaussians, computed from the scenario numbers directly."""
     x = np.arange(s.n_x) * s.length / s.n_x
     out = np.empty((s.n_x, s.n_u))
@@ -60,7 +66,7 @@ def heater_matrix(s: Scenario) -> np.ndarray:
     return out
 
 
-def spatial_operator(s: Scenario, T_k: np.ndarray, T: np.ndarray) -> np.ndarray:
+def spatial_operator(s: SlabPlant, T_k: np.ndarray, T: np.ndarray) -> np.ndarray:
     """K(T_k) (D2 T + Dirichlet term) - eta T: the right-hand side of the PDE without inputs."""
     h = s.length / s.n_x
     lap = d2_matrix(s.n_x, h) @ T
@@ -68,7 +74,7 @@ def spatial_operator(s: Scenario, T_k: np.ndarray, T: np.ndarray) -> np.ndarray:
     return conductivity(s, T_k) * lap - s.eta * T
 
 
-def dense_step(s: Scenario, T: np.ndarray, u: np.ndarray) -> np.ndarray:
+def dense_step(s: SlabPlant, T: np.ndarray, u: np.ndarray) -> np.ndarray:
     """T_{k+1} from T_{k+1} - T_k = dt [K(T_k)(D2 T_{k+1} + bc) - eta T_{k+1} + B u] (dense solve)."""
     h = s.length / s.n_x
     K = conductivity(s, T)
@@ -78,7 +84,7 @@ def dense_step(s: Scenario, T: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.linalg.solve(M, rhs)
 
 
-def dense_jacobians(s: Scenario, T: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def dense_jacobians(s: SlabPlant, T: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact dT_{k+1}/dT_k and dT_{k+1}/du_k of `dense_step`.
 
     M(T_k) T_{k+1} = T_k + dt B u + bc(T_k), row i of M and bc depend on T_k only through
@@ -132,6 +138,11 @@ def kalman_filter(A, B, C, W, V, m0, P0, U, Y):
 
 
 # --------------------------------------------------------------- scenarios
+def flat(**keys) -> Scenario:
+    """A canonical scenario from sep 0.1's flat keys (slab keys and problem keys in one mapping)."""
+    return Scenario.from_dict(keys)
+
+
 def coarse_scenario(n_x: int = 30, n_steps: int = 80, **changes) -> Scenario:
     """The reference physics and 62.5 s horizon on a coarse grid and a coarse time step.
 
@@ -149,7 +160,7 @@ def coarse_scenario(n_x: int = 30, n_steps: int = 80, **changes) -> Scenario:
     base = dict(n_x=n_x, n_steps=n_steps, dt=dt, k_band=round(37.5 / dt), lqr_k_switch=round(30.0 / dt),
                 w_std=0.3 * f, v_std=1.0 * f)
     base.update(changes)
-    return Scenario(**base)
+    return flat(**base)
 
 
 @functools.lru_cache(maxsize=None)
@@ -161,7 +172,8 @@ def cached_design(scenario: Scenario, **settings):
 
     # one BLAS thread, as the CLI does by default: many small matrices, 2 cores
     with threadpool_limits(limits=1):
-        return run_design(scenario, DesignSettings(**settings), show_progress=False, log=lambda msg: None)
+        return run_design(scenario.plant, scenario.problem, DesignSettings(**settings), show_progress=False,
+                          log=lambda msg: None)
 
 
 @functools.lru_cache(maxsize=None)
@@ -172,7 +184,7 @@ def cached_oracle(scenario: Scenario, **settings):
 
     design = cached_design(scenario, **settings)
     with threadpool_limits(limits=1):
-        return oracle_lqg(design)
+        return oracle_lqg(design, scenario.plant)
 
 
 @pytest.fixture

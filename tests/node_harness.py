@@ -237,14 +237,19 @@ class Probe:
                 self.ctx.try_shutdown()
 
 
-def field_matrix(probe: Probe, topic: str, dt: float, n_steps: int, key: str = 'temperature'):
-    """(N+1, n_x) array of a field topic's `key` by step (NaN rows for missing steps)."""
+def field_matrix(probe: Probe, topic: str, dt: float, n_steps: int, key: str = 'temperature', column: int | None = None):
+    """(N+1, n_field) array of a field topic's channel `key` (or channel number `column`) by step
+    (NaN rows for missing steps)."""
     from sep_plant.contract import parse_field_cloud
     msgs = probe.by_step(topic, dt)
     rows = []
     for k in range(n_steps + 1):
         m = msgs.get(k)
-        rows.append(parse_field_cloud(m)[key] if m is not None else None)
+        if m is None:
+            rows.append(None)
+            continue
+        channels = parse_field_cloud(m)
+        rows.append(list(channels.values())[column] if column is not None else channels[key])
     n = max(len(r) for r in rows if r is not None)
     return np.array([r if r is not None else np.full(n, np.nan) for r in rows])
 
@@ -269,19 +274,34 @@ class Case:
         self.scenario, self.scenario_file = scenario, scenario_file
         self.design, self.design_file = design, design_file
 
+    @property
+    def plant(self):
+        return self.scenario.plant
 
-def make_case(root: Path, name: str, **scenario_kw) -> Case:
+    @property
+    def dt(self) -> float:
+        return self.design.info.dt
+
+    @property
+    def n_steps(self) -> int:
+        return self.design.n_steps
+
+
+def make_case(root: Path, name: str, yaml_text: str | None = None, settings: dict | None = None,
+              **flat_keys) -> Case:
+    """A case from a scenario YAML text, or from sep 0.1's flat slab keys."""
     import yaml
 
-    from sep_control.design import run_design
+    from sep_control.design import DesignSettings, run_design
     from sep_estimator.design_file import save_design
-    from sep_plant.scenario import Scenario
+    from sep_plant.scenario import load_scenario
 
-    s = Scenario(**scenario_kw)
     sf = root / f'{name}.yaml'
-    sf.write_text(yaml.safe_dump({k: (list(v) if isinstance(v, tuple) else v)
-                                  for k, v in scenario_kw.items()}))
-    design = run_design(s, show_progress=False, log=lambda m: None)
+    sf.write_text(yaml_text if yaml_text is not None else
+                  yaml.safe_dump({k: (list(v) if isinstance(v, tuple) else v) for k, v in flat_keys.items()}))
+    s = load_scenario(sf)
+    design = run_design(s.plant, s.problem, DesignSettings(**(settings or {})), show_progress=False,
+                        log=lambda m: None)
     df = save_design(root / f'{name}_design.npz', design)
     return Case(s, sf, design, df)
 

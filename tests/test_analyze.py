@@ -1,4 +1,5 @@
-"""analyze / aggregate / analyze CLI on synthetic contract bags with known metrics."""
+"""analyze / aggregate / analyze CLI / report on synthetic contract bags with known metrics: the slab,
+a sep 0.1 slab bag and a 2-D grid plant (heat-map figures, the image topic rendered)."""
 from __future__ import annotations
 
 import json
@@ -10,11 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bag_synth import LAT_CMD_NS, LAT_EST_NS, fake_design, small_scenario, synthetic_episode, write_bag
+from bag_synth import (LAT_CMD_NS, LAT_EST_NS, fake_design, grid_episode, legacy_episode, small_scenario,
+                       synthetic_episode, write_bag)
 from sep_control import metrics as M
 from sep_control.analyze import AnalysisError, aggregate, analyze
 from sep_control.analyze_cli import main as cli
+from sep_control.bag_io import BagError
+from sep_control.report import render_image_frame, write_report
 from sep_estimator.design_file import save_design
+from sep_plant import topics as T
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -30,15 +35,16 @@ def setup(tmp_path_factory):
 
 
 def expected(ep, design):
-    s = ep.scenario
-    err = ep.T_hat[1:] - ep.T[1:]
+    obj = design.objective
+    k0, k1 = obj.window
+    err = ep.F_hat[1:] - ep.F[1:]
     return {
-        "cost_mean": float(M.nominal_cost(ep.T, ep.u, s)),
-        "in_band": float(M.in_band(ep.T, s)),
-        "rms": float(M.rms_in_window(ep.T, s)),
-        "mean_dev_37_5": M.mean_deviation(ep.T[None], design.T_nom, M.step_at(s, 37.5)),
-        "mean_dev_62_5": M.mean_deviation(ep.T[None], design.T_nom, M.step_at(s, 62.5)),
-        "coverage_2sigma": M.coverage_2sigma(err, ep.T_std[1:]),
+        "cost_mean": float(M.nominal_cost(ep.F, ep.u, obj)),
+        "in_band": float(M.in_band(ep.F, obj)),
+        "rms": float(M.rms_in_window(ep.F, obj)),
+        "mean_dev_start": M.mean_deviation(ep.F[None], design.nominal.field, k0),
+        "mean_dev_end": M.mean_deviation(ep.F[None], design.nominal.field, k1),
+        "coverage_2sigma": M.coverage_2sigma(err, ep.F_std[1:]),
     }
 
 
@@ -53,28 +59,33 @@ def test_single_episode_metrics_exact(setup):
     assert m["latency_p99_s"] == pytest.approx(LAT_CMD_NS * 1e-9, abs=1e-15)
     assert m["latency_estimate_p50_s"] == pytest.approx(LAT_EST_NS * 1e-9, abs=1e-15)
     assert m["deadline_misses"] == 3 and m["rejected_messages"] == 2
-    assert m["complete"] is True and m["steps_recorded"] == eps[0].scenario.n_steps + 1
-    assert set(M.JSON_KEYS) <= set(m)
-    np.testing.assert_array_equal(rep.err, eps[0].T_hat - eps[0].T)
+    assert m["complete"] is True and m["steps_recorded"] == eps[0].scenario.problem.n_steps + 1
+    assert set(M.JSON_KEYS) <= set(m) and m["mean_dev_start"] is not None and m["mean_dev_end"] is not None
+    np.testing.assert_array_equal(rep.err, eps[0].F_hat - eps[0].F)
 
 
 def test_without_design_skips_nominal(setup):
+    """Without a design the objective is the bag's scenario's, on the clouds' coordinates."""
     d, eps, bags, _ = setup
-    m = analyze(bags[1]).metrics
-    assert m["mean_dev_37_5"] is None and m["cost_mean"] == float(M.nominal_cost(eps[1].T, eps[1].u, eps[1].scenario))
+    rep = analyze(bags[1])
+    m = rep.metrics
+    assert m["mean_dev_start"] is None and m["mean_dev_end"] is None
+    assert m["cost_mean"] == float(M.nominal_cost(eps[1].F, eps[1].u, eps[1].objective))
+    assert m["in_band"] == float(M.in_band(eps[1].F, eps[1].objective))
+    assert rep.objective.window == eps[1].scenario.problem.window
 
 
 def test_aggregate_matches_summarize(setup):
     d, eps, bags, dpath = setup
     agg = aggregate(bags, dpath)
-    s = eps[0].scenario
-    T = np.stack([e.T for e in eps])
+    F = np.stack([e.F for e in eps])
     U = np.stack([e.u for e in eps])
-    ref = M.summarize(T, U, agg.design.T_nom, s)
+    ref = M.summarize(F, U, agg.design.nominal.field, agg.design.objective)
+    assert {"mean_dev_start", "mean_dev_end"} <= set(ref)
     for k, v in ref.items():
         assert agg.metrics[k] == v, k
-    err = np.concatenate([(e.T_hat - e.T)[1:].ravel() for e in eps])
-    std = np.concatenate([e.T_std[1:].ravel() for e in eps])
+    err = np.concatenate([(e.F_hat - e.F)[1:].ravel() for e in eps])
+    std = np.concatenate([e.F_std[1:].ravel() for e in eps])
     assert agg.metrics["coverage_2sigma"] == M.coverage_2sigma(err, std)
     assert agg.metrics["deadline_misses"] == 12 and agg.metrics["rejected_messages"] == 8
     assert list(agg.rows) == [f"ep{i}" for i in range(4)]
@@ -84,7 +95,7 @@ def test_scenario_mismatch_refused_or_flagged(tmp_path, setup):
     d, eps, bags, _ = setup
     other = synthetic_episode(small_scenario(k0=0.02), seed=0)
     dpath = save_design(tmp_path / "other.npz", fake_design(other))
-    with pytest.raises(AnalysisError, match=r"another scenario.*k0"):
+    with pytest.raises(AnalysisError, match=r"another scenario.*plant\.k0"):
         analyze(bags[0], dpath)
     rep = analyze(bags[0], dpath, allow_mismatch=True)
     assert rep.mismatch and "k0" in rep.mismatch[0] and rep.metrics["scenario_mismatch"]
@@ -105,6 +116,7 @@ def test_cli_one_bag_report_and_json(setup, tmp_path, capsys):
         assert (out / f).stat().st_size > 0
     md = (out / "report.md").read_text()
     assert "![Closed-loop field vs nominal](field.png)" in md and "latency = receive time" in md
+    assert "plant `slab`" in md and "k = 24..40" in md and "field_image" not in md
     rows = json.loads((tmp_path / "m.json").read_text())
     assert rows[0]["name"] == "ep0" and rows[0]["deadline_misses"] == 3
     assert rows[0]["cost_mean"] == pytest.approx(expected(eps[0], fake_design(eps[0]))["cost_mean"], rel=1e-15)
@@ -169,3 +181,82 @@ def test_cli_bad_input_exit_codes_without_traceback(setup, tmp_path):
     p = _run_cli(bags[0], "--design", other, "--allow-mismatch", "--out", tmp_path / "mm")
     assert p.returncode == 0 and "WARNING" in p.stdout and "n_x" in p.stdout
     assert "SCENARIO MISMATCH" in (tmp_path / "mm" / "report.md").read_text()
+
+
+def test_old_sep01_bag_analysed(setup, tmp_path):
+    """A sep 0.1 bag (flat slab scenario) is analysed like a new one, with a new design file."""
+    d, eps, bags, dpath = setup
+    old = legacy_episode(small_scenario(), seed=0)      # same episode as eps[0], old scenario payload
+    bag = write_bag(tmp_path / "old", old)
+    rep = analyze(bag, dpath)
+    assert not rep.mismatch and rep.episode.scenario_source == "bag"
+    for k, v in expected(old, rep.design).items():
+        assert rep.metrics[k] == v, k
+    assert rep.metrics == analyze(bags[0], dpath).metrics
+    m = analyze(bag).metrics                           # without a design: the flat scenario's objective
+    assert m["cost_mean"] == float(M.nominal_cost(old.F, old.u, old.objective)) and m["mean_dev_end"] is None
+    out = tmp_path / "rep"
+    write_report(rep, out)
+    assert (out / "field.png").stat().st_size > 0 and (out / "estimation.png").stat().st_size > 0
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory):
+    d = tmp_path_factory.mktemp("grid")
+    eps = [grid_episode((6, 5), seed=i) for i in range(3)]
+    bags = [write_bag(d / f"g{i}", e) for i, e in enumerate(eps)]
+    dpath = save_design(d / "grid_design.npz", fake_design(eps[0]))
+    return d, eps, bags, dpath
+
+
+def test_grid_plant_bag_analysed_with_heat_maps(grid, tmp_path):
+    """A 2-D grid plant (6 x 5, field phi): exact metrics, heat-map figures, the image frame."""
+    d, eps, bags, dpath = grid
+    rep = analyze(bags[0], dpath)
+    assert rep.info.grid_shape == (6, 5) and not rep.mismatch and not rep.episode.missing
+    for k, v in expected(eps[0], rep.design).items():
+        assert rep.metrics[k] == v, k
+    assert rep.metrics["latency_p50_s"] == pytest.approx(LAT_CMD_NS * 1e-9, abs=1e-15)
+    # without the design: the scenario's expression target on the clouds' coordinates
+    m = analyze(bags[0]).metrics
+    assert m["cost_mean"] == float(M.nominal_cost(eps[0].F, eps[0].u, eps[0].objective))
+    out = tmp_path / "rep"
+    md = write_report(rep, out).read_text()
+    for f in ("field.png", "estimation.png", "inputs.png", "field_image.png"):
+        assert (out / f).stat().st_size > 0, f
+    k1 = eps[0].scenario.problem.window[1]
+    assert f"field_image at k = {k1}" in md and "grid 6 x 5" in md and "target field" in md
+    # the field figure is the 2 x 3 map panel (closed loop, nominal, difference), not lines
+    from sep_control.figures import pyplot
+
+    assert pyplot().imread(out / "field.png").shape[1] > 1.2 * pyplot().imread(out / "inputs.png").shape[1]
+    agg = aggregate(bags, dpath)
+    assert agg.metrics["n_runs"] == 3 and agg.metrics["mean_dev_end"] is not None
+    write_report(agg, tmp_path / "agg")
+    assert (tmp_path / "agg" / "estimation.png").stat().st_size > 0
+
+
+def test_grid_3d_report(tmp_path):
+    gep = grid_episode((4, 3, 3), seed=4)
+    rep = analyze(write_bag(tmp_path / "g3", gep), fake_design(gep))
+    write_report(rep, tmp_path / "rep")
+    for f in ("field.png", "estimation.png", "inputs.png", "field_image.png"):
+        assert (tmp_path / "rep" / f).stat().st_size > 0, f
+
+
+def test_render_image_frame_is_the_published_image(grid, tmp_path):
+    """The frame as a viewer shows the 32FC1 image: row 0 on top, grey from min to max."""
+    from sep_control.figures import pyplot
+
+    d, eps, bags, _ = grid
+    rep = analyze(bags[1])
+    k = 12
+    path = render_image_frame(rep, T.FIELD_IMAGE, k, tmp_path / "frame.png", scale=3)
+    png = pyplot().imread(path)
+    img = T.image_of_field(eps[1].F[k], (6, 5)).astype(np.float64)
+    grey = np.round((img - img.min()) / (img.max() - img.min()) * 255) / 255
+    assert png.shape[:2] == (18, 15)
+    np.testing.assert_allclose(png[::3, ::3, 0], grey, atol=1e-6)
+    assert render_image_frame(bags[1], path=tmp_path / "last.png").is_file()   # a bag path: the window's end
+    with pytest.raises(BagError, match="no field_image image at step 999"):
+        render_image_frame(rep.episode, T.FIELD_IMAGE, 999, tmp_path / "x.png")

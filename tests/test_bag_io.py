@@ -1,4 +1,5 @@
-"""bag_io: synthetic contract bags (rosbags Writer, Jazzy typestore) read back exactly; bad bags."""
+"""bag_io: synthetic contract bags (rosbags Writer, Jazzy typestore) read back exactly, for the slab,
+sep 0.1 slab bags and a 2-D grid plant; the one stamp tolerance; bad bags."""
 from __future__ import annotations
 
 import shutil
@@ -6,8 +7,10 @@ import shutil
 import numpy as np
 import pytest
 
-from bag_synth import LAT_CMD_NS, T0_NS, small_scenario, synthetic_episode, write_bag
+from bag_synth import (LAT_CMD_NS, T0_NS, episode_messages, grid_episode, legacy_episode, small_scenario,
+                       synthetic_episode, write_bag, write_messages)
 from sep_control.bag_io import BagError, read_episode, read_raw, repair_bag
+from sep_plant import topics as T
 
 
 @pytest.fixture(scope="module")
@@ -19,24 +22,97 @@ def ep():
 def test_roundtrip_exact(tmp_path, ep, storage):
     bag = write_bag(tmp_path / "bag", ep, storage=storage)
     e = read_episode(bag)
-    s = ep.scenario
-    assert e.scenario == s and e.scenario_source == "bag" and e.complete and not e.missing
-    assert e.n_steps == s.n_steps and e.dt == s.dt
-    for name in ("T", "T_hat", "T_std", "y", "u_cmd", "u"):
+    s, N = ep.scenario, ep.scenario.problem.n_steps
+    assert e.scenario == s and e.info == ep.info and e.scenario_source == "bag" and e.complete and not e.missing
+    assert e.n_steps == N and e.dt == ep.info.dt
+    for name in ("F", "F_hat", "F_std", "y", "u_cmd", "u"):
         np.testing.assert_array_equal(getattr(e, name), getattr(ep, name), err_msg=name)
     for k, a in enumerate(ep.a_hat):
         assert e.a_dim[k] == len(a)
         np.testing.assert_array_equal(e.a_hat[k, :len(a)], a)
         assert np.all(np.isnan(e.a_hat[k, len(a):]))
-    np.testing.assert_array_equal(e.x, s.grid())
+    np.testing.assert_array_equal(e.xyz, ep.xyz)
+    assert e.field_name == "temperature" and e.images == {}
     assert e.diag_totals == ep.diag
-    assert e.diagnostics["plant"]["step"] == str(s.n_steps)
+    assert e.diagnostics["plant"]["step"] == str(N)
     lat = e.step_recv_ns["heat_command"][:-1] - e.step_recv_ns["measurements"][:-1]
     assert np.all(lat == LAT_CMD_NS)
     tt = e.times["measurements"]
-    dt_ns = int(round(s.dt * 1e9))
-    np.testing.assert_array_equal(tt.stamp_ns, np.arange(s.n_steps + 1) * dt_ns)
-    np.testing.assert_array_equal(tt.recv_ns, T0_NS + np.arange(s.n_steps + 1) * dt_ns)
+    dt_ns = T.dt_ns(ep.info.dt)
+    np.testing.assert_array_equal(tt.stamp_ns, np.arange(N + 1) * dt_ns)
+    np.testing.assert_array_equal(tt.recv_ns, T0_NS + np.arange(N + 1) * dt_ns)
+    assert e.counts["/clock"] == N + 1 and e.counts[T.FIELD_IMAGE] == 0
+
+
+def test_old_sep01_bag_flat_scenario(tmp_path):
+    """A sep 0.1 bag: the plant published the flat slab scenario JSON alone; the reader builds the
+    built-in slab for its description and gets the same scenario as the new format."""
+    old = legacy_episode(small_scenario(), seed=5)
+    assert '"k_band"' in old.payload and '"plant"' not in old.payload
+    e = read_episode(write_bag(tmp_path / "old", old))
+    assert e.scenario_source == "bag" and e.scenario == old.scenario and e.info == old.info
+    assert not e.scenario.plant_mismatches(small_scenario())
+    assert e.field_name == "temperature" and not e.missing
+    np.testing.assert_array_equal(e.F, old.F)
+    np.testing.assert_array_equal(e.F_hat, old.F_hat)
+    np.testing.assert_array_equal(e.u, old.u)
+
+
+@pytest.mark.parametrize("shape", [(6, 5), (4, 3, 3)])
+def test_grid_plant_bag_with_images(tmp_path, shape):
+    """A 2-D / 3-D grid plant whose field is called phi, with the 32FC1 image topics."""
+    gep = grid_episode(shape, seed=1)
+    e = read_episode(write_bag(tmp_path / "grid", gep))
+    N = gep.scenario.problem.n_steps
+    assert e.info.grid_shape == shape and e.field_name == "phi" and e.scenario == gep.scenario
+    assert not e.missing and not e.notes, e.notes
+    np.testing.assert_array_equal(e.F, gep.F)
+    np.testing.assert_array_equal(e.F_std, gep.F_std)
+    np.testing.assert_array_equal(e.xyz, gep.xyz)
+    assert set(e.images) == {T.FIELD_IMAGE, T.FIELD_ESTIMATE_IMAGE}
+    assert sorted(e.images[T.FIELD_IMAGE]) == list(range(N + 1))
+    img = e.images[T.FIELD_ESTIMATE_IMAGE][7]
+    assert img.dtype == np.float32 and img.shape == shape[:2]
+    np.testing.assert_array_equal(img, T.image_of_field(gep.F_hat[7], shape))
+    assert e.steps_with(T.FIELD_IMAGE).size == N + 1
+
+
+def test_images_are_optional_topics(tmp_path):
+    gep = grid_episode(seed=2)
+    e = read_episode(write_bag(tmp_path / "noimg", gep, skip=(T.topic_name(T.FIELD_IMAGE),
+                                                               T.topic_name(T.FIELD_ESTIMATE_IMAGE))))
+    assert not e.missing and e.images == {}
+
+
+def test_one_stamp_tolerance(tmp_path, ep):
+    """A stamp 0.05 % of dt off k dt is step k; 0.2 % off is off the grid and ignored (noted)."""
+    step = T.dt_ns(ep.info.dt)
+    shift = {(T.MEASUREMENTS, 5): step // 2000, (T.MEASUREMENTS, 6): -(step // 2000),
+             (T.MEASUREMENTS, 7): step // 500, (T.FIELD, 9): -(step // 500)}
+    e = read_episode(write_bag(tmp_path / "bag", ep, stamp_shift_ns=shift))
+    np.testing.assert_array_equal(e.y[5], ep.y[5])
+    np.testing.assert_array_equal(e.y[6], ep.y[6])
+    assert np.all(np.isnan(e.y[7])) and np.all(np.isnan(e.F[9]))
+    np.testing.assert_array_equal(e.F[8], ep.F[8])
+    assert 7 not in e.steps_with("measurements") and 5 in e.steps_with("measurements")
+    assert any("2 messages with stamps off the step grid" in n for n in e.notes), e.notes
+    # the same tolerance as every node (sep_plant.topics)
+    assert T.step_of_stamp(7 * step + step // 2000, step) == 7 and T.step_of_stamp(7 * step + step // 500, step) is None
+
+
+def test_cloud_with_bad_layout_is_skipped(tmp_path, ep):
+    """A cloud whose std channel is not <field>_std is refused (noted), the rest is read."""
+    from bag_synth import TS
+
+    msgs = episode_messages(ep)
+    i = next(j for j, m in enumerate(msgs) if m[0] == T.topic_name(T.FIELD) and j > 20)
+    msg = TS.deserialize_cdr(msgs[i][2], T.POINT_CLOUD2)
+    msg.fields[4].name = "sigma"
+    msgs[i] = (msgs[i][0], msgs[i][1], bytes(TS.serialize_cdr(msg, T.POINT_CLOUD2)))
+    e = read_episode(write_messages(tmp_path / "bag", msgs))
+    k = int(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) // T.dt_ns(ep.info.dt)
+    assert np.all(np.isnan(e.F[k])) and np.isfinite(e.F[k + 1]).all()
+    assert any("malformed" in n and "<field>_std" in n for n in e.notes), e.notes
 
 
 def test_lone_mcap_file_and_missing_metadata(tmp_path, ep):
@@ -45,8 +121,8 @@ def test_lone_mcap_file_and_missing_metadata(tmp_path, ep):
     e1 = read_episode(mcap)
     (bag / "metadata.yaml").unlink()
     e2 = read_episode(bag)
-    np.testing.assert_array_equal(e1.T, ep.T)
-    np.testing.assert_array_equal(e2.T, ep.T)
+    np.testing.assert_array_equal(e1.F, ep.F)
+    np.testing.assert_array_equal(e2.F, ep.F)
     assert any("metadata.yaml missing" in n for n in e2.notes)
 
 
@@ -54,20 +130,24 @@ def test_missing_topics_are_listed_not_raised(tmp_path, ep):
     bag = write_bag(tmp_path / "bag", ep, skip=("/slab/field_estimate", "/diagnostics", "/slab/heat_applied"))
     e = read_episode(bag)
     assert e.missing == ["/slab/heat_applied", "/slab/field_estimate", "/diagnostics"]
-    assert np.all(np.isnan(e.T_hat)) and np.all(np.isnan(e.u))
+    assert np.all(np.isnan(e.F_hat)) and np.all(np.isnan(e.u))
     assert e.diag_totals == {}
-    np.testing.assert_array_equal(e.T, ep.T)
+    np.testing.assert_array_equal(e.F, ep.F)
 
 
 def test_missing_scenario_uses_argument_or_infers(tmp_path, ep):
     bag = write_bag(tmp_path / "bag", ep, skip=("/slab/scenario",))
-    e = read_episode(bag, scenario=ep.scenario)
-    assert e.scenario_source == "argument" and "/slab/scenario" in e.missing
-    np.testing.assert_array_equal(e.T, ep.T)
+    e = read_episode(bag, scenario=ep.scenario, info=ep.info)
+    assert e.scenario_source == "argument" and "/slab/scenario" in e.missing and e.info == ep.info
+    np.testing.assert_array_equal(e.F, ep.F)
+    e = read_episode(bag, scenario=ep.scenario)                 # the description from the scenario's plant
+    assert e.scenario_source == "argument" and e.info == ep.info
     e = read_episode(bag)
-    assert e.scenario is None and e.scenario_source == "inferred"
-    assert e.dt == ep.scenario.dt and e.n_steps == ep.scenario.n_steps
-    np.testing.assert_array_equal(e.T, ep.T)
+    assert e.scenario is None and e.info is None and e.scenario_source == "inferred"
+    assert e.dt == ep.info.dt and e.n_steps == ep.scenario.problem.n_steps
+    np.testing.assert_array_equal(e.F, ep.F)
+    np.testing.assert_array_equal(e.u, ep.u)
+    np.testing.assert_array_equal(e.xyz, ep.xyz)
 
 
 def test_unknown_extra_topics_ignored(tmp_path, ep):
@@ -75,7 +155,7 @@ def test_unknown_extra_topics_ignored(tmp_path, ep):
     e = read_episode(bag)
     assert e.ignored_topics == ["/rosout_like/extra", "/slab/unknown"]
     assert not e.missing
-    np.testing.assert_array_equal(e.T, ep.T)
+    np.testing.assert_array_equal(e.F, ep.F)
 
 
 def test_truncated_mcap_recovers_prefix(tmp_path, ep):
@@ -100,20 +180,7 @@ def test_truncated_mcap_recovers_prefix(tmp_path, ep):
 
 def test_truncated_small_chunks_recover_up_to_last_chunk(tmp_path, ep):
     """With the recorder's periodic chunk flushes, a cut loses at most the last chunk."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    from bag_synth import TS, TYPES, _qos, episode_messages
-
-    bag = tmp_path / "bag"
-    msgs = episode_messages(ep)
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        conns = {}
-        for i, (topic, t, d) in enumerate(msgs):
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, TYPES[topic], typestore=TS, offered_qos_profiles=[_qos()])
-            w.write(conns[topic], t, d)
-            if topic == "/slab/heat_applied":       # one chunk per step, as the recorder's flushes
-                w.storage.close_chunk()
+    bag = write_bag(tmp_path / "bag", ep, chunk_per_step=True)   # one chunk per step, as the recorder's flushes
     mcap = next(bag.glob("*.mcap"))
     data = mcap.read_bytes()
     for frac in (0.3, 0.77, 0.999):
@@ -122,12 +189,12 @@ def test_truncated_small_chunks_recover_up_to_last_chunk(tmp_path, ep):
         (cut / "x.mcap").write_bytes(data[: int(len(data) * frac)])
         e = read_episode(cut, allow_truncated=True)
         ks = e.steps_with("heat_applied")
-        assert ks.size >= int(frac * ep.scenario.n_steps) - 2
-        np.testing.assert_array_equal(e.T[: ks[-1] + 1], ep.T[: ks[-1] + 1])
+        assert ks.size >= int(frac * ep.scenario.problem.n_steps) - 2
+        np.testing.assert_array_equal(e.F[: ks[-1] + 1], ep.F[: ks[-1] + 1])
         assert not e.complete
     fixed = repair_bag(tmp_path / "cut0.77", tmp_path / "fixed")
     e = read_episode(fixed)
-    assert e.complete and e.steps_with("heat_applied").size >= int(0.77 * ep.scenario.n_steps) - 2
+    assert e.complete and e.steps_with("heat_applied").size >= int(0.77 * ep.scenario.problem.n_steps) - 2
 
 
 @pytest.mark.parametrize("damage", ["magic", "garbage_middle", "empty", "not_a_bag", "sqlite_garbage"])
@@ -164,20 +231,12 @@ def test_nonexistent(tmp_path):
 
 
 def test_undecodable_message_is_skipped_and_noted(tmp_path, ep):
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    from bag_synth import TS, TYPES, _qos, episode_messages
-
-    bag = tmp_path / "bag"
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        conns = {}
-        for topic, t, d in episode_messages(ep):
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, TYPES[topic], typestore=TS, offered_qos_profiles=[_qos()])
-            if topic == "/slab/heat_command" and d[4:8] == (5).to_bytes(4, "little") and d[8:12] == bytes(4):
-                d = d[:30]                          # step 5 s: cut payload
-            w.write(conns[topic], t, d)
-    e = read_episode(bag)
+    msgs = []
+    for topic, t, d in episode_messages(ep):
+        if topic == "/slab/heat_command" and d[4:8] == (5).to_bytes(4, "little") and d[8:12] == bytes(4):
+            d = d[:30]                          # step 5 s: cut payload
+        msgs.append((topic, t, d))
+    e = read_episode(write_messages(tmp_path / "bag", msgs))
     assert any("undecodable" in n for n in e.notes)
     assert np.isnan(e.u_cmd[20]).all()
-    assert np.isfinite(e.u_cmd).sum() == (ep.scenario.n_steps - 1) * ep.scenario.n_u
+    assert np.isfinite(e.u_cmd).sum() == (ep.scenario.problem.n_steps - 1) * ep.info.n_u

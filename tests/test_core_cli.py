@@ -20,7 +20,7 @@ w_std: 0.12
 v_std: 0.4
 """
 FAST = ["--p", "5", "--q", "5", "--n-r", "10", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
-SECTION3_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_37_5", "mean_dev_62_5", "n_runs",
+SECTION3_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "n_runs",
                  "coverage_2sigma")
 
 
@@ -46,12 +46,12 @@ def test_design_writes_a_loadable_file(tiny):
     scen, out, d = tiny
     design = load_design(out, expect_scenario=load_scenario(scen))
     s = design.scenario
-    assert (s.n_x, s.n_steps, s.k_band) == (20, 40, 24)
+    assert (s.plant_config["n_x"], s.problem.n_steps, s.problem.window) == (20, 40, (24, 40))
     assert design.n_r == 10 and design.meta["settings"]["p"] == 5
-    assert np.max(np.abs(design.T_nom[s.k_band:] - s.t_target)) < s.band
+    assert np.max(np.abs(design.nominal.field[24:] - 150.0)) < s.problem.band
     summary = json.loads((d / "summary.json").read_text())
     assert summary["n_x"] == 20 and summary["markov_rel_error"] < 1e-4     # (truncated: n_r = 10, p = q = 5)
-    assert summary["max_dev_in_band_window"] == pytest.approx(np.max(np.abs(design.T_nom[s.k_band:] - 150)))
+    assert summary["max_dev_in_band_window"] == pytest.approx(np.max(np.abs(design.nominal.field[24:] - 150)))
 
 
 def test_design_prints_a_summary(tiny, tmp_path, capsys):
@@ -65,6 +65,9 @@ def test_design_prints_a_summary(tiny, tmp_path, capsys):
 
 @pytest.mark.parametrize("text,needle", [
     ("n_x: 20\nbogus_key: 1\n", "bogus_key"),
+    ("plant: {type: slab, n_x: 20}\nbogus_key: 1\n", "bogus_key"),
+    ("plant: {type: furnace}\n", "furnace"),
+    ("plant: {type: slab}\nw_std: [0.1, 0.2]\n", "w_std"),
     ("dt: -1\n", "dt"),
     ("sensor_positions: [0.5, 1.7]\n", "sensor_positions"),
     ("n_x: [1, 2\n", "YAML"),

@@ -9,28 +9,38 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sep_estimator.design_file import (ARRAYS, VERSION, Design, DesignFileError, check_matches, load_design,
-                                       save_design)
-from sep_estimator.tvkf import filter_from_design
+from core_helpers import flat
+from sep_estimator.design_file import (ARRAYS, VERSION, Design, DesignFileError, Nominal, arrays_of,
+                                       check_matches, load_design, save_design)
+from sep_estimator.ltv import LQG, DenseFieldMap, KalmanSchedule, LTVModel
+from sep_estimator.tvkf import KalmanFilter
+from sep_plant.problem import Objective
 from sep_plant.scenario import Scenario
 
-SCENARIO = Scenario(n_x=8, n_steps=5, k_band=3, lqr_k_switch=2, u_min=-2.0, u_max=math.inf, dt=0.5)
+SCENARIO = flat(n_x=8, n_steps=5, k_band=3, lqr_k_switch=2, u_min=-2.0, u_max=math.inf, dt=0.5)
+N_STEPS, N_X, N_U, N_Y = 5, 8, 5, 5
 N_R, N_SV = 3, 4
-
+REPO = Path(__file__).resolve().parent.parent
+V1_FILE = REPO / "tests" / "data" / "design_v1_sep01.npz"
 
 
 def synthetic_design(s: Scenario = SCENARIO, seed: int = 0) -> Design:
     """A Design with random (but well-typed, finite) content of the right shapes."""
     rng = np.random.default_rng(seed)
-    N, nx, nu, ny = s.n_steps, s.n_x, s.n_u, s.n_y
+    N, nx, nu, ny = s.problem.n_steps, s.plant.n_x, s.plant.n_u, s.plant.n_y
     f = lambda *shape: rng.standard_normal(shape)
     P = f(N + 1, N_R, N_R)
+    model = LTVModel(A=f(N, N_R, N_R), B=f(N, N_R, nu), C=f(N + 1, ny, N_R), G=DenseFieldMap(f(N + 1, nx, N_R)),
+                     dims=np.minimum(np.arange(N + 1) * 2, N_R).astype(np.int64))
+    P_post = P @ P.transpose(0, 2, 1)
+    W, V = s.problem.noise_covariances(nu, ny)
+    lqg = LQG("rom_lqg", model, f(N, nu, N_R), KalmanSchedule(f(N + 1, N_R, ny), P_post, P_post), W, V,
+              np.abs(f(N + 1, nx)))
+    xyz = s.plant.field_coordinates()
     return Design(
-        scenario=s, u_nom=f(N, nu), y_nom=f(N + 1, ny), T_nom=150 + f(N + 1, nx), belief_mean=f(N + 1, nx),
-        belief_std=np.abs(f(N + 1, nx)), rom_dims=np.minimum(np.arange(N + 1) * 2, N_R).astype(np.int64),
-        A=f(N, N_R, N_R), B=f(N, N_R, nu), C=f(N + 1, ny, N_R), G=f(N + 1, nx, N_R), K=f(N, nu, N_R),
-        L=f(N + 1, N_R, ny), P_post=P @ P.transpose(0, 2, 1), field_std=np.abs(f(N + 1, nx)),
-        hankel_sv=np.abs(f(N + 1, N_SV)),
+        scenario=s, info=s.info, objective=Objective.of(s.problem, xyz), field_xyz=xyz,
+        nominal=Nominal(f(N, nu), f(N + 1, ny), 150 + f(N + 1, nx), f(N + 1, nx), np.abs(f(N + 1, nx))),
+        lqg=lqg, hankel_sv=np.abs(f(N + 1, N_SV)),
         meta={"settings": {"n_r": N_R, "method": "gn"}, "validation": {"markov_rel_error": np.float64(3e-9)},
               "history": np.array([3.0, 2.0, 1.5]), "provenance": {"seed": 7, "tool": "test"}})
 
@@ -41,11 +51,13 @@ def design_path(tmp_path):
 
 
 def assert_same(a: Design, b: Design):
-    for name in ARRAYS:
-        x, y = getattr(a, name), getattr(b, name)
+    xa, xb = arrays_of(a), arrays_of(b)
+    assert set(xa) == set(xb)
+    for name in xa:
+        x, y = xa[name], xb[name]
         assert x.shape == y.shape, name
         np.testing.assert_array_equal(x, y, err_msg=name)
-    assert a.scenario == b.scenario
+    assert a.scenario == b.scenario and a.info == b.info
 
 
 def rewrite(src: Path, dst: Path, edit_meta=None, **arrays):
@@ -72,17 +84,21 @@ def test_round_trip_preserves_every_array_and_meta(tmp_path):
     assert path.is_file() and not list(path.parent.glob("*.tmp"))
     back = load_design(path)
     assert_same(d, back)
-    for name in ARRAYS:
-        assert getattr(back, name).dtype == (np.int64 if name == "rom_dims" else np.float64)
-    assert back.scenario.u_min == -2.0 and back.scenario.u_max == math.inf
+    for name, arr in arrays_of(back).items():
+        assert arr.dtype == (np.int64 if name == "rom_dims" else np.float64)
+    assert set(arrays_of(back)) == set(ARRAYS)
+    assert back.problem.u_min == -2.0 and back.problem.u_max == math.inf
     assert back.meta["settings"] == {"n_r": N_R, "method": "gn"}
     assert back.meta["validation"] == {"markov_rel_error": 3e-9}
     assert back.meta["history"] == [3.0, 2.0, 1.5]
     assert back.meta["provenance"] == {"seed": 7, "tool": "test"}
-    assert back.meta["version"] == VERSION and back.n_r == N_R and back.n_steps == SCENARIO.n_steps
+    assert back.meta["version"] == VERSION and back.n_r == N_R and back.n_steps == N_STEPS
+    # the priors are rebuilt from the posteriors; the objective from the stored target
+    np.testing.assert_array_equal(back.objective.target, d.objective.target)
+    assert back.objective.window == (3, 5)
     # loading with the matching plant is fine, and the online filter builds from it
     load_design(path, expect_scenario=SCENARIO)
-    f = filter_from_design(back, batch=2)
+    f = KalmanFilter(back.lqg, batch=2)
     assert f.a.shape == (2, N_R)
 
 
@@ -98,7 +114,7 @@ def test_round_trip_of_a_real_design(tmp_path):
 
 def test_save_refuses_wrong_shapes(tmp_path):
     d = synthetic_design()
-    d.K = d.K[:, :, :2]
+    d.lqg.K = d.lqg.K[:, :, :2]
     with pytest.raises(ValueError, match="K"):
         save_design(tmp_path / "bad.npz", d)
     assert not (tmp_path / "bad.npz").exists()
@@ -108,12 +124,12 @@ def test_save_refuses_wrong_shapes(tmp_path):
 @pytest.mark.parametrize("changes,keys", [
     (dict(n_x=9), ["n_x"]),
     (dict(dt=0.25), ["dt"]),
-    (dict(sensor_positions=(0.1, 0.3, 0.5, 0.7, 0.85)), ["sensor_positions"]),
+    (dict(sensor_positions=[0.1, 0.3, 0.5, 0.7, 0.85]), ["sensor_positions"]),
     (dict(n_x=10, dt=0.25, t_right=140.0), ["n_x", "dt", "t_right"]),
-    (dict(heater_centers=(0.1, 0.5, 0.9)), ["heater_centers"]),
+    (dict(heater_centers=[0.1, 0.5, 0.9]), ["heater_centers"]),
 ])
 def test_design_for_another_plant_refused(design_path, changes, keys):
-    other = SCENARIO.replace(**changes)
+    other = SCENARIO.with_plant(**changes)
     with pytest.raises(DesignFileError) as exc:
         load_design(design_path, expect_scenario=other)
     msg = str(exc.value)
@@ -130,6 +146,8 @@ def test_check_matches_names_the_keys():
     check_matches(d, SCENARIO)
     with pytest.raises(DesignFileError, match="n_steps"):
         check_matches(d, SCENARIO.replace(n_steps=6))
+    # the noise, weights and limits may differ (the plant node uses its own)
+    check_matches(d, SCENARIO.replace(w_std=0.1, u_max=3.0))
 
 
 # --------------------------------------------------------------- corrupt files
@@ -321,10 +339,17 @@ def _without_meta(src, dst):
 
 
 @pytest.mark.parametrize("change", [
-    lambda m: {**m, "scenario": {**m["scenario"], "n_x": 2}},
+    lambda m: {**m, "scenario": {**m["scenario"], "n_steps": 1}},
+    lambda m: {**m, "scenario": {**m["scenario"], "n_steps": 6, "band_window": [3, 6]}},   # != the arrays
+    lambda m: {**m, "scenario": {**m["scenario"], "band": -3.0}},
     lambda m: {**m, "scenario": {**m["scenario"], "no_such_key": 1}},
+    lambda m: {**m, "scenario": {**m["scenario"], "plant": "slab"}},
     lambda m: {**m, "scenario": [1, 2]},
     lambda m: {k: v for k, v in m.items() if k != "scenario"},
+    lambda m: {k: v for k, v in m.items() if k != "plant_info"},
+    lambda m: {**m, "plant_info": {**m["plant_info"], "n_field": 9}},
+    lambda m: {**m, "plant_info": {**m["plant_info"], "n_u": "five"}},
+    lambda m: {**m, "plant_info": [1]},
     lambda m: {**m, "n_r": "three"},
     lambda m: {**m, "n_r": 0},
     lambda m: {**m, "n_r": N_R + 1},
@@ -333,30 +358,32 @@ def test_bad_scenario_record_or_order_refused(design_path, tmp_path, change):
     refused(rewrite(design_path, tmp_path / "m.npz", edit_meta=change))
 
 
-@pytest.mark.parametrize("name", ["A", "K", "P_post", "T_nom", "hankel_sv", "u_nom"])
+@pytest.mark.parametrize("name", ["A", "K", "P_post", "field_nom", "hankel_sv", "u_nom", "target", "field_xyz"])
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_non_finite_array_refused(design_path, tmp_path, name, bad):
     d = load_design(design_path)
-    arr = getattr(d, name).copy()
+    arr = arrays_of(d)[name].copy()
     arr.reshape(-1)[arr.size // 2] = bad
     msg = refused(rewrite(design_path, tmp_path / "nan.npz", **{name: arr}))
     assert name in msg
 
 
 @pytest.mark.parametrize("name,shape", [
-    ("A", (SCENARIO.n_steps, N_R, N_R + 1)),
-    ("A", (SCENARIO.n_steps + 1, N_R, N_R)),
-    ("C", (SCENARIO.n_steps + 1, SCENARIO.n_y + 1, N_R)),
-    ("T_nom", (SCENARIO.n_steps + 1, SCENARIO.n_x - 1)),
-    ("u_nom", (SCENARIO.n_steps * SCENARIO.n_u,)),
-    ("rom_dims", (SCENARIO.n_steps,)),
-    ("hankel_sv", (SCENARIO.n_steps + 1,)),
+    ("A", (N_STEPS, N_R, N_R + 1)),
+    ("A", (N_STEPS + 1, N_R, N_R)),
+    ("C", (N_STEPS + 1, N_Y + 1, N_R)),
+    ("field_nom", (N_STEPS + 1, N_X - 1)),
+    ("field_xyz", (N_X, 2)),
+    ("u_nom", (N_STEPS * N_U,)),
+    ("u_nom", (N_STEPS + 1, N_U)),
+    ("rom_dims", (N_STEPS,)),
+    ("hankel_sv", (N_STEPS + 1,)),
     ("L", ()),
 ])
 def test_wrong_shape_refused(design_path, tmp_path, name, shape):
     arr = np.ones(shape, dtype=np.int64 if name == "rom_dims" else np.float64)
     msg = refused(rewrite(design_path, tmp_path / "shape.npz", **{name: arr}))
-    assert name in msg or "Hankel" in msg
+    assert name in msg or "Hankel" in msg or "nominal" in msg
 
 
 @pytest.mark.parametrize("name", [n for n in ARRAYS])
@@ -365,13 +392,13 @@ def test_missing_member_refused(design_path, tmp_path, name):
 
 
 def test_wrong_dtypes_refused(design_path, tmp_path):
-    d = load_design(design_path)
-    refused(rewrite(design_path, tmp_path / "a.npz", A=d.A.astype(np.float32)), "A")
-    refused(rewrite(design_path, tmp_path / "b.npz", K=d.K.astype(np.int64)), "K")
-    refused(rewrite(design_path, tmp_path / "c.npz", rom_dims=d.rom_dims.astype(np.float64)), "rom_dims")
-    refused(rewrite(design_path, tmp_path / "d.npz", rom_dims=d.rom_dims + N_R), "rom_dims")
-    refused(rewrite(design_path, tmp_path / "e.npz", rom_dims=d.rom_dims - 10), "rom_dims")
-    refused(rewrite(design_path, tmp_path / "f.npz", u_nom=d.u_nom.astype(complex)), "u_nom")
+    d = arrays_of(load_design(design_path))
+    refused(rewrite(design_path, tmp_path / "a.npz", A=d["A"].astype(np.float32)), "A")
+    refused(rewrite(design_path, tmp_path / "b.npz", K=d["K"].astype(np.int64)), "K")
+    refused(rewrite(design_path, tmp_path / "c.npz", rom_dims=d["rom_dims"].astype(np.float64)), "rom_dims")
+    refused(rewrite(design_path, tmp_path / "d.npz", rom_dims=d["rom_dims"] + N_R), "rom_dims")
+    refused(rewrite(design_path, tmp_path / "e.npz", rom_dims=d["rom_dims"] - 10), "rom_dims")
+    refused(rewrite(design_path, tmp_path / "f.npz", u_nom=d["u_nom"].astype(complex)), "u_nom")
 
 
 def test_a_rewritten_but_intact_file_still_loads(design_path, tmp_path):
@@ -417,11 +444,51 @@ def test_a_loaded_design_with_a_new_rom_saves_and_loads(tmp_path):
 
     d = load_design(save_design(tmp_path / "a.npz", synthetic_design()))
     r = N_R - 1
-    d2 = replace(d, A=d.A[:, :r, :r].copy(), B=d.B[:, :r].copy(), C=d.C[:, :, :r].copy(),
-                 G=d.G[:, :, :r].copy(), K=d.K[:, :, :r].copy(), L=d.L[:, :r].copy(),
-                 P_post=d.P_post[:, :r, :r].copy(), rom_dims=np.minimum(d.rom_dims, r))
+    m, q = d.rom, d.lqg
+    model = LTVModel(m.A[:, :r, :r].copy(), m.B[:, :r].copy(), m.C[:, :, :r].copy(),
+                     DenseFieldMap(m.G.G[:, :, :r].copy()), np.minimum(m.dims, r))
+    sched = KalmanSchedule(q.kf.L[:, :r].copy(), q.kf.P_post[:, :r, :r].copy(), q.kf.P_prior[:, :r, :r].copy())
+    d2 = replace(d, lqg=LQG("rom_lqg", model, q.K[:, :, :r].copy(), sched, q.W, q.V, q.field_std))
     back = load_design(save_design(tmp_path / "b.npz", d2))
     assert back.n_r == r
     assert_same(back, d2)
     # a loaded design saved unchanged is the same file content again
     assert_same(load_design(save_design(tmp_path / "c.npz", d)), d)
+
+
+# ------------------------------------------------------------- older versions
+def test_version_1_file_of_sep01_is_read(tmp_path):
+    """A design file written by sep 0.1 (format version 1, flat slab scenario, T_nom) loads as the
+    same design: same arrays under the new names, same scenario, and the same closed loop."""
+    from sep_control.montecarlo import simulate
+
+    d = load_design(V1_FILE)
+    assert d.meta["upgraded_from_version"] == 1 and d.scenario.plant_type == "slab"
+    assert d.scenario.plant_config["n_x"] == 12 and d.problem.window == (6, 10) and d.problem.k_switch == 4
+    with np.load(V1_FILE) as z:
+        np.testing.assert_array_equal(d.nominal.field, z["T_nom"])
+        np.testing.assert_array_equal(d.rom.G.G, z["G"])
+        np.testing.assert_array_equal(d.lqg.K, z["K"])
+    np.testing.assert_array_equal(d.field_xyz[:, 0], d.scenario.plant.grid())
+    # the cost sep 0.1 computed for its rom_lqg, runs 0-4 of seed 1: 13.946957521277634
+    r = simulate(d.scenario.plant, d, "rom_lqg", 1, 5)
+    assert r.summary["cost_mean"] == pytest.approx(13.946957521277634, rel=1e-12)
+    # saved again, it is a version 2 file with the same content
+    back = load_design(save_design(tmp_path / "v2.npz", d))
+    assert back.meta["version"] == VERSION
+    assert_same(back, d)
+
+
+def test_newer_version_refused_with_how_to_regenerate(design_path, tmp_path):
+    msg = refused(rewrite(design_path, tmp_path / "v9.npz", edit_meta=lambda m: {**m, "version": 9}))
+    assert "version 9" in msg and "re-run `design" in msg.lower()
+
+
+def test_noise_input_map_round_trip(tmp_path):
+    """A plant whose noise is not on the inputs: the ROM's B_w is stored and read back."""
+    d = synthetic_design()
+    rng = np.random.default_rng(3)
+    d.lqg.model.Bw = rng.standard_normal((N_STEPS, N_R, N_U))
+    back = load_design(save_design(tmp_path / "bw.npz", d))
+    np.testing.assert_array_equal(back.rom.Bw, d.rom.Bw)
+    assert "Bw" in arrays_of(back)

@@ -2,12 +2,13 @@
 import numpy as np
 import pytest
 
-from core_helpers import (cached_design, cached_oracle, coarse_scenario, conductivity, d2_matrix,  # noqa: F401
+from core_helpers import (Slab, cached_design, cached_oracle, coarse_scenario, conductivity, d2_matrix,  # noqa: F401
                           dense_jacobians, dense_step, one_blas_thread)
-from sep_control.oracle import full_order_jacobians, rom_lqg
-from sep_control.optimize import nominal_rollout
-from sep_plant.scenario import Scenario
-from sep_plant.slab import SlabSimulator
+from sep_control.oracle import full_order_model, rom_lqg
+from sep_estimator.ltv import IdentityFieldMap
+from sep_plant.protocol import nominal_states as nominal_rollout
+
+N_STEPS = 8
 
 pytestmark = pytest.mark.usefixtures("one_blas_thread")
 
@@ -21,37 +22,38 @@ def rel(a, b):
     dict(beta=2.0, gamma=1.0, dt=2.0),              # strongly T- and x-dependent K, long steps
 ])
 def test_full_order_jacobians_equal_the_analytic_ones(changes):
-    s = Scenario(n_x=10, n_steps=8, k_band=4, lqr_k_switch=4, **changes)
-    sim = SlabSimulator(s)
+    s = sim = Slab(n_x=10, **changes)
     rng = np.random.default_rng(0)
-    U = 2.0 + rng.standard_normal((s.n_steps, s.n_u))
+    U = 2.0 + rng.standard_normal((N_STEPS, s.n_u))
     X = nominal_rollout(sim, U)
     # (the test's dense model is the simulator: same trajectory)
-    for k in range(s.n_steps):
+    for k in range(N_STEPS):
         np.testing.assert_allclose(dense_step(s, X[k], U[k]), X[k + 1], rtol=1e-12)
-    A, B, C = full_order_jacobians(sim, X, U)
-    assert A.shape == (s.n_steps, s.n_x, s.n_x) and B.shape == (s.n_steps, s.n_x, s.n_u)
-    assert C.shape == (s.n_y, s.n_x)
-    for k in range(s.n_steps):
+    m = full_order_model(sim, X, U)
+    A, B = m.A, m.B
+    assert A.shape == (N_STEPS, s.n_x, s.n_x) and B.shape == (N_STEPS, s.n_x, s.n_u)
+    assert m.C.shape == (N_STEPS + 1, s.n_y, s.n_x) and m.Bw is None
+    assert isinstance(m.G, IdentityFieldMap)              # the slab's field is its state
+    for k in range(N_STEPS):
         A_ex, B_ex = dense_jacobians(s, X[k], U[k])
         assert rel(A[k], A_ex) < 1e-6
         assert rel(B[k], B_ex) < 1e-6
     # C selects the sensor nodes
     C_ex = np.zeros((s.n_y, s.n_x))
     C_ex[np.arange(s.n_y), s.sensor_nodes()] = 1.0
-    np.testing.assert_allclose(C, C_ex, atol=1e-9)
+    for k in range(N_STEPS + 1):
+        np.testing.assert_allclose(m.C[k], C_ex, atol=1e-9)
 
 
 def test_the_analytic_jacobian_check_is_sensitive():
     """(control) the Jacobian without the dK/dT term (K evaluated at the actual temperatures but
     treated as a constant) is far outside the tolerance used above, so that comparison really
     checks the temperature dependence of the discretized equations."""
-    s = Scenario(n_x=10, n_steps=8, k_band=4, lqr_k_switch=4)
-    sim = SlabSimulator(s)
-    U = np.full((s.n_steps, s.n_u), 3.0)
+    s = sim = Slab(n_x=10)
+    U = np.full((N_STEPS, s.n_u), 3.0)
     X = nominal_rollout(sim, U)
-    A, _, _ = full_order_jacobians(sim, X, U)
-    k = s.n_steps - 1
+    A = full_order_model(sim, X, U).A
+    k = N_STEPS - 1
     M = (1 + s.dt * s.eta) * np.eye(s.n_x) - s.dt * conductivity(s, X[k])[:, None] * d2_matrix(s.n_x, s.h)
     assert rel(A[k], np.linalg.inv(M)) > 1e-4
     assert rel(A[k], dense_jacobians(s, X[k], U[k])[0]) < 1e-6
@@ -60,14 +62,15 @@ def test_the_analytic_jacobian_check_is_sensitive():
 def test_oracle_lqg_shapes_and_field_map():
     s = coarse_scenario()                   # the end-to-end test's design (computed once)
     d = cached_design(s)
-    orc = cached_oracle(s)
-    N, nx = s.n_steps, s.n_x
-    assert orc.name == "oracle_lqg"
-    assert orc.A.shape == (N, nx, nx) and orc.K.shape == (N, s.n_u, nx) and orc.L.shape == (N + 1, nx, s.n_y)
-    np.testing.assert_array_equal(orc.G[3], np.eye(nx))
-    np.testing.assert_allclose(orc.field_std, np.sqrt(np.einsum("kii->ki", orc.P_post)), rtol=1e-12)
+    lqg = cached_oracle(s)
+    orc = lqg.model
+    N, nx, nu, ny = s.problem.n_steps, s.plant.n_x, s.plant.n_u, s.plant.n_y
+    assert lqg.name == "oracle_lqg"
+    assert orc.A.shape == (N, nx, nx) and lqg.K.shape == (N, nu, nx) and lqg.kf.L.shape == (N + 1, nx, ny)
+    np.testing.assert_array_equal(orc.G.matrix(3), np.eye(nx))
+    np.testing.assert_allclose(lqg.field_std, np.sqrt(np.einsum("kii->ki", lqg.kf.P_post)), rtol=1e-12)
     # identical input-output behaviour: ROM and full-order Markov parameters agree
-    rom = rom_lqg(d)
+    rom = rom_lqg(d).model
     for j, k in [(0, 1), (0, 10), (5, 30), (20, 40), (30, 80)]:
         Mr, Mo = rom.B[j], orc.B[j]
         for i in range(j + 1, k):
@@ -78,4 +81,4 @@ def test_oracle_lqg_shapes_and_field_map():
         Mr, Mo = rom.B[j], orc.B[j]
         for i in range(j + 1, k):
             Mr, Mo = rom.A[i] @ Mr, orc.A[i] @ Mo
-        np.testing.assert_allclose(rom.G[k] @ Mr, Mo, rtol=0, atol=1e-5 * np.abs(Mo).max())
+        np.testing.assert_allclose(rom.G.matrix(k) @ Mr, Mo, rtol=0, atol=1e-5 * np.abs(Mo).max())

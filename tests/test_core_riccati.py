@@ -5,7 +5,8 @@ from scipy.linalg import solve_discrete_are
 
 from core_helpers import ltv_system, stable_matrix
 from sep_control.lqr import command, output_weights, tv_lqr
-from sep_estimator.tvkf import (RomKalmanFilter, field_std, filter_from_schedule, kalman_gains,
+from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, field_std
+from sep_estimator.tvkf import (KalmanFilter, kalman_gains, schedule_from_posteriors,
                                 open_loop_covariance)
 
 
@@ -80,8 +81,8 @@ def test_kalman_gains_converge_to_the_steady_state_filter():
     N = 600
     W = np.diag([0.09, 0.2])
     V = np.eye(n_y) * 0.5
-    kf = kalman_gains(np.broadcast_to(A, (N, n, n)), np.broadcast_to(B, (N, n, n_u)),
-                      np.broadcast_to(C, (N + 1, n_y, n)), W, V)
+    kf = kalman_gains(model(np.broadcast_to(A, (N, n, n)), np.broadcast_to(B, (N, n, n_u)),
+                            np.broadcast_to(C, (N + 1, n_y, n))), W, V)
     # dual DARE: prior covariance P = A P A' - A P C'(C P C' + V)^-1 C P A' + B W B'
     P = solve_discrete_are(A.T, C.T, B @ W @ B.T, V)
     L = P @ C.T @ np.linalg.inv(C @ P @ C.T + V)
@@ -94,12 +95,26 @@ def test_kalman_gains_converge_to_the_steady_state_filter():
     assert np.all(kf.P_prior[0] == 0) and np.all(kf.L[0] == 0)
 
 
+def model(A, B, C, G=None):
+    G = np.zeros((C.shape[0], 1, A.shape[1])) if G is None else G
+    return LTVModel(A, B, C, DenseFieldMap(G), dims=np.full(C.shape[0], A.shape[1]))
+
+
+def RomKalmanFilter(A, B, C, G, L, P_post, P_prior, W, V, batch=1, field_std=None):
+    """A KalmanFilter on (A, B, C, G) with the given schedule (optionally a precomputed field std)."""
+    from sep_estimator.ltv import KalmanSchedule
+
+    lqg = LQG("test", model(A, B, C, G), np.zeros((A.shape[0], B.shape[2], A.shape[1])),
+              KalmanSchedule(L, P_post, P_prior), W, V, field_std)
+    return KalmanFilter(lqg, batch)
+
+
 def ltv_schedule(seed=5, N=25, n=4, n_u=2, n_y=3, n_x=7):
     rng = np.random.default_rng(seed)
     A, B, C, G = ltv_system(rng, N, n, n_u, n_y, n_x, radius=0.95)
     W = np.eye(n_u) * 0.3**2
     V = np.eye(n_y) * 1.0
-    return A, B, C, G, W, V, kalman_gains(A, B, C, W, V)
+    return A, B, C, G, W, V, kalman_gains(model(A, B, C, G), W, V)
 
 
 def reference_filter(A, B, C, W, V, P, a, k_from, k_to, dys, dus, skips=()):
@@ -168,7 +183,7 @@ def test_skip_then_online_covariance_is_the_filter_without_that_update():
     dys, dus = rng.standard_normal((N + 1, 3)), rng.standard_normal((N, 2))
     skips = {7, 8, 15}
     ref = reference_filter(A, B, C, W, V, np.zeros((4, 4)), np.zeros((1, 4)), 0, N + 1, dys, dus, skips)
-    f = RomKalmanFilter(A, B, C, G, kf.L, kf.P_post, kf.P_prior, W, V)
+    f = RomKalmanFilter(A, B, C, G, kf.L, kf.P_post, kf.P_prior, W, V, field_std=np.zeros((N + 1, 7)))
     for k in range(N + 1):
         if k in skips:
             a_before = f.a.copy()
@@ -179,9 +194,9 @@ def test_skip_then_online_covariance_is_the_filter_without_that_update():
         assert f.on_schedule == (k < 7)
         np.testing.assert_allclose(f.a, ref[k][0], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(f.P, ref[k][1], rtol=1e-9, atol=1e-12)
-        # the reported field std follows the online covariance, not the stored schedule
-        np.testing.assert_allclose(f.field_std(precomputed=np.zeros((N + 1, 7)) if k >= 7 else None),
-                                   np.sqrt(np.diag(G[k] @ ref[k][1] @ G[k].T)), rtol=1e-9)
+        # the reported field std follows the online covariance, not the stored schedule (zeros here)
+        want = np.sqrt(np.diag(G[k] @ ref[k][1] @ G[k].T))
+        np.testing.assert_allclose(f.field_std(), want if k >= 7 else 0.0, rtol=1e-9)
         if k < N:
             f.predict(k, dus[k])
     # after the skips the covariance is larger than the schedule's (less information)
@@ -243,12 +258,26 @@ def test_out_of_order_calls_raise():
     assert f.k == 2
 
 
-def test_filter_from_schedule_rebuilds_the_priors():
+def test_schedule_from_posteriors_rebuilds_the_priors():
     A, B, C, G, W, V, kf = ltv_schedule()
-    f = filter_from_schedule(A, B, C, G, kf.L, kf.P_post, 0.3, 1.0, batch=2)
-    np.testing.assert_allclose(f.P_prior_sched, kf.P_prior, rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(f.W, W) and np.testing.assert_allclose(f.V, V)
-    assert f.a.shape == (2, 4)
+    sched = schedule_from_posteriors(model(A, B, C, G), kf.L, kf.P_post, W)
+    np.testing.assert_allclose(sched.P_prior, kf.P_prior, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(sched.L, kf.L)
+
+
+def test_noise_input_map_other_than_the_inputs():
+    """B_w != B: the covariance propagates with B_w W B_w', the estimate with B du."""
+    A, B, C, G, W, V, _ = ltv_schedule()
+    rng = np.random.default_rng(9)
+    Bw = rng.standard_normal((A.shape[0], 4, 3))
+    Ww = np.diag([0.1, 0.2, 0.3])
+    m = LTVModel(A, B, C, DenseFieldMap(G), np.full(C.shape[0], 4), Bw=Bw)
+    kf = kalman_gains(m, Ww, V)
+    P = kf.P_post[0]
+    for k in range(3):
+        np.testing.assert_allclose(kf.P_prior[k + 1], A[k] @ kf.P_post[k] @ A[k].T + Bw[k] @ Ww @ Bw[k].T,
+                                   rtol=1e-12, atol=1e-14)
+    assert P.shape == (4, 4)
 
 
 def test_field_std_formula():
@@ -279,10 +308,10 @@ def test_field_std_between_predict_and_update_is_the_prior_std():
     """After predict(k-1) the estimate is a_{k|k-1}: its field std is sqrt(diag(G_k P_{k|k-1} G_k')),
     on schedule as well as off it (the covariance must follow the estimate it describes)."""
     A, B, C, G, W, V, kf = ltv_schedule()
-    f = RomKalmanFilter(A, B, C, G, kf.L, kf.P_post, kf.P_prior, W, V)
+    f = RomKalmanFilter(A, B, C, G, kf.L, kf.P_post, kf.P_prior, W, V, field_std=np.zeros((A.shape[0] + 1, 7)))
     for k in range(6):
         f.update(k, np.zeros(3))
+        assert np.all(f.field_std() == 0)          # after the update, on schedule: the precomputed one
         f.predict(k, np.zeros(2))
         want = np.sqrt(np.diag(G[k + 1] @ kf.P_prior[k + 1] @ G[k + 1].T))
         np.testing.assert_allclose(f.field_std(), want, rtol=1e-9)
-        np.testing.assert_allclose(f.field_std(precomputed=np.zeros((A.shape[0] + 1, 7))), want, rtol=1e-9)

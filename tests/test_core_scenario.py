@@ -1,15 +1,19 @@
-"""Scenario: YAML loading, validation messages, JSON round trip, mismatches."""
+"""Scenario: plant section + problem keys, YAML loading, the sep 0.1 flat format, validation
+messages, JSON round trip, plant mismatches, targets and per-channel values."""
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sep_plant.scenario import PLANT_KEYS, Scenario, ScenarioError, load_scenario, mismatches
+from core_helpers import Slab, flat
+from sep_plant.problem import Objective, Problem, ProblemError, evaluate_expression
+from sep_plant.scenario import (Scenario, ScenarioError, load_scenario, mismatches, parse_scenario_payload,
+                                reference, scenario_payload)
 
 REPO = Path(__file__).resolve().parent.parent
 REFERENCE_YAML = REPO / "sep_plant" / "scenarios" / "reference.yaml"
-
+FLAT_V1_YAML = REPO / "tests" / "data" / "reference_flat_v1.yaml"
 
 
 def write(tmp_path, text, name="scenario.yaml"):
@@ -19,57 +23,83 @@ def write(tmp_path, text, name="scenario.yaml"):
 
 
 def test_defaults_are_the_reference_scenario():
-    s = Scenario()
-    assert (s.n_x, s.length, s.k0, s.beta, s.eta, s.t_right, s.t_init) == (100, 1.0, 0.01, 0.5, 0.002, 150.0, 100.0)
-    assert s.heater_centers == (0.1, 0.3, 0.5, 0.7, 0.9) and s.sensor_positions == s.heater_centers
-    assert (s.dt, s.n_steps, s.w_std, s.v_std, s.k_band, s.lqr_k_switch) == (0.25, 250, 0.3, 1.0, 150, 120)
-    assert (s.heater_sigma, s.q_late, s.q_early, s.r_u, s.lqr_r) == (0.02, 1.0, 1e-5, 0.1, 0.01)
-    assert s.u_min == -math.inf and s.u_max == math.inf
-    assert s.horizon_s == 62.5
-    q = s.q_weights()
-    assert q.shape == (251,) and q[149] == 1e-5 and q[150] == 1.0
-    qy = s.lqr_output_weights()
+    s = reference()
+    p, c = s.problem, s.plant_config
+    assert s.plant_type == "slab"
+    assert (c["n_x"], c["length"], c["k0"], c["beta"], c["eta"], c["t_right"], c["t_init"]) == \
+        (100, 1.0, 0.01, 0.5, 0.002, 150.0, 100.0)
+    assert c["heater_centers"] == [0.1, 0.3, 0.5, 0.7, 0.9] and c["sensor_positions"] == c["heater_centers"]
+    assert (c["dt"], p.n_steps, p.w_std, p.v_std, p.window, p.k_switch) == (0.25, 250, 0.3, 1.0, (150, 250), 120)
+    assert (c["heater_sigma"], p.q_window, p.q_outside, p.r_u, p.lqr_r) == (0.02, 1.0, 1e-5, 0.1, 0.01)
+    assert p.u_min == -math.inf and p.u_max == math.inf
+    q = p.q_weights()
+    assert q.shape == (251,) and q[149] == 1e-5 and q[150] == 1.0 and q[250] == 1.0
+    qy = p.lqr_output_weights(5)
     assert qy[119] == pytest.approx(0.1 / 5) and qy[120] == pytest.approx(1.0 / 5)
+    # the defaults that depend on N: the last 40 % of the horizon, the LQR switch 12 % before it
+    assert Problem(n_steps=100).window == (60, 100) and Problem(n_steps=100).k_switch == 48
 
 
 def test_none_is_the_reference():
-    assert load_scenario(None) == Scenario()
+    assert load_scenario(None) == reference() == Scenario().canonical()
 
 
-def test_yaml_with_overrides(tmp_path):
+def test_reference_yaml_is_the_default_scenario():
+    assert load_scenario(REFERENCE_YAML) == reference()
+
+
+def test_flat_sep01_file_is_the_same_scenario():
+    """sep 0.1's flat reference.yaml (users have such files) means the same slab and problem."""
+    assert load_scenario(FLAT_V1_YAML) == reference()
+
+
+def test_flat_yaml_with_overrides(tmp_path):
     p = write(tmp_path, "n_x: 50\ndt: 0.5\nn_steps: 125\nk_band: 75\nlqr_k_switch: 60\n"
                         "heater_centers: [0.2, 0.5, 0.8]\nsensor_positions: [0.25, 0.75]\n"
-                        "u_min: 0\nu_max: .inf\nw_std: 0.1\n")
+                        "u_min: 0\nu_max: .inf\nw_std: 0.1\nq_late: 2.0\nt_target: 140\n")
     s = load_scenario(p)
-    assert s == Scenario(n_x=50, dt=0.5, n_steps=125, k_band=75, lqr_k_switch=60,
-                         heater_centers=(0.2, 0.5, 0.8), sensor_positions=(0.25, 0.75),
-                         u_min=0.0, u_max=math.inf, w_std=0.1)
-    assert isinstance(s.n_x, int) and isinstance(s.dt, float) and isinstance(s.u_min, float)
-    assert (s.n_u, s.n_y) == (3, 2)
+    assert s.plant_type == "slab" and s.plant_config["n_x"] == 50 and s.plant_config["dt"] == 0.5
+    assert s.problem.window == (75, 125) and s.problem.k_switch == 60
+    assert s.problem.q_window == 2.0 and s.problem.target == 140.0 and s.problem.u_min == 0.0
+    plant = s.plant
+    assert (plant.n_u, plant.n_y) == (3, 2)
+    assert isinstance(plant.n_x, int) and isinstance(plant.dt, float)
     # untouched keys keep the reference values
-    assert s.k0 == 0.01 and s.t_right == 150.0
+    assert s.plant_config["k0"] == 0.01 and s.plant_config["t_right"] == 150.0
+
+
+def test_current_format_yaml(tmp_path):
+    p = write(tmp_path, "plant:\n  type: slab\n  n_x: 60\n  dt: 0.5\nn_steps: 100\nband_window: [70, 90]\n"
+                        "target: '150 + 2 * x'\nv_std: [1, 2, 1, 2, 1]\n")
+    s = load_scenario(p)
+    assert s.plant_config["n_x"] == 60 and s.problem.window == (70, 90)
+    assert s.problem.k_switch == 70 - 12                # 12 % of N before the window opens
+    target = s.problem.target_field(s.plant.field_coordinates())
+    np.testing.assert_allclose(target, 150 + 2 * s.plant.grid())
+    np.testing.assert_array_equal(s.problem.channels("v_std", 5), [1, 2, 1, 2, 1])
+    # the problem's window ends before N: q_k is the outside weight after it
+    q = s.problem.q_weights()
+    assert q[70] == q[90] == 1.0 and q[91] == q[69] == 1e-5
 
 
 def test_yaml_under_a_scenario_key_and_string_infinities(tmp_path):
     p = write(tmp_path, "scenario:\n  n_x: 60\n  u_min: '-inf'\n  u_max: 'inf'\n")
     s = load_scenario(p)
-    assert s.n_x == 60 and s.u_min == -math.inf and s.u_max == math.inf
+    assert s.plant_config["n_x"] == 60 and s.problem.u_min == -math.inf and s.problem.u_max == math.inf
 
 
 def test_empty_yaml_is_the_reference(tmp_path):
-    assert load_scenario(write(tmp_path, "")) == Scenario()
+    assert load_scenario(write(tmp_path, "")) == reference()
 
 
-def test_reference_yaml_is_the_default_scenario():
-    if not REFERENCE_YAML.exists():
-        pytest.skip("sep_plant/scenarios/reference.yaml not shipped yet")
-    assert load_scenario(REFERENCE_YAML) == Scenario()
-
-
-def test_unknown_key_is_named(tmp_path):
-    p = write(tmp_path, "n_x: 40\nheater_sigmaa: 0.03\n")
-    with pytest.raises(ScenarioError, match="heater_sigmaa"):
-        load_scenario(p)
+@pytest.mark.parametrize("text,name", [
+    ("n_x: 40\nheater_sigmaa: 0.03\n", "heater_sigmaa"),
+    ("plant: {type: slab}\nheater_sigma: 0.03\n", "heater_sigma"),     # a plant key beside the problem
+    ("plant: {type: slab, t_target: 140}\n", "t_target"),             # a problem key in the plant
+])
+def test_unknown_key_is_named(tmp_path, text, name):
+    with pytest.raises(ScenarioError, match=name):
+        load_scenario(write(tmp_path, text))
 
 
 @pytest.mark.parametrize("text,key", [
@@ -89,11 +119,25 @@ def test_unknown_key_is_named(tmp_path):
     ("u_min: 2.0\nu_max: 1.0", "u_min"),
     ("v_std: 0", "v_std"),
     ("w_std: -0.3", "w_std"),
-    ("k_band: 300", "k_band"),
+    ("k_band: 300", "band_window"),
     ("lqr_k_switch: -1", "lqr_k_switch"),
     ("k0: true", "k0"),
     ("heater_sigma: -0.02", "heater_sigma"),
     ("u_min: 0.5", "u_init"),
+    ("plant: {type: slab}\nband_window: [100, 300]", "band_window"),
+    ("plant: {type: slab}\nband_window: 100", "band_window"),
+    ("plant: {type: slab}\nw_std: [0.3, 0.3]", "w_std"),
+    ("plant: {type: slab}\ntarget: [150, 150]", "target"),
+    ("plant: {type: slab}\ntarget: 'sin(q)'", "q"),
+    ("plant: {type: slab}\ntarget: 'x.__class__'", "Attribute"),
+    ("plant: {type: slab}\ntarget: 'log(x)'", "target"),                 # -inf at x = 0
+    ("plant: {type: slab}\nu_min: [0, 0, 0, 0, 0]\nu_max: [1, 1, 0, 1, 1]", "u_min"),
+    ("plant: {n_x: 50}", "type"),
+    ("plant: {type: furnace}", "furnace"),
+    ("plant: {type: 'no_such_module_xyz:Plant'}", "no_such_module_xyz"),
+    ("plant: {type: 'numpy:NoSuchPlant'}", "NoSuchPlant"),
+    ("plant: {type: slab, n_xx: 50}", "n_xx"),
+    ("plant: 5", "plant"),
 ])
 def test_bad_values_name_the_key(tmp_path, text, key):
     with pytest.raises(ScenarioError) as exc:
@@ -101,9 +145,19 @@ def test_bad_values_name_the_key(tmp_path, text, key):
     assert key in str(exc.value)
 
 
+def test_unknown_plant_type_lists_the_known_ones(tmp_path):
+    with pytest.raises(ScenarioError, match="known types are .*slab"):
+        load_scenario(write(tmp_path, "plant: {type: furnace}\n"))
+
+
+def test_a_class_named_by_module_path(tmp_path):
+    s = load_scenario(write(tmp_path, "plant: {type: 'sep_plant.plants.slab:SlabPlant', n_x: 40}\n"))
+    assert s.plant.n_x == 40 and type(s.plant).__name__ == "SlabPlant"
+
+
 def test_two_sensors_on_one_node_refused():
     with pytest.raises(ScenarioError, match="same grid node"):
-        Scenario(n_x=10, sensor_positions=(0.50, 0.52))
+        flat(n_x=10, sensor_positions=(0.50, 0.52))
 
 
 @pytest.mark.parametrize("text", ["- 1\n- 2\n", "just a string\n", "n_x: [1, 2\n"])
@@ -117,55 +171,85 @@ def test_missing_file(tmp_path):
         load_scenario(tmp_path / "nope.yaml")
 
 
-def test_constructor_validates_too():
+def test_constructors_validate_too():
+    with pytest.raises(ValueError, match="n_x"):
+        Slab(n_x=2)
+    with pytest.raises(ProblemError, match="u_min"):
+        Problem().replace(u_min=5.0, u_max=1.0)
     with pytest.raises(ScenarioError, match="n_x"):
-        Scenario(n_x=2)
-    with pytest.raises(ScenarioError, match="u_min"):
-        Scenario().replace(u_min=5.0, u_max=1.0)
+        Scenario("slab", {"n_x": 2}).plant
 
 
 @pytest.mark.parametrize("s", [
-    Scenario(),
-    Scenario(u_min=-math.inf, u_max=math.inf),
-    Scenario(u_min=-2.0, u_max=math.inf, n_x=40, heater_centers=(0.25, 0.75), sensor_positions=(0.5,)),
-    Scenario(u_min=-math.inf, u_max=3.5, dt=0.1, n_steps=300, k_band=200, lqr_k_switch=100),
+    flat(),
+    flat(u_min=-math.inf, u_max=math.inf),
+    flat(u_min=-2.0, u_max=math.inf, n_x=40, heater_centers=(0.25, 0.75), sensor_positions=(0.5,)),
+    flat(u_min=-math.inf, u_max=3.5, dt=0.1, n_steps=300, k_band=200, lqr_k_switch=100),
+    reference().replace(target="150 + 3 * tanh((x - 0.5) / 0.1)", w_std=(0.1, 0.2, 0.3, 0.2, 0.1)),
 ])
 def test_json_round_trip(s):
     text = s.to_json()
     assert "Infinity" not in text and "NaN" not in text      # strict JSON
     back = Scenario.from_json(text)
-    assert back == s
-    assert back.u_min == s.u_min and back.u_max == s.u_max
-    assert mismatches(back, s, tuple(s.to_dict())) == []
+    assert back == s and hash(back) == hash(s)
+    assert back.problem.u_min == s.problem.u_min and back.problem.u_max == s.problem.u_max
+    assert mismatches(back, s) == []
 
 
-def test_mismatches_lists_differing_keys():
-    a = Scenario()
-    assert mismatches(a, Scenario()) == []
-    b = a.replace(n_x=50, dt=0.5, sensor_positions=(0.1, 0.3, 0.5, 0.7, 0.8))
+def test_scenario_payload_carries_the_plant_description():
+    s = flat(n_x=40)
+    scen, info = parse_scenario_payload(scenario_payload(s, s.info))
+    assert scen == s and info == s.info
+    # sep 0.1 published the flat scenario alone: still understood (the built-in slab describes it)
+    old = '{"n_x": 40, "u_min": "-inf", "u_max": "inf"}'
+    scen, info = parse_scenario_payload(old)
+    assert scen.plant_config["n_x"] == 40 and info.n_field == 40 and info.field_name == "temperature"
+
+
+def test_mismatches_lists_differing_plant_keys():
+    a = reference()
+    assert mismatches(a, flat()) == []
+    b = a.with_plant(n_x=50, dt=0.5, sensor_positions=[0.1, 0.3, 0.5, 0.7, 0.8])
     diff = mismatches(a, b)
-    assert len(diff) == 3
-    assert [d.split(":")[0] for d in diff] == ["n_x", "dt", "sensor_positions"]
-    assert "100" in diff[0] and "50" in diff[0]
+    assert [d.split(":")[0] for d in diff] == ["plant.dt", "plant.n_x", "plant.sensor_positions"]
+    assert "100" in diff[1] and "50" in diff[1]
     # numerically equal after a float round trip is not a mismatch
-    assert mismatches(a, a.replace(dt=0.1 + 0.15)) == []
+    assert mismatches(a, a.with_plant(dt=0.1 + 0.15)) == []
     # a different number of heaters is a mismatch
-    c = a.replace(heater_centers=(0.1, 0.3, 0.5, 0.7))
-    assert [d.split(":")[0] for d in mismatches(a, c)] == ["heater_centers"]
-    # only plant keys by default; any key on request
-    d = a.replace(w_std=0.5)
-    assert mismatches(a, d) == []
-    assert mismatches(a, d, ("w_std",)) == ["w_std: 0.3 != 0.5"]
-    assert "n_x" in PLANT_KEYS and "sensor_positions" in PLANT_KEYS
+    c = a.with_plant(heater_centers=[0.1, 0.3, 0.5, 0.7])
+    assert [d.split(":")[0] for d in mismatches(a, c)] == ["plant.heater_centers"]
+    # the horizon must match; problem keys (noise, weights, limits) may differ
+    assert mismatches(a, a.replace(w_std=0.5, u_max=4.0)) == []
+    assert [d.split(":")[0] for d in mismatches(a, a.replace(n_steps=200, band_window=(100, 200)))] == ["n_steps"]
+    # another plant type
+    assert mismatches(a, Scenario("sep_plant.plants.slab:SlabPlant", dict(a.plant_config), a.problem)) == \
+        ["plant type: 'slab' != 'sep_plant.plants.slab:SlabPlant'"]
 
 
 def test_derived_grid_quantities():
-    s = Scenario(n_x=40)
+    s = Slab(n_x=40)
     assert s.h == pytest.approx(0.025)
     x = s.grid()
     assert x[0] == 0.0 and x[-1] == pytest.approx(1.0 - 0.025) and len(x) == 40
     np.testing.assert_array_equal(s.sensor_nodes(), [4, 12, 20, 28, 36])
-    assert s.heater_labels() == [f"heater_{j}" for j in range(5)]
+    assert list(s.input_names) == [f"heater_{j}" for j in range(5)]
+    np.testing.assert_array_equal(s.field_coordinates()[:, 0], x)
+    assert not s.field_coordinates()[:, 1:].any()
+
+
+def test_objective_resolves_the_problem_on_the_plant():
+    s = reference().replace(target="150 + (x > 0.5)")
+    obj = Objective.of(s.problem, s.plant.field_coordinates())
+    assert obj.target.shape == (100,) and obj.target[0] == 150.0 and obj.target[-1] == 151.0
+    assert obj.window == (150, 250) and obj.band == 3.0 and obj.n_steps == 250
+
+
+def test_expression_evaluator_refuses_code():
+    xs = {"x": np.linspace(0, 1, 5), "y": np.zeros(5), "z": np.zeros(5)}
+    np.testing.assert_allclose(evaluate_expression("where(x < 0.5, 1, 2) + pi * 0", xs), [1, 1, 2, 2, 2])
+    for text in ("__import__('os')", "open('f')", "x.real", "x[0]", "lambda: 1", "[1, 2]", "'a'"):
+        with pytest.raises(ProblemError):
+            evaluate_expression(text, xs)
 
 
 def test_binary_file_is_a_scenario_error(tmp_path):

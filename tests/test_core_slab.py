@@ -1,19 +1,18 @@
-"""SlabSimulator: the discrete equations, steady state, boundaries, batching, inputs, noise."""
+"""The slab plant: the discrete equations, steady state, boundaries, batching, inputs, noise."""
 import math
 
 import numpy as np
 import pytest
 
-from core_helpers import dense_step, heater_matrix, spatial_operator
+from core_helpers import Slab, dense_step, flat, heater_matrix, spatial_operator
 from sep_plant.noise import noise_sequences
-from sep_plant.scenario import Scenario
-from sep_plant.slab import SlabSimulator, clip_inputs
+from sep_plant.protocol import clip_inputs, rollout
 
 
-def steady_state(s: Scenario, tol: float = 1e-11, max_steps: int = 5000) -> np.ndarray:
+def steady_state(s: Slab, tol: float = 1e-11, max_steps: int = 5000) -> np.ndarray:
     """Step with u = 0 until the field stops changing (large dt: backward Euler is stable)."""
-    sim = SlabSimulator(s)
-    x = sim.initial_state()
+    sim = s
+    x = sim.initial_state(1)[0]
     u = np.zeros(s.n_u)
     for _ in range(max_steps):
         x_new = sim.step(x, u)
@@ -26,8 +25,8 @@ def steady_state(s: Scenario, tol: float = 1e-11, max_steps: int = 5000) -> np.n
 @pytest.mark.parametrize("n_x", [20, 50])
 def test_step_matches_the_discretized_equations(n_x):
     """One step is the backward-Euler step of DESIGN.md §2 with K frozen at T_k (dense solve)."""
-    s = Scenario(n_x=n_x)
-    sim = SlabSimulator(s)
+    s = Slab(n_x=n_x)
+    sim = s
     rng = np.random.default_rng(1)
     for _ in range(3):
         T = 100.0 + 60.0 * rng.random(n_x)
@@ -36,7 +35,7 @@ def test_step_matches_the_discretized_equations(n_x):
 
 
 def test_steady_state_solves_the_discrete_steady_equation():
-    s = Scenario(n_x=40, dt=200.0)
+    s = Slab(n_x=40, dt=200.0)
     T = steady_state(s)
     # K(T) (D2 T + bc) - eta T = 0, operator built independently in core_helpers
     res = spatial_operator(s, T, T)
@@ -52,7 +51,7 @@ def test_steady_state_is_second_order_accurate_for_constant_conductivity():
     ghost-node / eliminated-Dirichlet scheme converges at O(h^2)."""
     errs = []
     for n_x in (20, 40, 80):
-        s = Scenario(n_x=n_x, dt=200.0, beta=0.0, gamma=0.0, sensor_positions=(0.5,))
+        s = Slab(n_x=n_x, dt=200.0, beta=0.0, gamma=0.0, sensor_positions=(0.5,))
         T = steady_state(s)
         m = math.sqrt(s.eta / s.k0)
         exact = s.t_right * np.cosh(m * s.grid()) / math.cosh(m * s.length)
@@ -65,7 +64,7 @@ def test_steady_state_is_second_order_accurate_for_constant_conductivity():
 def test_boundary_conditions_insulated_left_and_pinned_right():
     gradients, right_gaps = [], []
     for n_x in (25, 50, 100):
-        s = Scenario(n_x=n_x, dt=200.0)
+        s = Slab(n_x=n_x, dt=200.0)
         T = steady_state(s)
         h = s.h
         # insulated left end: the symmetric ghost node makes row 0 read
@@ -84,15 +83,15 @@ def test_boundary_conditions_insulated_left_and_pinned_right():
 
 
 def test_uniform_right_temperature_without_losses_is_an_equilibrium():
-    s = Scenario(n_x=30, eta=0.0, t_init=150.0)
-    sim = SlabSimulator(s)
-    x = sim.initial_state()
+    s = Slab(n_x=30, eta=0.0, t_init=150.0)
+    sim = s
+    x = sim.initial_state(1)[0]
     np.testing.assert_allclose(sim.step(x, np.zeros(s.n_u)), x, rtol=1e-14)
 
 
 def test_batch_equals_one_by_one():
-    s = Scenario(n_x=37)
-    sim = SlabSimulator(s)
+    s = Slab(n_x=37)
+    sim = s
     rng = np.random.default_rng(2)
     M = 9
     X = 100.0 + 50.0 * rng.random((M, s.n_x))
@@ -112,14 +111,14 @@ def test_batch_equals_one_by_one():
 
 
 def test_rollout_equals_repeated_step():
-    s = Scenario(n_x=25, n_steps=12, k_band=6, lqr_k_switch=6)
-    sim = SlabSimulator(s)
+    s = Slab(n_x=25)
+    sim = s
     rng = np.random.default_rng(3)
     M, T = 4, 12
     X0 = sim.initial_state(M) + rng.standard_normal((M, s.n_x))
     U = rng.standard_normal((M, T, s.n_u))
     W = rng.standard_normal((M, T, s.n_u)) * 0.3
-    out = sim.rollout(X0, U, W)
+    out = rollout(sim, X0, U, W)
     assert out.shape == (M, T + 1, s.n_x)
     x = X0.copy()
     np.testing.assert_array_equal(out[:, 0], X0)
@@ -127,13 +126,13 @@ def test_rollout_equals_repeated_step():
         x = sim.step(x, U[:, k], W[:, k])
         np.testing.assert_allclose(out[:, k + 1], x, rtol=1e-14, atol=0)
     # a shared input sequence (T, n_u) for every run
-    shared = sim.rollout(X0, U[0])
-    np.testing.assert_allclose(shared[2], sim.rollout(X0[2:3], U[0][None])[0], rtol=1e-13, atol=0)
+    shared = rollout(sim, X0, U[0])
+    np.testing.assert_allclose(shared[2], rollout(sim, X0[2:3], U[0])[0], rtol=1e-13, atol=0)
 
 
 def test_observe_reads_the_sensor_nodes():
-    s = Scenario()
-    sim = SlabSimulator(s)
+    s = Slab()
+    sim = s
     np.testing.assert_array_equal(s.sensor_nodes(), [10, 30, 50, 70, 90])
     X = np.arange(3 * s.n_x, dtype=float).reshape(3, s.n_x)
     np.testing.assert_array_equal(sim.observe(X), X[:, [10, 30, 50, 70, 90]])
@@ -141,7 +140,7 @@ def test_observe_reads_the_sensor_nodes():
 
 
 def test_heater_profiles_integrate_to_one():
-    s = Scenario()
+    s = Slab()
     b = s.heater_profiles()
     assert b.shape == (s.n_x, s.n_u)
     np.testing.assert_allclose(b.sum(axis=0) * s.h, 1.0, rtol=1e-6)
@@ -154,13 +153,13 @@ def test_exact_energy_balance_for_constant_conductivity():
     """beta = gamma = 0: with the trapezoid weights h (1/2, 1, ..., 1) the discrete Laplacian
     telescopes to the boundary flux, so each step satisfies exactly
     E_{k+1} - E_k = dt [ K (T_right - T_{k+1,n-1}) / h - eta E_{k+1} + sum_j u_j (b_j-mass) ]."""
-    s = Scenario(n_x=40, beta=0.0, gamma=0.0)
-    sim = SlabSimulator(s)
+    s = Slab(n_x=40, beta=0.0, gamma=0.0)
+    sim = s
     rng = np.random.default_rng(4)
     wts = np.full(s.n_x, s.h)
     wts[0] *= 0.5
     mass = wts @ s.heater_profiles()
-    x = sim.initial_state()
+    x = sim.initial_state(1)[0]
     for _ in range(5):
         u = rng.standard_normal(s.n_u)
         x1 = sim.step(x, u)
@@ -175,9 +174,9 @@ def test_heating_raises_mean_temperature_by_dt_u():
     temperature (trapezoid weights, which the ghost-node row needs to be conservative) rises by
     dt u / (L (1 + dt eta)), up to the heat the implicit step already pushes through the pinned
     end (~exp(-distance / sqrt(dt K)) ~ 1e-4 for the heaters at 0.3 L and 0.5 L)."""
-    s = Scenario()
-    sim = SlabSimulator(s)
-    x = sim.initial_state()
+    s = Slab()
+    sim = s
+    x = sim.initial_state(1)[0]
     wts = np.full(s.n_x, s.h)
     wts[0] *= 0.5
     for j in (1, 2):
@@ -199,33 +198,57 @@ def test_heating_raises_mean_temperature_by_dt_u():
     ((30,), (6,)),          # single run, wrong input length
 ])
 def test_step_rejects_wrong_shapes(x_shape, u_shape):
-    sim = SlabSimulator(Scenario(n_x=30))
+    sim = Slab(n_x=30)
     with pytest.raises(ValueError):
         sim.step(np.full(x_shape, 100.0), np.zeros(u_shape))
 
 
 def test_step_rejects_wrong_noise_shape():
-    sim = SlabSimulator(Scenario(n_x=30))
+    sim = Slab(n_x=30)
     with pytest.raises(ValueError):
         sim.step(np.full((3, 30), 100.0), np.zeros((3, 5)), np.zeros((3, 4)))
 
 
 def test_clip_inputs():
     u = np.array([[-3.0, 0.5, 7.0]])
-    assert clip_inputs(u, Scenario()) is u
-    s = Scenario(u_min=0.0, u_max=2.0)
-    np.testing.assert_array_equal(clip_inputs(u, s), [[0.0, 0.5, 2.0]])
+    assert clip_inputs(u, -math.inf, math.inf) is u
+    np.testing.assert_array_equal(clip_inputs(u, 0.0, 2.0), [[0.0, 0.5, 2.0]])
+    # per-input limits
+    np.testing.assert_array_equal(clip_inputs(u, np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.4, 9.0])),
+                                  [[-1.0, 0.4, 7.0]])
 
 
 def test_noise_sequences_common_random_numbers():
-    s = Scenario(n_steps=20, k_band=10, lqr_k_switch=10)
-    w, v = noise_sequences(s, seed=7, runs=6)
+    s = flat(n_steps=20, k_band=10, lqr_k_switch=10)
+    p, info = s.problem, s.info
+    w, v = noise_sequences(p, info, seed=7, runs=6)
     assert w.shape == (6, 20, 5) and v.shape == (6, 21, 5)
-    w3, v3 = noise_sequences(s, seed=7, runs=range(3, 5))
+    w3, v3 = noise_sequences(p, info, seed=7, runs=range(3, 5))
     np.testing.assert_array_equal(w3, w[3:5])
     np.testing.assert_array_equal(v3, v[3:5])
-    w_other, _ = noise_sequences(s, seed=8, runs=6)
+    # run i is the i-th child of SeedSequence(seed), whatever else is drawn (sep 0.1's streams)
+    child = np.random.default_rng(np.random.SeedSequence(7).spawn(5)[4])
+    np.testing.assert_array_equal(w[4], child.standard_normal((20, 5)) * 0.3)
+    w_other, _ = noise_sequences(p, info, seed=8, runs=6)
     assert not np.allclose(w_other, w)
-    big_w, big_v = noise_sequences(s.replace(n_steps=2000), seed=7, runs=1)
-    assert np.std(big_w) == pytest.approx(s.w_std, rel=0.05)
-    assert np.std(big_v) == pytest.approx(s.v_std, rel=0.05)
+    big_w, big_v = noise_sequences(p.replace(n_steps=2000), info, seed=7, runs=1)
+    assert np.std(big_w) == pytest.approx(0.3, rel=0.05)
+    assert np.std(big_v) == pytest.approx(1.0, rel=0.05)
+
+
+def test_noise_of_a_large_run_index_is_immediate():
+    """A plant node with run = 10^6 draws its noise directly (no spawn of 10^6 children)."""
+    import time
+
+    s = flat(n_steps=20, k_band=10, lqr_k_switch=10)
+    t0 = time.perf_counter()
+    w, _ = noise_sequences(s.problem, s.info, seed=3, runs=[10**6])
+    assert time.perf_counter() - t0 < 1.0         # the old spawn(10^6 + 1) took ~10 s
+    ref = np.random.default_rng(np.random.SeedSequence(3, spawn_key=(10**6,))).standard_normal((20, 5)) * 0.3
+    np.testing.assert_array_equal(w[0], ref)
+
+
+def test_per_channel_noise_levels():
+    s = flat(n_steps=4000, k_band=10, lqr_k_switch=10, w_std=[0.1, 0.2, 0.3, 0.4, 0.5])
+    w, _ = noise_sequences(s.problem, s.info, seed=1, runs=1)
+    np.testing.assert_allclose(w[0].std(axis=0), [0.1, 0.2, 0.3, 0.4, 0.5], rtol=0.05)

@@ -4,10 +4,8 @@ import pytest
 
 from core_helpers import coarse_scenario, ltv_system
 from core_helpers import one_blas_thread  # noqa: F401  (fixture)
-from sep_control.optimize import nominal_rollout
-from sep_control.tvera import (MarkovData, extend_nominal, impulse_experiments, rom_markov, rom_markov_all,
-                               tv_era)
-from sep_plant.slab import SlabSimulator
+from sep_control.tvera import MarkovData, extend_nominal, impulse_experiments, tv_era
+from sep_plant.protocol import nominal_states as nominal_rollout
 
 N_ORDER, N_U, N_Y, N_F, N = 6, 2, 2, 8, 40
 P = Q = 5
@@ -41,8 +39,8 @@ def known_system():
     steps = N + P + Q                      # the system is defined past N for the last Hankels
     A, B, C, F = ltv_system(rng, steps, N_ORDER, N_U, N_Y, N_F, radius=0.9)
     Y, Yf = exact_markov(A, B, C, F, N, P + Q, Q)
-    real = tv_era(MarkovData(Y, Yf, delta=1.0, experiments=0), N, P, Q, n_r=8)
-    return A, B, C, F, Y, real
+    real, sv = tv_era(MarkovData(Y, Yf, delta=1.0, experiments=0, n_u=N_U), N, P, Q, n_r=8)
+    return A, B, C, F, Y, real, sv
 
 
 def rel(a, b):
@@ -50,31 +48,31 @@ def rel(a, b):
 
 
 def test_markov_parameters_recovered(known_system):
-    A, B, C, F, Y, real = known_system
-    Yr = rom_markov_all(real, P + Q)
+    A, B, C, F, Y, real, _ = known_system
+    Yr = real.markov_all(P + Q)
     valid = (np.arange(N)[:, None] + np.arange(1, P + Q + 1)[None, :]) <= N
     assert rel(Yr[valid], Y[valid]) <= 1e-8
     # beyond the Hankel lags too: the whole horizon, j + lag <= N
     Y_all, _ = exact_markov(A, B, C, F, N, N, 1)
-    Yr_all = rom_markov_all(real, N)
+    Yr_all = real.markov_all(N)
     valid = (np.arange(N)[:, None] + np.arange(1, N + 1)[None, :]) <= N
     for j in range(N):
         for lag in range(1, N - j + 1):
             scale = np.linalg.norm(Y_all[j, 0])
             assert np.linalg.norm(Yr_all[j, lag - 1] - Y_all[j, lag - 1]) <= 1e-8 * scale
     assert np.all(Yr_all[~valid] == 0)
-    # rom_markov agrees with the vectorized version
+    # markov agrees with the vectorized version
     for j, k in [(0, 1), (0, 17), (3, 4), (12, 40), (39, 40)]:
-        np.testing.assert_allclose(rom_markov(real, k, j), Yr_all[j, k - j - 1], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(real.markov(k, j), Yr_all[j, k - j - 1], rtol=1e-12, atol=1e-14)
 
 
 def test_field_map_reproduces_field_markov_parameters(known_system):
-    A, B, C, F, Y, real = known_system
+    A, B, C, F, Y, real, _ = known_system
     Yf_all, _ = exact_markov(A, B, F, F, N, N, 1)        # field Markov parameters, every lag
     for j in range(N):
         M = real.B[j]
         for k in range(j + 1, N + 1):
-            got = real.G[k] @ M
+            got = real.G.matrix(k) @ M
             want = Yf_all[j, k - j - 1]
             assert np.linalg.norm(got - want) <= 1e-8 * np.linalg.norm(Yf_all[j, 0])
             if k < N:
@@ -82,7 +80,7 @@ def test_field_map_reproduces_field_markov_parameters(known_system):
 
 
 def test_order_and_horizon_start(known_system):
-    A, B, C, F, Y, real = known_system
+    A, B, C, F, Y, real, hankel_sv = known_system
     # ROM order grows by n_u per step until it saturates at the true order (n_r = 8 is a cap only)
     np.testing.assert_array_equal(real.dims[:5], [0, 2, 4, 6, 6])
     assert np.all(real.dims[3:] == N_ORDER)
@@ -98,10 +96,10 @@ def test_order_and_horizon_start(known_system):
     # Markov parameters that start at the first steps are still exact
     for j in range(3):
         for lag in range(1, P + Q + 1):
-            np.testing.assert_allclose(rom_markov(real, j + lag, j), Y[j, lag - 1],
+            np.testing.assert_allclose(real.markov(j + lag, j), Y[j, lag - 1],
                                        rtol=0, atol=1e-8 * np.linalg.norm(Y[j, 0]))
     # Hankel singular values: 6 significant ones, the rest at rounding level
-    sv = real.hankel_sv[20]
+    sv = hankel_sv[20]
     assert sv[5] > 1e-6 * sv[0] and sv[6] < 1e-12 * sv[0]
 
 
@@ -109,10 +107,10 @@ def test_order_cap_truncates():
     rng = np.random.default_rng(7)
     A, B, C, F = ltv_system(rng, N + P + Q, N_ORDER, N_U, N_Y, N_F)
     Y, Yf = exact_markov(A, B, C, F, N, P + Q, Q)
-    real = tv_era(MarkovData(Y, Yf, 1.0, 0), N, P, Q, n_r=3)
+    real, _ = tv_era(MarkovData(Y, Yf, 1.0, 0, N_U), N, P, Q, n_r=3)
     assert real.dims.max() == 3 and real.A.shape == (N, 3, 3)
     # a truncated ROM is an approximation, not garbage: first Markov parameters roughly right
-    err = rel(rom_markov_all(real, 1)[:, 0], Y[:, 0])
+    err = rel(real.markov_all(1)[:, 0], Y[:, 0])
     assert 1e-6 < err < 1.0
 
 
@@ -121,38 +119,40 @@ def test_needs_enough_lags():
     A, B, C, F = ltv_system(rng, N + P + Q, N_ORDER, N_U, N_Y, N_F)
     Y, Yf = exact_markov(A, B, C, F, N, P + Q - 1, Q)
     with pytest.raises(ValueError, match="lag"):
-        tv_era(MarkovData(Y, Yf, 1.0, 0), N, P, Q, n_r=8)
+        tv_era(MarkovData(Y, Yf, 1.0, 0, N_U), N, P, Q, n_r=8)
 
 
 def test_slab_rom_matches_long_impulse_experiments():
     """Identify from (p+q)-lag experiments on a small slab, validate against experiments that
     run to the end of the horizon (lags up to N): relative error < 1e-6."""
-    s = coarse_scenario(n_x=20, n_steps=40)
-    sim = SlabSimulator(s)
+    sc = coarse_scenario(n_x=20, n_steps=40)
+    s = sim = sc.plant
+    n_steps = sc.problem.n_steps
     rng = np.random.default_rng(3)
-    U = 0.1 + 0.05 * rng.standard_normal((s.n_steps, s.n_u))
+    U = 0.1 + 0.05 * rng.standard_normal((n_steps, s.n_u))
     p = q = 8
     delta = 1e-3
     Xext = nominal_rollout(sim, extend_nominal(U, p + q))
     data = impulse_experiments(sim, U, p + q, q, delta, Xext)
-    assert data.Y.shape == (s.n_steps, p + q, s.n_y, s.n_u) and data.Yf.shape == (s.n_steps, q, s.n_x, s.n_u)
-    assert data.experiments == 2 * s.n_steps * s.n_u
-    real = tv_era(data, s.n_steps, p, q, n_r=20)
-    long = impulse_experiments(sim, U, s.n_steps, 1, delta)
+    assert data.Y.shape == (n_steps, p + q, s.n_y, s.n_u) and data.Yf.shape == (n_steps, q, s.n_x, s.n_u)
+    assert data.experiments == 2 * n_steps * s.n_u
+    real, _ = tv_era(data, n_steps, p, q, n_r=20)
+    long = impulse_experiments(sim, U, n_steps, 1, delta)
     np.testing.assert_allclose(long.Y[:, : p + q], data.Y, rtol=1e-12, atol=1e-14)   # same experiments
-    Yr = rom_markov_all(real, s.n_steps)
-    valid = (np.arange(s.n_steps)[:, None] + np.arange(1, s.n_steps + 1)[None, :]) <= s.n_steps
+    Yr = real.markov_all(n_steps)
+    valid = (np.arange(n_steps)[:, None] + np.arange(1, n_steps + 1)[None, :]) <= n_steps
     assert rel(Yr[valid], long.Y[valid]) < 1e-6
     # the field map reproduces the recorded field responses at lag 1 (the whole field, not 5 sensors)
-    np.testing.assert_allclose(np.einsum("jxr,jru->jxu", real.G[1:], real.B), data.Yf[:, 0],
+    np.testing.assert_allclose(np.einsum("jxr,jru->jxu", real.G.G[1:], real.B), data.Yf[:, 0],
                                rtol=0, atol=1e-6 * np.abs(data.Yf[:, 0]).max())
 
 
 def test_impulse_experiments_are_central_differences_of_the_black_box():
     """One Markov parameter recomputed by hand from two perturbed rollouts."""
-    s = coarse_scenario(n_x=20, n_steps=40)
-    sim = SlabSimulator(s)
-    U = np.full((s.n_steps, s.n_u), 0.2)
+    sc = coarse_scenario(n_x=20, n_steps=40)
+    s = sim = sc.plant
+    n_steps = sc.problem.n_steps
+    U = np.full((n_steps, s.n_u), 0.2)
     delta = 1e-3
     data = impulse_experiments(sim, U, 6, 3, delta)
     j, c = 7, 3
@@ -167,7 +167,7 @@ def test_impulse_experiments_are_central_differences_of_the_black_box():
         want = (Xp[j + lag] - Xm[j + lag]) / (2 * delta)
         np.testing.assert_allclose(data.Yf[j, lag - 1, :, c], want, rtol=1e-9, atol=1e-12)
     # last input step: the held extension past N supplies the later lags
-    j = s.n_steps - 1
+    j = n_steps - 1
     Up, Um = extend_nominal(U, 6), extend_nominal(U, 6)
     Up[j, 0] += delta
     Um[j, 0] -= delta

@@ -31,14 +31,23 @@ def test_check_vector_rejects(names, values, category):
     assert v is None and rej.category == category and 'measurement' in rej.detail
 
 
-def test_step_of_stamp_grid_and_tolerance():
+def test_step_of_stamp_grid_and_the_one_tolerance():
+    """One tolerance everywhere (nodes, recorder, bag reader): 0.1 % of dt, 250 us at 0.25 s."""
+    from sep_plant import topics
+
     dt = 250_000_000
+    assert topics.STAMP_TOLERANCE == 1e-3 and topics.tolerance_ns(dt) == 250_000
     assert gate.step_of_stamp(0, dt) == (0, None)
     assert gate.step_of_stamp(250 * dt, dt) == (250, None)
-    assert gate.step_of_stamp(7 * dt + dt // 200, dt)[0] == 7          # within 1 %
-    k, rej = gate.step_of_stamp(7 * dt + dt // 2, dt)
-    assert k is None and rej.category == gate.BAD_STAMP
+    assert gate.step_of_stamp(7 * dt + 200_000, dt)[0] == 7            # 0.2 ms off: step 7
+    assert gate.step_of_stamp(7 * dt - 250_000, dt)[0] == 7            # at the tolerance
+    for off in (300_000, 2_000_000, dt // 2):                          # 0.3 ms, 2 ms, half a step
+        k, rej = gate.step_of_stamp(7 * dt + off, dt)
+        assert k is None and rej.category == gate.BAD_STAMP and 'tolerance 0.25 ms' in rej.detail
     assert gate.step_of_stamp(-dt, dt)[1].category == gate.BAD_STAMP
+    # the array version used by the bag reader agrees
+    ns = np.array([0, 7 * dt + 200_000, 7 * dt + 300_000, -dt, 3 * dt])
+    np.testing.assert_array_equal(topics.steps_of_stamps(ns, dt), [0, 7, -1, -1, 3])
 
 
 def test_check_step_order():
@@ -106,7 +115,10 @@ def test_point_cloud_layout_fixed_and_decodable_without_ros():
     x = np.arange(7) / 7.0
     T = 150.0 + np.arange(7)
     std = 0.1 * np.arange(7)
-    m = c.field_cloud(12, 0.25, x, T, std)
+    xyz = np.zeros((7, 3))
+    xyz[:, 0] = x
+    cloud = c.CloudBuilder(xyz, 'temperature')
+    m = cloud.build(12, 0.25, T, std)
     assert (m.height, m.width, m.point_step, m.row_step) == (1, 7, 40, 280)
     assert m.is_dense and not m.is_bigendian and m.header.frame_id == 'slab'
     assert [(f.name, f.offset, f.datatype, f.count) for f in m.fields] == [
@@ -114,15 +126,20 @@ def test_point_cloud_layout_fixed_and_decodable_without_ros():
         ('temperature', 24, 8, 1), ('temperature_std', 32, 8, 1)]
     # an independent reader: numpy structured dtype on the raw bytes
     m2 = deserialize_message(serialize_message(m), PointCloud2)
-    rec = np.frombuffer(bytes(m2.data), dtype=np.dtype([(n, '<f8') for n in c.CLOUD_FIELDS]))
+    rec = np.frombuffer(bytes(m2.data), dtype=np.dtype([(n, '<f8') for n in c.T.cloud_fields('temperature')]))
     np.testing.assert_array_equal(rec['x'], x)
     np.testing.assert_array_equal(rec['temperature'], T)
     np.testing.assert_array_equal(rec['temperature_std'], std)
     assert not rec['y'].any() and not rec['z'].any()
     parsed = c.parse_field_cloud(m2)
     np.testing.assert_array_equal(parsed['temperature'], T)
-    truth = c.parse_field_cloud(c.field_cloud(0, 0.25, x, T))
+    truth = c.parse_field_cloud(cloud.build(0, 0.25, T))
     assert not truth['temperature_std'].any()
+    # another plant's field: its own channel name, 3-D coordinates
+    xyz3 = np.random.default_rng(0).random((5, 3))
+    phi = c.parse_field_cloud(c.CloudBuilder(xyz3, 'phi').build(1, 0.5, np.arange(5.0)))
+    assert list(phi) == ['x', 'y', 'z', 'phi', 'phi_std']
+    np.testing.assert_array_equal(np.stack([phi['x'], phi['y'], phi['z']], axis=1), xyz3)
     m2.fields[3].datatype = PointField.FLOAT32
     with pytest.raises(c.CloudLayoutError):
         c.parse_field_cloud(m2)
@@ -137,13 +154,27 @@ def test_diagnostics_builder():
     assert c.diagnostic_values(st) == {'deadline_misses': '2', 'ok': 'true', 'by': '{"stale": 1}', 'x': '0.5'}
 
 
+def test_field_image_32fc1():
+    """Grid plants' fields as sensor_msgs/Image (32FC1): rows = first grid axis; 3-D: middle slice."""
+    f2 = np.arange(12.0)
+    m = c.field_image(3, 0.5, f2, (3, 4))
+    assert (m.height, m.width, m.encoding, m.step, m.is_bigendian) == (3, 4, '32FC1', 16, 0)
+    img = np.frombuffer(bytes(m.data), dtype='<f4').reshape(3, 4)
+    np.testing.assert_array_equal(img, f2.reshape(3, 4))
+    f3 = np.arange(24.0)
+    img3 = np.frombuffer(bytes(c.field_image(0, 0.5, f3, (2, 3, 4)).data), dtype='<f4').reshape(2, 3)
+    np.testing.assert_array_equal(img3, f3.reshape(2, 3, 4)[:, :, 2])
+
+
 def test_scenario_roundtrip_and_topic_names():
-    from sep_plant.scenario import Scenario
-    s = Scenario(n_x=20, u_max=5.0)
-    assert c.parse_scenario(c.scenario_msg(s)) == s
+    from core_helpers import flat
+    from sep_plant.scenario import parse_scenario_payload, scenario_payload
+    s = flat(n_x=20, u_max=5.0)
+    assert parse_scenario_payload(c.scenario_msg(scenario_payload(s, s.info)).data) == (s, s.info)
     topics = c.all_topics()
     assert topics['/slab/measurements'] == 'sensor_msgs/msg/JointState'
     assert topics['/slab/field'] == 'sensor_msgs/msg/PointCloud2'
+    assert topics['/slab/field_image'] == 'sensor_msgs/msg/Image'
     assert topics['/clock'] == 'rosgraph_msgs/msg/Clock' and '/diagnostics' in topics
     assert c.topic('heat_command', 'other') == '/other/heat_command'
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy

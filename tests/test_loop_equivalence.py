@@ -36,42 +36,47 @@ def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run:
     assert plant.wait(120) == 0, plant.output()
     for p in controllers:
         assert p.wait(30) == 0, p.output()
-    s = case.scenario
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD, s.dt)) == s.n_steps + 1, 10, 'all field messages')
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD_ESTIMATE, s.dt)) == s.n_steps + 1, 10, 'all field estimates')
-    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == s.n_steps, 10,
-                f'all heat_applied (have {sorted(pr.by_step(c.HEAT_APPLIED, s.dt))})')
-    pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, s.dt)) == s.n_steps + 1, 10, 'all measurements')
+    dt, N = case.dt, case.n_steps
+    pr.wait_for(lambda: len(pr.by_step(c.FIELD, dt)) == N + 1, 10, 'all field messages')
+    pr.wait_for(lambda: len(pr.by_step(c.FIELD_ESTIMATE, dt)) == N + 1, 10, 'all field estimates')
+    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, dt)) == N, 10,
+                f'all heat_applied (have {sorted(pr.by_step(c.HEAT_APPLIED, dt))})')
+    pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, dt)) == N + 1, 10, 'all measurements')
     summary = json.loads((tmp_path / 'plant.json').read_text())
     return pr, summary
 
 
 def check_equivalence(pr, case, seed, run):
-    s, d = case.scenario, case.design
-    ref = simulate(d, 'rom_lqg', seed, range(run, run + 1))
-    T = field_matrix(pr, c.FIELD, s.dt, s.n_steps)
-    T_hat = field_matrix(pr, c.FIELD_ESTIMATE, s.dt, s.n_steps)
-    T_std = field_matrix(pr, c.FIELD_ESTIMATE, s.dt, s.n_steps, 'temperature_std')
-    U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, s.n_steps, 'effort')
-    Y = joint_matrix(pr, c.MEASUREMENTS, s.dt, s.n_steps + 1, 'position')
-    err_T = np.max(np.abs(T - ref.T[0]))
-    assert err_T <= 1e-9, f'max |T_topics - T_offline| = {err_T:.3e} F'
+    """The topics equal the offline closed loop (`simulate`, same seed and run) to 1e-9."""
+    d, dt, N = case.design, case.dt, case.n_steps
+    ref = simulate(case.plant, d, 'rom_lqg', seed, range(run, run + 1))
+    F = field_matrix(pr, c.FIELD, dt, N, column=3)
+    F_hat = field_matrix(pr, c.FIELD_ESTIMATE, dt, N, column=3)
+    F_std = field_matrix(pr, c.FIELD_ESTIMATE, dt, N, column=4)
+    U = joint_matrix(pr, c.HEAT_APPLIED, dt, N, 'effort')
+    Y = joint_matrix(pr, c.MEASUREMENTS, dt, N + 1, 'position')
+    err = np.max(np.abs(F - ref.F[0]))
+    assert err <= 1e-9, f'max |f_topics - f_offline| = {err:.3e}'
     assert np.max(np.abs(U - ref.U[0])) <= 1e-9
     assert np.max(np.abs(Y - ref.Y[0])) <= 1e-9
-    assert np.max(np.abs(T_hat - ref.T_hat[0])) <= 1e-9
-    assert np.max(np.abs(T_std - ref.T_std)) <= 1e-9
-    return err_T
+    assert np.max(np.abs(F_hat - ref.F_hat[0])) <= 1e-9
+    assert np.max(np.abs(F_std - ref.F_std)) <= 1e-9
+    # the clouds carry the plant's node coordinates
+    cloud = pr.by_step(c.FIELD, dt)[0]
+    xyz = np.stack([c.parse_field_cloud(cloud)[k] for k in ('x', 'y', 'z')], axis=1)
+    np.testing.assert_array_equal(xyz, d.field_xyz)
+    return err
 
 
 @pytest.mark.parametrize('three', [False, True], ids=['plant+lqg', 'plant+estimator+lqr'])
 def test_lockstep_equivalence_small(launcher, probe, small_case, tmp_path, three):
     pr, summary = run_episode(launcher, probe, small_case, tmp_path, three=three, seed=7, run=3)
-    assert summary['status'] == 'completed' and summary['steps'] == small_case.scenario.n_steps
+    assert summary['status'] == 'completed' and summary['steps'] == small_case.n_steps
     assert summary['deadline_misses'] == 0 and summary['rejected_messages'] == 0
     check_equivalence(pr, small_case, 7, 3)
     if three:
         lqr = json.loads((tmp_path / 'lqr.json').read_text())
-        assert lqr['fallbacks'] == 0 and lqr['commands'] == small_case.scenario.n_steps
+        assert lqr['fallbacks'] == 0 and lqr['commands'] == small_case.n_steps
 
 
 def test_lockstep_equivalence_reference(launcher, probe, reference_case, tmp_path):

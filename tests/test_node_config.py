@@ -19,7 +19,7 @@ def test_plant_params_files(launcher, small_case, tmp_path):
     assert p.wait(60) == 0, p.output()
     summ = json.loads((tmp_path / 'p.json').read_text())
     assert summ['mode'] == 'realtime' and summ['real_time_factor'] == 200.0
-    assert summ['deadline_misses'] == small_case.scenario.n_steps      # nobody answered: all held
+    assert summ['deadline_misses'] == small_case.n_steps      # nobody answered: all held
 
 
 @pytest.mark.parametrize('exe,files', [('lqg', ['lqg.yaml']), ('estimator', ['estimator.yaml']),

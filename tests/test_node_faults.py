@@ -9,8 +9,14 @@ import pytest
 
 from node_harness import (field_matrix, joint_matrix, launcher, probe, reference_case,  # noqa: F401
                           small_case)
-from sep_estimator.tvkf import filter_from_design
+from sep_estimator.tvkf import KalmanFilter
 from sep_plant import contract as c
+from sep_plant.scenario import scenario_payload
+
+
+def scenario_msg(case):
+    """The scenario message the plant of `case` would publish."""
+    return c.scenario_msg(scenario_payload(case.scenario, case.design.info))
 
 pytestmark = pytest.mark.ros
 
@@ -26,21 +32,22 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
     estimator predicts without that update (its estimate equals a reference filter that
     skips the step).  Stale, duplicate, off-grid and out-of-order stamps: rejected, filter
     untouched."""
-    s, d = small_case.scenario, small_case.design
+    d = small_case.design
+    s = d.info
     pr = probe().subscribe(c.HEAT_COMMAND, c.STATE_ESTIMATE, c.DIAGNOSTICS)
-    pr.publish(c.SCENARIO, c.scenario_msg(s))
+    pr.publish(c.SCENARIO, scenario_msg(small_case))
     lqg = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0,
                                         'exit_at_end': False})
     pr.publisher(c.MEASUREMENTS)
     pr.publisher(c.HEAT_APPLIED)
     pr.wait_matched(subs=(c.HEAT_COMMAND, c.STATE_ESTIMATE), pubs=(c.MEASUREMENTS, c.HEAT_APPLIED))
 
-    names = s.sensor_labels()
-    kf = filter_from_design(d)
+    names = list(s.output_names)
+    kf = KalmanFilter(d.lqg)
     rng = np.random.default_rng(1)
 
     def y_of(k):
-        return d.y_nom[k] + rng.normal(0, 1, s.n_y)
+        return d.nominal.y[k] + rng.normal(0, 1, s.n_y)
 
     def meas(k, y, nm=names, stamp_ns=None):
         msg = c.joint_state(k, s.dt, nm, position=y)
@@ -58,7 +65,7 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
 
     def apply(k):
         u = command(k)
-        pr.publish(c.HEAT_APPLIED, c.joint_state(k, s.dt, s.heater_labels(), effort=u))
+        pr.publish(c.HEAT_APPLIED, c.joint_state(k, s.dt, list(s.input_names), effort=u))
         return u
 
     def rejections():
@@ -68,7 +75,7 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
         pr.wait_for(lambda: rejections() >= n, 10, f'{n} rejections on /diagnostics')
 
     # k = 0 good
-    y = y_of(0); meas(0, y); kf.update(0, y - d.y_nom[0])
+    y = y_of(0); meas(0, y); kf.update(0, y - d.nominal.y[0])
     np.testing.assert_allclose(estimate(0), kf.a[0], rtol=0, atol=1e-12)
     bad = {1: (np.r_[np.nan, y_of(1)[1:]], names),          # NaN
            2: (np.r_[y_of(2)[:2], np.inf, y_of(2)[3:]], names),  # Inf
@@ -76,27 +83,27 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
            4: (y_of(4), names[:-1] + ['bogus'])}             # unknown names
     n_rej = 0
     for k in range(1, 5):
-        u = apply(k - 1); kf.predict(k - 1, u - d.u_nom[k - 1])
+        u = apply(k - 1); kf.predict(k - 1, u - d.nominal.u[k - 1])
         meas(k, *bad[k]); kf.skip(k)
         n_rej += 1
         np.testing.assert_allclose(estimate(k), kf.a[0], rtol=0, atol=1e-12)  # predicted, no update
         expect_rejection(n_rej)
-    u = apply(4); kf.predict(4, u - d.u_nom[4])
-    y = y_of(5); meas(5, y); kf.update(5, y - d.y_nom[5])
+    u = apply(4); kf.predict(4, u - d.nominal.u[4])
+    y = y_of(5); meas(5, y); kf.update(5, y - d.nominal.y[5])
     np.testing.assert_allclose(estimate(5), kf.a[0], rtol=0, atol=1e-12)
     n_est = pr.count(c.STATE_ESTIMATE)
     meas(3, y_of(3)); n_rej += 1; expect_rejection(n_rej)                       # stale
     meas(5, y_of(5)); n_rej += 1; expect_rejection(n_rej)                       # duplicate
     meas(6, y_of(6), stamp_ns=c.stamp_ns(5, s.dt) + c.dt_ns(s.dt) // 2); n_rej += 1; expect_rejection(n_rej)  # off grid
     assert pr.count(c.STATE_ESTIMATE) == n_est, 'a rejected stamp must not produce an estimate'
-    u = apply(5); kf.predict(5, u - d.u_nom[5])
-    y = y_of(6); meas(6, y); kf.update(6, y - d.y_nom[6])
+    u = apply(5); kf.predict(5, u - d.nominal.u[5])
+    y = y_of(6); meas(6, y); kf.update(6, y - d.nominal.y[6])
     np.testing.assert_allclose(estimate(6), kf.a[0], rtol=0, atol=1e-12)
     # out of order: 8 before 7 (7 is missing when 8 arrives: skipped, nominal input for step 7
     # since neither its command nor its applied input exist)
-    u = apply(6); kf.predict(6, u - d.u_nom[6])
+    u = apply(6); kf.predict(6, u - d.nominal.u[6])
     y8 = y_of(8); meas(8, y8)
-    kf.skip(7); kf.predict(7, np.zeros(s.n_u)); kf.update(8, y8 - d.y_nom[8])
+    kf.skip(7); kf.predict(7, np.zeros(s.n_u)); kf.update(8, y8 - d.nominal.y[8])
     np.testing.assert_allclose(estimate(8), kf.a[0], rtol=0, atol=1e-12)
     meas(7, y_of(7)); n_rej += 1; expect_rejection(n_rej)
 
@@ -115,39 +122,40 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
 
 # ------------------------------------------------------------------ LQR fallback
 def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case):
-    s, d = small_case.scenario, small_case.design
+    d = small_case.design
+    s = d.info
     pr = probe().subscribe(c.HEAT_COMMAND, c.DIAGNOSTICS)
-    pr.publish(c.SCENARIO, c.scenario_msg(s))
+    pr.publish(c.SCENARIO, scenario_msg(small_case))
     lqr = launcher.start('lqr', params={'design_file': small_case.design_file, 'estimate_timeout_s': 0.3,
                                         'wait_for_scenario_s': 20.0, 'exit_at_end': False})
     pr.publisher(c.MEASUREMENTS)
     pr.publisher(c.STATE_ESTIMATE)
     pr.wait_matched(subs=(c.HEAT_COMMAND,), pubs=(c.MEASUREMENTS, c.STATE_ESTIMATE))
     labels = c.state_labels(d.n_r)
-    y = d.y_nom
+    y = d.nominal.y
 
     def cmd(k, timeout=10):
         return pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(k), timeout, f'command {k}')
 
     # step 0: measurement, no estimate -> nominal after ~0.3 s
     t0 = time.monotonic()
-    pr.publish(c.MEASUREMENTS, c.joint_state(0, s.dt, s.sensor_labels(), position=y[0]))
+    pr.publish(c.MEASUREMENTS, c.joint_state(0, s.dt, list(s.output_names), position=y[0]))
     m = cmd(0)
     assert time.monotonic() - t0 >= 0.25
-    np.testing.assert_array_equal(np.asarray(m.effort), d.u_nom[0])
+    np.testing.assert_array_equal(np.asarray(m.effort), d.nominal.u[0])
     # the late estimate of step 0 is counted and dropped (the plant already has a command)
     pr.publish(c.STATE_ESTIMATE, c.joint_state(0, s.dt, labels, position=np.ones(d.n_r)))
     pr.wait_for(lambda: int(last_status(pr, 'lqr').get('late_estimates', 0)) >= 1 or
                 'late' in lqr.output(), 10, 'late estimate noted')
     # step 1: estimate in time -> LQR law
     a = np.linspace(-0.1, 0.1, d.n_r)
-    pr.publish(c.MEASUREMENTS, c.joint_state(1, s.dt, s.sensor_labels(), position=y[1]))
+    pr.publish(c.MEASUREMENTS, c.joint_state(1, s.dt, list(s.output_names), position=y[1]))
     pr.publish(c.STATE_ESTIMATE, c.joint_state(1, s.dt, labels, position=a))
-    np.testing.assert_allclose(np.asarray(cmd(1).effort), d.u_nom[1] + d.K[1] @ a, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(cmd(1).effort), d.nominal.u[1] + d.lqg.K[1] @ a, rtol=0, atol=1e-12)
     # step 2: a bad (NaN) estimate is rejected; the watchdog sends the nominal
-    pr.publish(c.MEASUREMENTS, c.joint_state(2, s.dt, s.sensor_labels(), position=y[2]))
+    pr.publish(c.MEASUREMENTS, c.joint_state(2, s.dt, list(s.output_names), position=y[2]))
     pr.publish(c.STATE_ESTIMATE, c.joint_state(2, s.dt, labels, position=np.full(d.n_r, np.nan)))
-    np.testing.assert_array_equal(np.asarray(cmd(2).effort), d.u_nom[2])
+    np.testing.assert_array_equal(np.asarray(cmd(2).effort), d.nominal.u[2])
     pr.wait_for(lambda: int(last_status(pr, 'lqr').get('fallbacks', 0)) == 2, 10, 'fallbacks on /diagnostics')
     st = last_status(pr, 'lqr')
     assert st['_level'] == c.WARN and 'nominal fallback' in st['_message']
@@ -174,10 +182,10 @@ def test_lockstep_plant_times_out_without_command(launcher, probe, small_case, t
 def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe, small_case, tmp_path):
     """A fake controller answers steps 0..9 (with a bad command before the good one at steps
     2..5), then goes silent: the plant counts 30 deadline misses and holds command 9."""
-    s = small_case.scenario
+    s, N = small_case.design.info, small_case.n_steps
     pr = probe().subscribe(c.MEASUREMENTS, c.HEAT_APPLIED, c.DIAGNOSTICS)
     pub = pr.publisher(c.HEAT_COMMAND)
-    heaters = s.heater_labels()
+    heaters = list(s.input_names)
 
     def u_of(k):
         return np.full(s.n_u, 0.1 * (k + 1))
@@ -200,17 +208,17 @@ def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe,
                                             'wait_for_subscribers': 1})
     assert plant.wait(60) == 0, plant.output()
     summ = json.loads((tmp_path / 'plant.json').read_text())
-    assert summ['deadline_misses'] == s.n_steps - 10, summ
+    assert summ['deadline_misses'] == N - 10, summ
     assert summ['rejected_by_reason'] == {'non_finite': 1, 'wrong_length': 1, 'unknown_names': 1,
                                           'stale': 1}, summ
-    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == s.n_steps, 10, 'all heat_applied')
-    U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, s.n_steps, 'effort')
+    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == N, 10, 'all heat_applied')
+    U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, N, 'effort')
     np.testing.assert_array_equal(U[:10], np.array([u_of(k) for k in range(10)]))
-    np.testing.assert_array_equal(U[10:], np.tile(u_of(9), (s.n_steps - 10, 1)))
+    np.testing.assert_array_equal(U[10:], np.tile(u_of(9), (N - 10, 1)))
     assert 'deadline miss at step 10' in plant.output()
     pr.wait_for(lambda: pr.diagnostics('plant'), 5, 'plant diagnostics')
     st = last_status(pr, 'plant')
-    assert int(st['deadline_misses']) == s.n_steps - 10 and int(st['rejected_messages']) == 4
+    assert int(st['deadline_misses']) == N - 10 and int(st['rejected_messages']) == 4
 
 
 # ------------------------------------------------------- design / parameter refusal
@@ -231,18 +239,19 @@ def test_design_for_another_scenario_refused(launcher, small_case, other_files, 
     rc = p.wait(30)
     out = p.output()
     assert rc == 2, out
-    assert 'designed for another plant' in out and 'n_x: 20 != 100' in out and 'n_steps: 40 != 250' in out
+    assert 'designed for another plant' in out and 'plant.n_x: 20 != 100' in out and 'n_steps: 40 != 250' in out
 
 
 def test_plant_scenario_topic_mismatch_refused(launcher, probe, small_case):
-    from sep_plant.scenario import Scenario
+    from core_helpers import flat
     pr = probe()
-    pr.publish(c.SCENARIO, c.scenario_msg(Scenario(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20, dt=0.5)))
+    other = flat(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20, dt=0.5)
+    pr.publish(c.SCENARIO, c.scenario_msg(scenario_payload(other, other.info)))
     p = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0})
     rc = p.wait(30)
     out = p.output()
     assert rc == 2, out
-    assert 'dt: 0.25 != 0.5' in out and '/slab/scenario' in out
+    assert 'plant.dt: 0.25 != 0.5' in out and '/slab/scenario' in out
 
 
 @pytest.mark.parametrize('case', ['corrupt', 'missing', 'absent'])
@@ -300,7 +309,8 @@ def test_estimator_killed_and_restarted_mid_episode(launcher, probe, reference_c
     """Three processes in lockstep; the estimator is killed (SIGKILL) at step >= 50 and a new
     one started: the LQR sends nominal inputs meanwhile, the new estimator joins with
     restart_at(k) and the episode completes."""
-    case, s = reference_case, reference_case.scenario
+    case, s = reference_case, reference_case.design.info
+    N = case.n_steps
     pr = probe().subscribe(c.MEASUREMENTS, c.STATE_ESTIMATE, c.HEAT_COMMAND)
     ctl = {'design_file': case.design_file}
     est1 = launcher.start('estimator', params=ctl, name='estimator_first')
@@ -324,10 +334,84 @@ def test_estimator_killed_and_restarted_mid_episode(launcher, probe, reference_c
     assert est2.wait(30) == 0, est2.output()
     assert lqr.wait(30) == 0, lqr.output()
     summ = json.loads((tmp_path / 'plant.json').read_text())
-    assert summ['status'] == 'completed' and summ['steps'] == s.n_steps
+    assert summ['status'] == 'completed' and summ['steps'] == N
     e2 = json.loads((tmp_path / 'est2.json').read_text())
     l = json.loads((tmp_path / 'lqr.json').read_text())
-    assert e2['restarts'] == 1 and e2['updates'] > 10 and e2['steps'] == s.n_steps
-    assert l['fallbacks'] >= 1 and l['commands'] + l['fallbacks'] == s.n_steps
+    assert e2['restarts'] == 1 and e2['updates'] > 10 and e2['steps'] == N
+    assert l['fallbacks'] >= 1 and l['commands'] + l['fallbacks'] == N
     assert min(l['fallback_steps']) >= killed['k'] - 1
     assert 'joining the episode at step' in est2.output()
+
+
+# ------------------------------------------------------------- storm of bad messages
+def rss_kib(pid: int) -> int:
+    for line in open(f'/proc/{pid}/status'):
+        if line.startswith('VmRSS:'):
+            return int(line.split()[1])
+    raise AssertionError('no VmRSS')
+
+
+def test_storm_of_bad_messages_keeps_memory_flat_and_the_loop_alive(launcher, probe, small_case):
+    """Tens of thousands of bad measurements (stale stamps, NaN, unknown names): every one is
+    rejected and counted, the log and /diagnostics stay rate-limited, the process memory stays
+    flat (no sample list grows per message), and the loop still answers the next good step."""
+    d = small_case.design
+    s = d.info
+    pr = probe().subscribe(c.HEAT_COMMAND, c.DIAGNOSTICS)
+    pr.publish(c.SCENARIO, scenario_msg(small_case))
+    lqg = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0,
+                                        'exit_at_end': False, 'diagnostics_period_s': 1.0})
+    pub = pr.publisher(c.MEASUREMENTS)
+    pr.publisher(c.HEAT_APPLIED)
+    pr.wait_matched(subs=(c.HEAT_COMMAND,), pubs=(c.MEASUREMENTS, c.HEAT_APPLIED))
+    names = list(s.output_names)
+    pr.publish(c.MEASUREMENTS, c.joint_state(0, s.dt, names, position=d.nominal.y[0]))
+    pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(0), 10, 'command 0')
+    bad = [c.joint_state(0, s.dt, names, position=d.nominal.y[0]),                       # duplicate of 0
+           c.joint_state(0, s.dt, names[:-1] + ['bogus'], position=d.nominal.y[0]),     # and unknown names
+           c.joint_state(0, s.dt, names, position=np.full(s.n_y, np.nan))]
+
+    def storm(n):
+        """n bad messages, in bursts of 4 (a reliable KEEP_LAST 10 writer overwrites what the
+        reader has not taken yet: bursts let most of them through)."""
+        for i in range(n):
+            pub.publish(bad[i % 3])
+            if i % 4 == 3:
+                time.sleep(0.001)
+
+    def rejected():
+        st = last_status(pr, 'estimator')
+        return int(st.get('rejected_messages', 0))
+
+    def settled():
+        """Wait until the rejection count on /diagnostics stops growing."""
+        last, t_last = -1, time.monotonic()
+        while time.monotonic() - t_last < 2.5:
+            n = rejected()
+            if n != last:
+                last, t_last = n, time.monotonic()
+            time.sleep(0.1)
+        return last
+
+    storm(3000)                                      # warm-up: allocator pools, queues
+    n0 = settled()
+    assert n0 >= 500, n0
+    rss0, diag0 = rss_kib(lqg.popen.pid), len(pr.diagnostics('estimator'))
+    t0 = time.monotonic()
+    storm(20000)
+    n1 = settled()
+    elapsed = time.monotonic() - t0
+    assert n1 - n0 >= 5000, (n0, n1)
+    rss1, diag1 = rss_kib(lqg.popen.pid), len(pr.diagnostics('estimator'))
+    assert lqg.returncode is None, lqg.output()
+    print(f'storm: {n1 - n0} rejections in {elapsed:.1f} s, RSS {rss0} -> {rss1} KiB, '
+          f'{diag1 - diag0} diagnostics messages')
+    assert rss1 - rss0 < 3000, (rss0, rss1)           # flat: well under 100 bytes per message
+    assert diag1 - diag0 <= elapsed / 0.2 + elapsed / 1.0 + 4   # at most 5 Hz + the periodic ones
+    assert lqg.output().count('rejected measurement') < 20 + 3 * elapsed   # throttled log
+    # the loop is alive: the next good step gets its command at once
+    pr.publish(c.HEAT_APPLIED, c.joint_state(0, s.dt, list(s.input_names), effort=d.nominal.u[0]))
+    pr.publish(c.MEASUREMENTS, c.joint_state(1, s.dt, names, position=d.nominal.y[1]))
+    pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(1), 5, 'command 1 after the storm')
+    reasons = json.loads(last_status(pr, 'estimator')['rejected_by_reason'])
+    assert set(reasons) == {'duplicate', 'unknown_names', 'non_finite'} or set(reasons) == {'duplicate'}

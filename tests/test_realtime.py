@@ -15,7 +15,8 @@ pytestmark = pytest.mark.ros
 
 
 def test_realtime_rtf10_reference_episode_no_deadline_miss(launcher, probe, reference_case, tmp_path):
-    case, s = reference_case, reference_case.scenario
+    case = reference_case
+    dt, N = case.dt, case.n_steps
     pr = probe().subscribe(c.FIELD)
     lqg = launcher.start('lqg', params={'design_file': case.design_file, 'wait_for_scenario_s': 20.0,
                                         'summary_file': tmp_path / 'lqg.json'})
@@ -33,10 +34,11 @@ def test_realtime_rtf10_reference_episode_no_deadline_miss(launcher, probe, refe
     assert summ['rejected_messages'] == 0
     assert 6.0 <= summ['wall_s'] <= 7.5, summ['wall_s']          # 250 steps x 25 ms
     assert summ['latency_p99_s'] < 0.025
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD, s.dt)) == 251, 10, 'all field messages')
-    T = field_matrix(pr, c.FIELD, s.dt, s.n_steps)
-    ref = simulate(case.design, 'rom_lqg', 4, range(2, 3))
-    assert np.max(np.abs(T - ref.T[0])) <= 1e-9
-    assert bool(metrics.in_band(T, s)) == bool(metrics.in_band(ref.T[0], s))
+    pr.wait_for(lambda: len(pr.by_step(c.FIELD, dt)) == 251, 10, 'all field messages')
+    T = field_matrix(pr, c.FIELD, dt, N)
+    ref = simulate(case.plant, case.design, 'rom_lqg', 4, range(2, 3))
+    assert np.max(np.abs(T - ref.F[0])) <= 1e-9
+    obj = case.design.objective
+    assert bool(metrics.in_band(T, obj)) == bool(metrics.in_band(ref.F[0], obj))
     lqg_summ = json.loads((tmp_path / 'lqg.json').read_text())
     assert lqg_summ['estimator']['updates'] == 251

@@ -28,13 +28,13 @@ SEED, RUN = 7, 2
 def small_design(tmp_path_factory):
     from sep_control.design import run_design
     from sep_estimator.design_file import save_design
-    from sep_plant.scenario import Scenario
+    from sep_plant.scenario import load_scenario
 
     d = tmp_path_factory.mktemp("e2e_design")
-    s = Scenario(**SMALL)
-    design = run_design(s, show_progress=False, log=lambda *a, **k: None)
-    path = save_design(d / "design.npz", design)
     (d / "small.yaml").write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))
+    s = load_scenario(d / "small.yaml")
+    design = run_design(s.plant, s.problem, show_progress=False, log=lambda *a, **k: None)
+    path = save_design(d / "design.npz", design)
     return path, d / "small.yaml"
 
 
@@ -82,20 +82,20 @@ def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design
     assert ep.complete and not ep.missing, (ep.missing, ep.notes)
     live = np.load(tmp_path / "traj.npz")
     # the bag holds exactly what the plant simulated and applied
-    np.testing.assert_array_equal(ep.T, live["T"])
+    np.testing.assert_array_equal(ep.F, live["F"])
     np.testing.assert_array_equal(ep.u, live["U"])
     np.testing.assert_array_equal(ep.y, live["Y"])
     # metrics equal the live run's to printing precision (here: exactly)
-    ref = M.summarize(live["T"][None], live["U"][None], design.T_nom, design.scenario)
+    ref = M.summarize(live["F"][None], live["U"][None], design.nominal.field, design.objective)
     for k, v in ref.items():
         assert M._fmt(rep.metrics[k]) == M._fmt(v), k
         assert rep.metrics[k] == pytest.approx(v, rel=1e-12, abs=1e-12), k
     assert rep.metrics["deadline_misses"] == 0 and rep.metrics["rejected_messages"] == 0
     assert rep.metrics["latency_p50_s"] is not None and 0 < rep.metrics["latency_p50_s"] < 1.0
     # the offline Monte Carlo run with the same seed/run: same trajectory, same estimates
-    mc = montecarlo.simulate(design, "rom_lqg", SEED, range(RUN, RUN + 1))
-    assert np.max(np.abs(ep.T - mc.T[0])) <= 1e-9
-    assert np.max(np.abs(ep.T_hat - mc.T_hat[0])) <= 1e-9
+    mc = montecarlo.simulate(design.scenario.plant, design, "rom_lqg", SEED, range(RUN, RUN + 1))
+    assert np.max(np.abs(ep.F - mc.F[0])) <= 1e-9
+    assert np.max(np.abs(ep.F_hat - mc.F_hat[0])) <= 1e-9
     assert rep.metrics["coverage_2sigma"] == pytest.approx(mc.coverage_2sigma, abs=1e-12)
     # the bag opens with rosbags' AnyReader too
     from rosbags.highlevel import AnyReader

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from bag_synth import TYPES, small_scenario, synthetic_episode, episode_messages
+from sep_plant import topics as T
 
 pytestmark = pytest.mark.ros
 
@@ -116,7 +117,7 @@ def same_payload(got: list[bytes], sent: list[bytes]) -> bool:
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_record_bytes_roundtrip_and_independent_readers(tmp_path, ros, procs, storage):
-    ep = synthetic_episode(small_scenario(n_steps=10, k_band=5, lqr_k_switch=4))
+    ep = synthetic_episode(small_scenario(n_steps=10, band_window=(5, 10), lqr_k_switch=4))
     msgs = episode_messages(ep)
     pubs = make_publishers(ros, TYPES)
     # the latched scenario is published before the recorder exists (transient_local)
@@ -156,9 +157,9 @@ def test_record_bytes_roundtrip_and_independent_readers(tmp_path, ros, procs, st
             msg = reader.deserialize(rawdata, conn.msgtype)
             n += 1
             if conn.topic == "/slab/measurements":
-                assert list(msg.name) == ep.scenario.sensor_labels() and msg.header.frame_id == "slab"
+                assert tuple(msg.name) == ep.info.output_names and msg.header.frame_id == "slab"
             if conn.topic == "/slab/field":
-                assert msg.width == ep.scenario.n_x and msg.point_step == 40
+                assert msg.width == ep.info.n_field and msg.point_step == 40
         assert n == sum(len(v) for v in sent.values())
 
     if storage == "mcap":
@@ -177,7 +178,7 @@ def test_record_bytes_roundtrip_and_independent_readers(tmp_path, ros, procs, st
                 assert schema.name == TYPES[channel.topic]
                 msg = deserialize_message(message.data, _msg_class(schema.name))
                 if channel.topic == "/slab/heat_command":
-                    assert msg.header.frame_id == "slab" and len(msg.effort) == ep.scenario.n_u
+                    assert msg.header.frame_id == "slab" and len(msg.effort) == ep.info.n_u
                 count += 1
             assert count == n
 
@@ -191,24 +192,27 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 
-    s = small_scenario(n_steps=6, k_band=3, lqr_k_switch=2)
+    from sep_plant.scenario import scenario_payload
+
+    s = small_scenario(n_steps=6, band_window=(3, 6), lqr_k_switch=2)
+    info, N = s.info, s.problem.n_steps
     pubs = make_publishers(ros, ["/slab/scenario", "/slab/measurements", "/slab/heat_command"])
     bag = tmp_path / "bag"
     proc = start_recorder(bag, "--final-grace", "0.5")
     procs.append(proc)
     wait_matched(pubs, proc)
-    pubs["/slab/scenario"].publish(String(data=s.to_json()))
+    pubs["/slab/scenario"].publish(String(data=scenario_payload(s, info)))
     time.sleep(0.3)
     sent = {"/slab/measurements": [], "/slab/heat_command": []}
-    dt_ns = int(round(s.dt * 1e9))
-    for k in range(s.n_steps + 1):
+    dt_ns = T.dt_ns(info.dt)
+    for k in range(N + 1):
         stamp = Time(sec=k * dt_ns // 10**9, nanosec=k * dt_ns % 10**9)
-        m = JointState(name=s.sensor_labels(), position=[150.0 + k + j for j in range(s.n_y)])
+        m = JointState(name=list(info.output_names), position=[150.0 + k + j for j in range(info.n_y)])
         m.header.stamp, m.header.frame_id = stamp, "slab"
         pubs["/slab/measurements"].publish(m)
         sent["/slab/measurements"].append(m)
-        if k < s.n_steps:
-            c = JointState(name=s.heater_labels(), effort=[0.1 * k] * s.n_u)
+        if k < N:
+            c = JointState(name=list(info.input_names), effort=[0.1 * k] * info.n_u)
             c.header.stamp, c.header.frame_id = stamp, "slab"
             pubs["/slab/heat_command"].publish(c)
             sent["/slab/heat_command"].append(c)
@@ -223,15 +227,15 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
     from sep_control.bag_io import read_episode
 
     e = read_episode(bag)
-    assert e.scenario == s
-    np.testing.assert_array_equal(e.y[:, 0], 150.0 + np.arange(s.n_steps + 1))
-    assert "/slab/field" in e.missing
+    assert e.scenario == s and e.info == info
+    np.testing.assert_array_equal(e.y[:, 0], 150.0 + np.arange(N + 1))
+    assert "/slab/field" in e.missing and "/slab/field_image" not in e.missing
 
 
 def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     from sep_control.bag_io import BagError, read_episode
 
-    ep = synthetic_episode(small_scenario(n_steps=30, k_band=20, lqr_k_switch=10))
+    ep = synthetic_episode(small_scenario(n_steps=30, band_window=(20, 30), lqr_k_switch=10))
     msgs = episode_messages(ep)
     pubs = make_publishers(ros, TYPES)
     publish_all(pubs, [m for m in msgs if m[0] == "/slab/scenario"])
@@ -243,7 +247,7 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     # the first 15 steps, then wait for a flush, then crash
     cut = next(i for i, m in enumerate(msgs) if m[0] == "/clock" and m is not msgs[0] and
                int.from_bytes(m[2][4:8], "little") * 10**9 + int.from_bytes(m[2][8:12], "little")
-               >= 15 * int(ep.scenario.dt * 1e9))
+               >= 15 * T.dt_ns(ep.info.dt))
     sent = publish_all(pubs, [m for m in msgs[:cut] if m[0] != "/slab/scenario"])
     time.sleep(1.0)
     proc.send_signal(signal.SIGKILL)
@@ -254,7 +258,7 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     e = read_episode(bag, allow_truncated=True)
     assert not e.complete
     assert e.steps_with("measurements").tolist() == list(range(15))
-    np.testing.assert_array_equal(e.T[:15], ep.T[:15])
+    np.testing.assert_array_equal(e.F[:15], ep.F[:15])
     got, _raw = received(bag)
     for topic in sent:
         assert same_payload(got[topic], sent[topic])
@@ -266,6 +270,24 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
 
     with AnyReader([fixed]) as reader:
         assert sum(1 for _ in reader.messages()) == sum(len(v) for v in got.values())
+
+
+def test_ready_file_skips_optional_topics_without_publisher(tmp_path, ros, procs):
+    """The slab publishes no images: --ready-file waits for every required topic, not for them."""
+    required = [t for t in TYPES if T.key_of(t) not in T.OPTIONAL]
+    bag, ready = tmp_path / "bag", tmp_path / "ready"
+    proc = start_recorder(bag, "--no-stop-at-end", "--ready-file", str(ready))
+    procs.append(proc)
+    time.sleep(1.0)
+    assert not ready.exists()                       # no publisher of a required topic yet
+    pubs = make_publishers(ros, required)
+    wait_matched(pubs, proc)
+    t0 = time.monotonic()
+    while not ready.exists():
+        assert time.monotonic() - t0 < 30 and proc.poll() is None, "ready file not written"
+        time.sleep(0.05)
+    rc, out, err = stop(proc)
+    assert rc == 0, err
 
 
 def test_record_cli_errors(tmp_path):

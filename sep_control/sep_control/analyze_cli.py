@@ -1,9 +1,12 @@
 """`analyze BAG... [--design FILE] [--out DIR] [--json PATH]`: report on recorded episodes.
 
-One bag: its DESIGN.md §3 metrics and the paper's figures. Several bags (e.g. 50 seeded
-episodes): one row per episode plus pooled statistics comparable to the offline Monte Carlo
-table. Prints the metrics table and where the report is; exits 2 with a one-line message on
-bad input (missing/corrupt/truncated bag, design file of another scenario).
+Any plant: one bag gives its DESIGN.md §3 metrics and the paper's figures (lines for 1-D
+plants, heat maps for grid plants, a frame of the image topic when the bag has one); several
+bags (e.g. 50 seeded episodes) give one row per episode plus pooled statistics comparable to
+the offline Monte Carlo table. Without --design the objective is the bag's own scenario's and
+nominal comparisons are skipped. Prints the metrics table and where the report is; exits 2
+with a one-line message on bad input (missing/corrupt/truncated bag, unreadable design file,
+design file of another plant).
 """
 from __future__ import annotations
 
@@ -12,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+from sep_plant.topics import NAMESPACE
+
 EXIT_BAD_INPUT = 2
 
 
@@ -19,16 +24,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="analyze",
         description="Analyse rosbag2 bags recorded from the sep topic graph: DESIGN.md §3 metrics, "
-                    "Markdown report with figures, optional JSON.")
+                    "Markdown report with figures, optional JSON. Works for any plant of the plant protocol.")
     p.add_argument("bags", nargs="+", metavar="BAG",
                    help="bag directory (metadata.yaml + .mcap/.db3) or a lone .mcap/.db3 file")
-    p.add_argument("--design", metavar="FILE", help="design file (.npz) for the nominal comparisons")
+    p.add_argument("--design", metavar="FILE",
+                   help="design file (.npz): its objective and nominal (default: the bag's scenario, no nominal)")
     p.add_argument("--out", metavar="DIR",
                    help="report directory (default: <BAG>_report for one bag, <parent>/aggregate_report for many)")
     p.add_argument("--json", metavar="PATH", help="write the metrics as JSON (DESIGN.md §3 keys)")
-    p.add_argument("--namespace", default="slab", help="topic namespace of the graph (default: slab)")
+    p.add_argument("--namespace", default=NAMESPACE, help=f"topic namespace of the graph (default: {NAMESPACE})")
     p.add_argument("--allow-mismatch", action="store_true",
-                   help="analyse bags recorded with another scenario than the design file (flagged in the report)")
+                   help="analyse bags of another plant than the design file (flagged in the report)")
     p.add_argument("--allow-truncated", action="store_true",
                    help="analyse what can be recovered from a truncated bag (crash during recording)")
     p.add_argument("--no-figures", action="store_true", help="write report.md without figures")
@@ -82,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         if r.episode.missing:
             print(f"note: {r.name}: missing topics {', '.join(r.episode.missing)}")
         if r.mismatch:
-            print(f"WARNING: {r.name}: scenario mismatch with the design file: {'; '.join(r.mismatch)}")
+            print(f"WARNING: {r.name}: the bag's plant differs from the design file's: {'; '.join(r.mismatch)}")
         if not r.episode.complete:
             print(f"note: {r.name}: truncated bag, analysed what was recovered")
     print(f"({LATENCY_NOTE})")

@@ -9,63 +9,37 @@ crash), or a lone ``.mcap`` / ``.db3`` file. The storage file is parsed directly
   the end of the file marks the bag as *truncated* and what came before is kept.
 * sqlite3: the rosbag2 schema (``topics`` and ``messages`` tables) through the sqlite3 module.
 
-`read_episode` turns the contract topics (DESIGN.md §4) into an `Episode`: per-step arrays
-indexed by the step k = header.stamp / dt, per-topic receive times (the bag's log time, i.e.
-the recorder's clock) and header stamps, the last diagnostics values and the plant's scenario.
-Missing topics are listed in ``Episode.missing``; topics outside the contract are ignored.
-A corrupt bag raises `BagError` naming the file and what could be recovered; a truncated
-one does too unless ``allow_truncated=True``.
+`read_episode` turns the contract topics (`sep_plant.topics`, DESIGN.md §4) of any plant into
+an `Episode`: per-step arrays indexed by the step k of header.stamp (`topics.steps_of_stamps`,
+one tolerance for the whole product), per-topic receive times (the bag's log time, i.e. the
+recorder's clock) and header stamps, the last diagnostics values, and the plant's scenario
+and description (`PlantInfo`) from the scenario topic. Point clouds are accepted with any
+field name (x, y, z, <field>, <field>_std); the optional 32FC1 image topics of grid plants are
+read when present. Missing required topics are listed in ``Episode.missing``; topics outside
+the contract are ignored. Bags of sep 0.1 (flat slab scenario JSON) are read too.
+A corrupt bag raises `BagError` naming the file and what could be recovered; a truncated one
+does too unless ``allow_truncated=True``.
 """
 from __future__ import annotations
 
-import math
+import functools
 import sqlite3
 import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from sep_plant.scenario import Scenario, ScenarioError
-
-#: contract topics (DESIGN.md §4): name relative to the namespace (a leading '/' means
-#: absolute), ROS 2 type, and whether the publisher offers transient_local durability.
-CONTRACT: tuple[tuple[str, str, bool], ...] = (
-    ("/clock", "rosgraph_msgs/msg/Clock", False),
-    ("measurements", "sensor_msgs/msg/JointState", False),
-    ("heat_command", "sensor_msgs/msg/JointState", False),
-    ("heat_applied", "sensor_msgs/msg/JointState", False),
-    ("state_estimate", "sensor_msgs/msg/JointState", False),
-    ("field_estimate", "sensor_msgs/msg/PointCloud2", False),
-    ("field", "sensor_msgs/msg/PointCloud2", False),
-    ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", False),
-    ("scenario", "std_msgs/msg/String", True),
-)
-
-#: per-step JointState topics and the array they fill
-STEP_TOPICS = ("measurements", "heat_command", "heat_applied", "state_estimate", "field", "field_estimate")
-
-POINT_FIELDS = ("x", "y", "z", "temperature", "temperature_std")
+from sep_plant import topics as T
+from sep_plant.protocol import PlantInfo
+from sep_plant.scenario import Scenario, ScenarioError, parse_scenario_payload
 
 
 class BagError(RuntimeError):
     """The bag cannot be read (corrupt, truncated, not a bag); the message names the file and
     what was recovered."""
-
-
-def topic_name(rel: str, namespace: str = "slab") -> str:
-    """Fully qualified topic name of a contract topic."""
-    if rel.startswith("/"):
-        return rel
-    ns = namespace.strip("/")
-    return f"/{ns}/{rel}" if ns else f"/{rel}"
-
-
-def contract_topics(namespace: str = "slab") -> dict[str, tuple[str, bool]]:
-    """{fully qualified topic: (msgtype, transient_local)} of the contract."""
-    return {topic_name(rel, namespace): (typ, tl) for rel, typ, tl in CONTRACT}
 
 
 # --------------------------------------------------------------------------- raw bag layer
@@ -118,11 +92,8 @@ def locate_storage(path: str | Path) -> tuple[Path, str, bool]:
             info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
             storage = str(info.get("storage_identifier", "")).lower()
             files = list(info.get("relative_file_paths") or [])
-        except Exception as exc:  # noqa: BLE001 - any parse problem: fall back to a file scan
+        except Exception:  # noqa: BLE001 - any parse problem: fall back to the directory scan below
             storage, files = "", []
-            bad_meta = f"unreadable metadata.yaml ({type(exc).__name__})"
-        else:
-            bad_meta = ""
         if len(files) > 1:
             raise BagError(f"{p}: split bags ({len(files)} files) are not supported; merge them first")
         if files and (p / files[0]).is_file():
@@ -130,8 +101,6 @@ def locate_storage(path: str | Path) -> tuple[Path, str, bool]:
             if f.suffix in (".zstd", ".lz4"):
                 raise BagError(f"{f}: file-compressed bags are not supported; record without compression")
             return f, ("sqlite3" if f.suffix == ".db3" or storage == "sqlite3" else "mcap"), True
-        if bad_meta:
-            pass  # fall through to the directory scan below
     found = sorted(p.glob("*.mcap")) + sorted(p.glob("*.db3"))
     if not found:
         raise BagError(f"{p}: no .mcap or .db3 file in this directory: not a bag")
@@ -331,6 +300,19 @@ def _read_sqlite(f: Path, want: set[str] | None) -> RawBag:
 
 
 # --------------------------------------------------------------------------- episode layer
+#: JointState topics and the array that carries their values
+VECTOR_TOPICS = {T.MEASUREMENTS: "position", T.HEAT_COMMAND: "effort", T.HEAT_APPLIED: "effort",
+                 T.STATE_ESTIMATE: "position"}
+#: per-step topics with one message per input step k = 0..N-1 (the others have k = 0..N)
+INPUT_TOPICS = (T.HEAT_COMMAND, T.HEAT_APPLIED)
+IMAGE_TOPICS = tuple(t.name for t in T.TOPICS if t.type_name == T.IMAGE)
+#: topics whose serialized message starts with a stamp (header.stamp, or Clock.clock)
+STAMPED_TOPICS = tuple(t.name for t in T.TOPICS if t.per_step) + (T.CLOCK, T.DIAGNOSTICS)
+
+_STAMP = struct.Struct("<iI").unpack_from
+_NO_MESSAGES = np.zeros(0, dtype=np.int64)
+
+
 @dataclass
 class TopicTimes:
     """Per-message receive times (bag log time, ns, recorder clock) and header stamps (ns)."""
@@ -341,33 +323,41 @@ class TopicTimes:
 
 @dataclass
 class Episode:
-    """One recorded episode as arrays; step k rows are NaN where the bag has no message."""
+    """One recorded episode as arrays; step k rows are NaN where the bag has no message.
+    Topic keys are the contract names of `sep_plant.topics` ('measurements', '/clock', ...)."""
 
     path: Path
     scenario: Scenario | None
+    info: PlantInfo | None    # the plant's description (None: no scenario in the bag or given)
     dt: float
     n_steps: int
-    y: np.ndarray             # (N+1, n_y)  measurements
-    u_cmd: np.ndarray         # (N, n_u)    heat_command
-    u: np.ndarray             # (N, n_u)    heat_applied
-    a_hat: np.ndarray         # (N+1, n_a)  state_estimate (NaN padded; n_a = longest estimate)
-    a_dim: np.ndarray         # (N+1,) int  length of the estimate at step k (-1: none)
-    T: np.ndarray             # (N+1, n_x)  true field
-    T_hat: np.ndarray         # (N+1, n_x)  field estimate
-    T_std: np.ndarray         # (N+1, n_x)  field estimate std
-    x: np.ndarray | None      # (n_x,)      node positions from the point clouds
-    step_recv_ns: dict[str, np.ndarray]   # topic key -> (N+1,) receive time per step, ns since
+    y: np.ndarray             # (N+1, n_y)      measurements
+    u_cmd: np.ndarray         # (N, n_u)        heat_command
+    u: np.ndarray             # (N, n_u)        heat_applied
+    a_hat: np.ndarray         # (N+1, n_a)      state_estimate (NaN padded; n_a = longest estimate)
+    a_dim: np.ndarray         # (N+1,) int      length of the estimate at step k (-1: none)
+    F: np.ndarray             # (N+1, n_field)  true field (field cloud)
+    F_hat: np.ndarray         # (N+1, n_field)  field estimate
+    F_std: np.ndarray         # (N+1, n_field)  field estimate std
+    xyz: np.ndarray | None    # (n_field, 3)    node coordinates from the point clouds
+    field_name: str | None    # the clouds' field channel, e.g. 'temperature'
+    images: dict[str, dict[int, np.ndarray]]  # image topic key -> step -> (height, width) float32
+    step_recv_ns: dict[str, np.ndarray]   # per-step topic key -> (N+1,) receive time per step, ns since
                                           # recv_origin_ns (float, exact; NaN: no message)
     times: dict[str, TopicTimes]          # topic key -> all messages' receive times and stamps
     diagnostics: dict[str, dict[str, str]]  # status name -> last key/values
     diag_totals: dict[str, int]           # deadline_misses, rejected_messages summed over statuses
     counts: dict[str, int]                # messages per contract topic key
-    missing: list[str]                    # contract topics with no message
-    ignored_topics: list[str]             # topics outside the contract
+    missing: list[str]                    # required contract topics with no message (full names)
+    ignored_topics: list[str]             # topics outside the contract (or of another type)
     recv_origin_ns: int = 0               # earliest log time in the bag (recorder clock)
     complete: bool = True                 # False: truncated bag (only with allow_truncated)
     notes: list[str] = field(default_factory=list)
     scenario_source: str = "bag"          # 'bag', 'argument' or 'inferred'
+
+    @property
+    def n_field(self) -> int:
+        return int(self.F.shape[1])
 
     def steps_with(self, key: str) -> np.ndarray:
         """Steps k that have a message on topic `key`."""
@@ -376,27 +366,64 @@ class Episode:
     @property
     def last_step(self) -> int:
         """Last step with a measurement or field (-1 when none)."""
-        ks = [self.steps_with(k) for k in ("measurements", "field") if k in self.step_recv_ns]
+        ks = [self.steps_with(k) for k in (T.MEASUREMENTS, T.FIELD) if k in self.step_recv_ns]
         ks = [k[-1] for k in ks if k.size]
         return int(max(ks)) if ks else -1
 
 
-def _key(topic: str, namespace: str) -> str | None:
-    for rel, _typ, _tl in CONTRACT:
-        if topic == topic_name(rel, namespace):
-            return rel.strip("/")
-    return None
+class _Decoder:
+    """CDR deserialization with the Jazzy typestore; undecodable or malformed messages are
+    collected in `bad` (reported as one note), never raised."""
+
+    def __init__(self, raw: RawBag):
+        from rosbags.typesys import Stores, get_typestore
+
+        self.raw = raw
+        self.ts = get_typestore(Stores.ROS2_JAZZY)
+        self.bad: list[str] = []
+
+    def topic(self, i: int) -> str:
+        return self.raw.connections[int(self.raw.conn_ids[i])].topic
+
+    def __call__(self, i: int, msgtype: str) -> Any | None:
+        try:
+            return self.ts.deserialize_cdr(self.raw.data[i], msgtype)
+        except Exception as exc:  # noqa: BLE001 - report, never a traceback
+            self.reject(i, f"undecodable ({type(exc).__name__})")
+            return None
+
+    def reject(self, i: int, why: str) -> None:
+        self.bad.append(f"{self.topic(i)} message {i}: {why}")
 
 
-_STAMP = struct.Struct("<iI").unpack_from
+@dataclass
+class _Messages:
+    """A bag's contract messages: indices per topic key, header stamps, the step grid."""
+
+    raw: RawBag
+    decode: _Decoder
+    index: dict[str, np.ndarray]      # topic key -> message indices in file order
+    stamps: dict[str, np.ndarray]     # topic key -> header stamps [ns] of those messages
+    origin: int                       # earliest log time [ns]
+    dt: float = 0.0                   # the step grid (set by `resolve_timing`): dt [s],
+    step_ns: int = 0                  # dt [ns],
+    n_steps: int = 0                  # N
+
+    def of(self, key: str) -> np.ndarray:
+        return self.index.get(key, _NO_MESSAGES)
 
 
-def read_episode(path: str | Path, scenario: Scenario | None = None, *, namespace: str = "slab",
-                 allow_truncated: bool = False) -> Episode:
-    """Read a bag of one episode. `scenario` is used when the bag carries none (else the bag's
-    own scenario wins; compare with the design in `analyze`)."""
-    from rosbags.typesys import Stores, get_typestore
+@dataclass
+class _PerStep:
+    """The parsed messages of one per-step topic."""
 
+    values: dict[int, Any]            # step k -> parsed value (a repeated step keeps the last)
+    recv_ns: np.ndarray               # (N+1,) receive time relative to the origin; NaN: none
+    off_grid: int                     # messages off the step grid or outside the topic's steps
+
+
+def _open(path: str | Path, allow_truncated: bool) -> tuple[RawBag, str]:
+    """The raw bag and the name errors use; refuses truncated (unless allowed) and empty bags."""
     raw = read_raw(path)
     name = str(raw.path if Path(path).is_file() else Path(path))
     if not raw.complete and not allow_truncated:
@@ -405,171 +432,168 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, *, namespac
     if not len(raw):
         raise BagError(f"{name}: no messages" + (" recovered: " + "; ".join(raw.notes) if raw.notes else "")
                        + "; nothing to analyse")
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    contract = contract_topics(namespace)
-    by_key: dict[str, list[int]] = {}
-    ignored = set()
-    for i, cid in enumerate(raw.conn_ids.tolist()):
+    return raw, name
+
+
+def group_by_topic(raw: RawBag, namespace: str) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Message indices per contract topic key (file order), and the topics that are ignored:
+    outside the contract, or recorded with another type than the contract's."""
+    keys: dict[int, str] = {}
+    ignored: set[str] = set()
+    for cid in np.unique(raw.conn_ids).tolist():
         c = raw.connections[cid]
-        key = _key(c.topic, namespace)
-        if key is None or (c.msgtype and c.msgtype != contract[c.topic][0]):
-            ignored.add(c.topic if key is None else f"{c.topic} ({c.msgtype})")
-            continue
-        by_key.setdefault(key, []).append(i)
-    notes = list(raw.notes)
-    bad: list[str] = []
+        key = T.key_of(c.topic, namespace)
+        if key is None:
+            ignored.add(c.topic)
+        elif c.msgtype and c.msgtype != T.BY_NAME[key].type_name:
+            ignored.add(f"{c.topic} ({c.msgtype})")
+        else:
+            keys[cid] = key
+    index: dict[str, np.ndarray] = {}
+    for key in sorted(set(keys.values())):
+        cids = [cid for cid, k in keys.items() if k == key]
+        index[key] = np.flatnonzero(np.isin(raw.conn_ids, cids))
+    return index, sorted(ignored)
 
-    def decode(i: int, msgtype: str):
-        try:
-            return ts.deserialize_cdr(raw.data[i], msgtype)
-        except Exception as exc:  # noqa: BLE001 - report, never a traceback
-            bad.append(f"{raw.connections[int(raw.conn_ids[i])].topic} message {i} ({type(exc).__name__})")
-            return None
 
-    # scenario (transient_local, once; take the last valid one)
-    scen, source = None, "bag"
-    for i in by_key.get("scenario", []):
-        msg = decode(i, "std_msgs/msg/String")
+def header_stamps(raw: RawBag, idx: np.ndarray) -> np.ndarray:
+    """Stamps [ns] of messages that start with a builtin_interfaces/Time (after the 4-byte CDR
+    encapsulation: int32 sec, uint32 nanosec); 0 for a message too short to hold one."""
+    out = np.zeros(len(idx), dtype=np.int64)
+    for j, i in enumerate(idx.tolist()):
+        d = raw.data[i]
+        if len(d) >= 12:
+            sec, nsec = _STAMP(d, 4)
+            out[j] = sec * 1_000_000_000 + nsec
+    return out
+
+
+def read_scenario(msgs: _Messages, notes: list[str]) -> tuple[Scenario, PlantInfo] | None:
+    """The plant's scenario and description from the scenario topic (the last readable
+    message; sep 0.1's flat slab JSON too), or None."""
+    found = None
+    for i in msgs.of(T.SCENARIO).tolist():
+        msg = msgs.decode(i, T.STRING)
         if msg is None:
             continue
         try:
-            scen = Scenario.from_json(msg.data)
+            found = parse_scenario_payload(msg.data)
         except (ScenarioError, ValueError) as exc:
-            notes.append(f"slab/scenario message unreadable ({exc})")
-    if scen is None and scenario is not None:
-        scen, source = scenario, "argument"
+            notes.append(f"{msgs.decode.topic(i)} message unreadable ({exc})")
+    return found
 
-    # stamps of the per-step topics (parsed from the CDR header: int32 sec, uint32 nanosec)
-    stamps: dict[str, np.ndarray] = {}
-    for key in STEP_TOPICS + ("clock", "diagnostics"):
-        idx = by_key.get(key, [])
-        st = np.empty(len(idx), dtype=np.int64)
-        for j, i in enumerate(idx):
-            d = raw.data[i]
-            sec, nsec = _STAMP(d, 4) if len(d) >= 12 else (0, 0)
-            st[j] = sec * 1_000_000_000 + nsec
-        stamps[key] = st
-    if scen is not None:
-        dt, n_steps = scen.dt, scen.n_steps
-    else:  # infer the step from the stamps
-        st = np.unique(np.concatenate([stamps[k] for k in ("measurements", "field") if stamps[k].size] or
-                                      [np.zeros(0, np.int64)]))
-        diffs = np.diff(st)
-        diffs = diffs[diffs > 0]
-        if not diffs.size:
-            raise BagError(f"{name}: no scenario and too few stamped measurements to infer the time step; "
-                           "pass the design file (--design)")
-        dt = float(diffs.min()) * 1e-9
-        n_steps = int(round(st[-1] / diffs.min()))
-        source = "inferred"
-        notes.append(f"no scenario in the bag: dt = {dt:g} s and N = {n_steps} inferred from stamps")
-    dt_ns = int(round(dt * 1e9))
-    N = n_steps
 
-    def step_of(st: np.ndarray) -> np.ndarray:
-        k = np.rint(st / dt_ns).astype(np.int64)
-        off = np.abs(st - k * dt_ns) > max(1, dt_ns // 1000)
-        k[off] = -1
-        return k
+def infer_timing(msgs: _Messages, name: str) -> tuple[float, int]:
+    """dt and N of a bag without a scenario, from the stamps of measurements and field clouds:
+    dt = the smallest positive stamp difference, N = the last stamp / dt."""
+    st = np.unique(np.concatenate([msgs.stamps.get(k, _NO_MESSAGES) for k in (T.MEASUREMENTS, T.FIELD)]))
+    diffs = np.diff(st)
+    diffs = diffs[diffs > 0]
+    if not diffs.size:
+        raise BagError(f"{name}: no scenario and too few stamped measurements to infer the time step; "
+                       "pass the design file (--design)")
+    return float(diffs.min()) * 1e-9, int(round(st[-1] / diffs.min()))
 
-    origin = int(raw.log_times.min()) if raw.log_times.size else 0
-    recv = raw.log_times
-    times = {key: TopicTimes(recv[np.asarray(by_key.get(key, []), dtype=np.int64)], stamps.get(key, np.zeros(0, np.int64)))
-             for key in by_key if key != "scenario"}
-    step_recv = {}
+
+def read_per_step(msgs: _Messages, key: str, parse: Callable[[Any], Any]) -> _PerStep:
+    """Decode and parse every message of a per-step topic at its step k (k = 0..N, or 0..N-1
+    for the inputs). Messages off the step grid are counted; a message `parse` refuses
+    (ValueError) is reported through the decoder."""
+    rows = msgs.n_steps if key in INPUT_TOPICS else msgs.n_steps + 1
+    idx = msgs.of(key)
+    ks = T.steps_of_stamps(msgs.stamps.get(key, _NO_MESSAGES), msgs.step_ns)
+    recv = np.full(msgs.n_steps + 1, np.nan)
+    values: dict[int, Any] = {}
     off_grid = 0
+    for i, k in zip(idx.tolist(), ks.tolist()):
+        if not 0 <= k < rows:
+            off_grid += 1
+            continue
+        msg = msgs.decode(i, T.BY_NAME[key].type_name)
+        if msg is None:
+            continue
+        try:
+            values[k] = parse(msg)
+        except ValueError as exc:
+            msgs.decode.reject(i, str(exc))
+            continue
+        recv[k] = float(msgs.raw.log_times[i] - msgs.origin)   # exact: relative times stay below 2**53 ns
+    return _PerStep(values, recv, off_grid)
 
-    def fill(key: str, rows: int, getter) -> tuple[np.ndarray | None, int]:
-        nonlocal off_grid
-        idx = by_key.get(key, [])
-        ks = step_of(stamps[key])
-        sr = np.full(N + 1, np.nan)
-        vals: dict[int, np.ndarray] = {}
-        for j, i in enumerate(idx):
-            k = int(ks[j])
-            if not 0 <= k < rows:
-                off_grid += 1
-                continue
-            msg = decode(i, contract[raw.connections[int(raw.conn_ids[i])].topic][0])
-            if msg is None:
-                continue
-            v = getter(msg)
-            if v is None:
-                continue
-            vals[k] = v          # a repeated step keeps the last message
-            sr[k] = float(recv[i] - origin)   # exact: relative times stay below 2**53 ns
-        step_recv[key] = sr
-        if not vals:
-            return None, 0
-        width = max(len(v) if v.ndim == 1 else v.shape[0] for v in vals.values())
-        return vals, width
 
-    def stack(vals, rows, width, shape_tail=()):
-        out = np.full((rows, width) + shape_tail, np.nan)
-        if vals:
-            for k, v in vals.items():
-                out[k, :len(v)] = v
-        return out
+def joint_values(msg: Any, attr: str, n: int | None) -> np.ndarray:
+    """The `attr` array (position / effort) of a JointState; `n` values when n is given."""
+    v = np.asarray(getattr(msg, attr), dtype=float)
+    if n is not None and v.size != n:
+        raise ValueError(f"{v.size} {attr} values, expected {n}")
+    return v
 
-    def js(attr):
-        return lambda m: np.asarray(getattr(m, attr), dtype=float)
 
-    def cloud(m):
-        names = [f.name for f in m.fields]
-        if m.point_step != 40 or names[:5] != list(POINT_FIELDS) or any(f.datatype != 8 for f in m.fields[:5]) \
-                or m.is_bigendian or m.height != 1:
-            bad.append(f"point cloud with unexpected layout (fields {names}, point_step {m.point_step})")
-            return None
-        a = np.frombuffer(np.asarray(m.data, dtype=np.uint8).tobytes(), dtype="<f8")
-        if a.size != 5 * m.width:
-            bad.append(f"point cloud data size {a.size * 8} != width {m.width} x 40")
-            return None
-        return a.reshape(m.width, 5)
+def cloud_points(msg: Any, n: int | None) -> tuple[str, np.ndarray]:
+    """(field name, (width, 5) rows x, y, z, value, std) of a contract PointCloud2 (any field
+    name; `n` points when n is given)."""
+    names = [f.name for f in msg.fields]
+    data = np.asarray(msg.data, dtype=np.uint8)
+    T.check_cloud_layout(names, [f.datatype for f in msg.fields], [f.offset for f in msg.fields],
+                         msg.point_step, msg.height, bool(msg.is_bigendian), msg.width, data.size)
+    if n is not None and msg.width != n:
+        raise ValueError(f"cloud with {msg.width} points, expected {n}")
+    return names[3], T.parse_cloud_payload(data.tobytes(), msg.width)
 
-    y_v, ny = fill("measurements", N + 1, js("position"))
-    uc_v, nu1 = fill("heat_command", N, js("effort"))
-    u_v, nu2 = fill("heat_applied", N, js("effort"))
-    a_v, na = fill("state_estimate", N + 1, js("position"))
-    f_v, nx1 = fill("field", N + 1, cloud)
-    fe_v, nx2 = fill("field_estimate", N + 1, cloud)
-    n_y = scen.n_y if scen else ny
-    n_u = scen.n_u if scen else max(nu1, nu2)
-    n_x = scen.n_x if scen else max(nx1, nx2)
-    y = stack(y_v, N + 1, n_y)
-    u_cmd = stack(uc_v, N, n_u)
-    u = stack(u_v, N, n_u)
-    a_hat = stack(a_v, N + 1, na)
-    a_dim = np.full(N + 1, -1, dtype=np.int64)
-    for k, v in (a_v or {}).items():
-        a_dim[k] = len(v)
-    T = np.full((N + 1, n_x), np.nan)
-    T_hat = np.full((N + 1, n_x), np.nan)
-    T_std = np.full((N + 1, n_x), np.nan)
-    xs = None
-    for vals, tgt, std in ((f_v, T, None), (fe_v, T_hat, T_std)):
-        for k, pts in (vals or {}).items():
-            if pts.shape[0] != n_x:
-                bad.append(f"field with {pts.shape[0]} points at step {k}, expected {n_x}")
-                continue
-            tgt[k] = pts[:, 3]
-            if std is not None:
-                std[k] = pts[:, 4]
-            if xs is None:
-                xs = pts[:, 0].copy()
-    if off_grid:
-        notes.append(f"{off_grid} messages with stamps off the step grid or outside k = 0..N ignored")
 
-    # diagnostics: last value per status name and key
+def image_pixels(msg: Any) -> np.ndarray:
+    """(height, width) float32 pixels of a 32FC1 sensor_msgs/Image (rows may be padded: `step`)."""
+    if msg.encoding != "32FC1":
+        raise ValueError(f"image encoding {msg.encoding!r}, expected 32FC1")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if step < 4 * w or data.size != h * step:
+        raise ValueError(f"image data of {data.size} bytes does not fit {h} rows of step {step} for width {w}")
+    dtype = ">f4" if msg.is_bigendian else "<f4"
+    return data.reshape(h, step)[:, :4 * w].copy().view(dtype).astype(np.float32)
+
+
+def stack_rows(values: dict[int, np.ndarray], rows: int, width: int) -> np.ndarray:
+    """(rows, width) array of per-step vectors (NaN where a step has none, or past a vector's end)."""
+    out = np.full((rows, width), np.nan)
+    for k, v in values.items():
+        out[k, :len(v)] = v
+    return out
+
+
+def field_arrays(clouds: dict[int, tuple[str, np.ndarray]], rows: int, n_field: int, notes: list[str]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str | None]:
+    """(values, std, xyz, field name) of the per-step clouds of one field topic; clouds of
+    another width than `n_field` are skipped (noted)."""
+    vals = np.full((rows, n_field), np.nan)
+    std = np.full((rows, n_field), np.nan)
+    xyz, name = None, None
+    skipped = 0
+    for k, (fname, pts) in clouds.items():
+        if pts.shape[0] != n_field:
+            skipped += 1
+            continue
+        vals[k], std[k] = pts[:, 3], pts[:, 4]
+        if xyz is None:
+            xyz, name = pts[:, :3].copy(), fname
+    if skipped:
+        notes.append(f"{skipped} point clouds with another number of points than {n_field} skipped")
+    return vals, std, xyz, name
+
+
+def read_diagnostics(msgs: _Messages, notes: list[str]) -> tuple[dict[str, dict[str, str]], dict[str, int]]:
+    """Last key/values per diagnostic status name, and deadline_misses / rejected_messages
+    summed over the statuses (nodes) that report them."""
     diags: dict[str, dict[str, str]] = {}
-    for i in by_key.get("diagnostics", []):
-        msg = decode(i, "diagnostic_msgs/msg/DiagnosticArray")
+    for i in msgs.of(T.DIAGNOSTICS).tolist():
+        msg = msgs.decode(i, T.DIAGNOSTIC_ARRAY)
         if msg is None:
             continue
         for st in msg.status:
             d = diags.setdefault(st.name or st.hardware_id or "?", {})
             for kv in st.values:
                 d[kv.key] = kv.value
-    totals = {}
+    totals: dict[str, int] = {}
     for key in ("deadline_misses", "rejected_messages"):
         vals = []
         for d in diags.values():
@@ -580,25 +604,119 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, *, namespac
                     notes.append(f"diagnostics {key} = {d[key]!r} is not a number")
         if vals:
             totals[key] = int(sum(vals))
-    if bad:
-        notes.append(f"{len(bad)} undecodable or malformed messages skipped (first: {bad[0]})")
-    counts = {rel.strip("/"): len(by_key.get(rel.strip("/"), [])) for rel, _t, _l in CONTRACT}
-    missing = [topic_name(rel, namespace) for rel, _t, _l in CONTRACT if not counts[rel.strip("/")]]
-    return Episode(path=Path(path), scenario=scen, dt=dt, n_steps=N, y=y, u_cmd=u_cmd, u=u, a_hat=a_hat,
-                   a_dim=a_dim, T=T, T_hat=T_hat, T_std=T_std, x=xs, step_recv_ns=step_recv, times=times,
-                   diagnostics=diags, diag_totals=totals, counts=counts, missing=missing,
-                   ignored_topics=sorted(ignored), recv_origin_ns=origin, complete=raw.complete, notes=notes,
-                   scenario_source=source)
+    return diags, totals
 
 
-def field_points(T: np.ndarray, std: np.ndarray | None, x: np.ndarray) -> np.ndarray:
-    """PointCloud2 payload of the contract layout: (n_x, 5) float64 x, y=0, z=0, T, std."""
-    pts = np.zeros((len(x), 5))
-    pts[:, 0] = x
-    pts[:, 3] = T
-    if std is not None:
-        pts[:, 4] = std
-    return np.ascontiguousarray(pts, dtype="<f8")
+def _longest(*found: dict[int, np.ndarray]) -> int:
+    """Length of the longest recorded vector (a dimension when the plant is not described)."""
+    return max((len(v) for vals in found for v in vals.values()), default=0)
+
+
+def resolve_timing(msgs: _Messages, scenario: Scenario | None, info: PlantInfo | None, name: str,
+                   notes: list[str]) -> tuple[Scenario | None, PlantInfo | None, str]:
+    """(scenario, plant description, source) of the episode, and its step grid set on `msgs`:
+    the bag's scenario topic ('bag'), else the given scenario ('argument'; `info` defaults to
+    `scenario.info`, which builds the plant), else dt and N inferred from stamps ('inferred')."""
+    found, source = read_scenario(msgs, notes), "bag"
+    if found is None and scenario is not None:
+        if info is None:
+            try:
+                info = scenario.info
+            except ScenarioError as exc:
+                raise BagError(f"{name}: no scenario in the bag and the one given cannot describe the plant "
+                               f"({exc})") from None
+        found, source = (scenario, info), "argument"
+    if found is not None:
+        scen, info = found
+        dt, n_steps = info.dt, scen.problem.n_steps
+    else:
+        scen, info, source = None, None, "inferred"
+        dt, n_steps = infer_timing(msgs, name)
+        notes.append(f"no scenario in the bag: dt = {dt:g} s and N = {n_steps} inferred from stamps")
+    msgs.dt, msgs.step_ns, msgs.n_steps = dt, T.dt_ns(dt), n_steps
+    return scen, info, source
+
+
+def read_vectors(msgs: _Messages, info: PlantInfo | None) -> tuple[dict[str, _PerStep], dict[str, np.ndarray]]:
+    """The JointState topics per step, and the Episode arrays y, u_cmd, u, a_hat, a_dim (state
+    estimates vary in length: the ROM order grows)."""
+    n_y, n_u = (None, None) if info is None else (info.n_y, info.n_u)
+    dims = {T.MEASUREMENTS: n_y, T.HEAT_COMMAND: n_u, T.HEAT_APPLIED: n_u, T.STATE_ESTIMATE: None}
+    vec = {key: read_per_step(msgs, key, functools.partial(joint_values, attr=attr, n=dims[key]))
+           for key, attr in VECTOR_TOPICS.items()}
+    n_y = n_y if n_y is not None else _longest(vec[T.MEASUREMENTS].values)
+    n_u = n_u if n_u is not None else _longest(vec[T.HEAT_COMMAND].values, vec[T.HEAT_APPLIED].values)
+    N = msgs.n_steps
+    est = vec[T.STATE_ESTIMATE].values
+    a_dim = np.full(N + 1, -1, dtype=np.int64)
+    for k, v in est.items():
+        a_dim[k] = len(v)
+    return vec, {"y": stack_rows(vec[T.MEASUREMENTS].values, N + 1, n_y),
+                 "u_cmd": stack_rows(vec[T.HEAT_COMMAND].values, N, n_u),
+                 "u": stack_rows(vec[T.HEAT_APPLIED].values, N, n_u),
+                 "a_hat": stack_rows(est, N + 1, max(int(a_dim.max()), 0)), "a_dim": a_dim}
+
+
+def read_fields(msgs: _Messages, info: PlantInfo | None, notes: list[str]
+                ) -> tuple[dict[str, _PerStep], dict[str, Any]]:
+    """The field clouds per step, and the Episode arrays F, F_hat, F_std, xyz, field_name. Every
+    cloud has the plant's width (without a description: the first cloud's)."""
+    n_field = info.n_field if info is not None else None
+    clouds = {key: read_per_step(msgs, key, functools.partial(cloud_points, n=n_field))
+              for key in (T.FIELD, T.FIELD_ESTIMATE)}
+    if n_field is None:
+        n_field = next((pts.shape[0] for c in clouds.values() for _, pts in c.values.values()), 0)
+    rows = msgs.n_steps + 1
+    F, _, xyz_f, name_f = field_arrays(clouds[T.FIELD].values, rows, n_field, notes)
+    F_hat, F_std, xyz_e, name_e = field_arrays(clouds[T.FIELD_ESTIMATE].values, rows, n_field, notes)
+    field_name = name_f or name_e
+    if info is not None and field_name is not None and field_name != info.field_name:
+        notes.append(f"the point clouds carry {field_name!r}, the plant's field is {info.field_name!r}")
+    return clouds, {"F": F, "F_hat": F_hat, "F_std": F_std, "xyz": xyz_f if xyz_f is not None else xyz_e,
+                    "field_name": field_name}
+
+
+def read_images(msgs: _Messages) -> dict[str, _PerStep]:
+    """The optional 32FC1 image topics that the bag has, per step."""
+    return {key: read_per_step(msgs, key, image_pixels) for key in IMAGE_TOPICS if key in msgs.index}
+
+
+def read_episode(path: str | Path, scenario: Scenario | None = None, info: PlantInfo | None = None, *,
+                 namespace: str = T.NAMESPACE, allow_truncated: bool = False) -> Episode:
+    """Read a bag of one episode. The bag's own scenario (and plant description) wins; `scenario`
+    and `info` (e.g. a design's) are used when the bag carries none (`info` defaults to
+    `scenario.info`, which builds the plant); without either, dt and N are inferred from the
+    stamps. Compare scenarios in `analyze`."""
+    raw, name = _open(path, allow_truncated)
+    notes = list(raw.notes)
+    index, ignored = group_by_topic(raw, namespace)
+    msgs = _Messages(raw, _Decoder(raw), index,
+                     {k: header_stamps(raw, index[k]) for k in STAMPED_TOPICS if k in index},
+                     origin=int(raw.log_times.min()))
+    scen, info, source = resolve_timing(msgs, scenario, info, name, notes)
+    vec, vectors = read_vectors(msgs, info)
+    clouds, fields = read_fields(msgs, info, notes)
+    images = read_images(msgs)
+    per_step = {**vec, **clouds, **images}
+    off_grid = sum(p.off_grid for p in per_step.values())
+    if off_grid:
+        notes.append(f"{off_grid} messages with stamps off the step grid or outside k = 0..N ignored")
+    diags, totals = read_diagnostics(msgs, notes)
+    if msgs.decode.bad:
+        notes.append(f"{len(msgs.decode.bad)} undecodable or malformed messages skipped "
+                     f"(first: {msgs.decode.bad[0]})")
+    counts = {t.name: int(msgs.of(t.name).size) for t in T.TOPICS}
+    return Episode(
+        path=Path(path), scenario=scen, info=info, dt=msgs.dt, n_steps=msgs.n_steps, **vectors, **fields,
+        images={key: p.values for key, p in images.items()},
+        step_recv_ns={key: p.recv_ns for key, p in per_step.items()},
+        times={key: TopicTimes(raw.log_times[idx], msgs.stamps.get(key, _NO_MESSAGES))
+               for key, idx in index.items() if key != T.SCENARIO},
+        diagnostics=diags, diag_totals=totals, counts=counts,
+        missing=[T.topic_name(t.name, namespace) for t in T.TOPICS
+                 if not counts[t.name] and t.name not in T.OPTIONAL],
+        ignored_topics=ignored, recv_origin_ns=msgs.origin, complete=raw.complete, notes=notes,
+        scenario_source=source)
 
 
 def repair_bag(path: str | Path, out: str | Path, storage: str = "mcap") -> Path:

@@ -6,6 +6,7 @@ import sys
 from typing import NoReturn
 
 from sep_estimator.design_file import Design, DesignFileError, load_design
+from sep_plant.protocol import PlantError
 from sep_plant.scenario import Scenario, ScenarioError, load_scenario
 
 
@@ -46,3 +47,15 @@ def design_or_exit(path: str, scenario: Scenario | None = None) -> Design:
         return load_design(path, scenario)
     except DesignFileError as exc:
         fail(f"{exc}")
+
+
+def plant_or_exit(scenario: Scenario, where: str = "scenario"):
+    """Build and check the scenario's plant (exit 2 with the plant's problems)."""
+    from sep_plant.conformance import check_plant
+
+    try:
+        plant = scenario.plant
+        check_plant(plant, scenario.problem.channels("u_init", int(plant.n_u)), name=scenario.plant_type)
+    except (ScenarioError, PlantError) as exc:
+        fail(f"{where}: {exc}")
+    return plant

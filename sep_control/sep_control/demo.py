@@ -126,9 +126,11 @@ def get_design(args, scenario, out: Path):
         except DesignFileError as exc:
             log(f'existing design file not usable ({exc}); redesigning')
     from sep_control.design import run_design
-    log(f'designing for {args.scenario or "the reference scenario"} (n_x={scenario.n_x}, N={scenario.n_steps}) ...')
+    plant = scenario.plant
+    log(f'designing for {args.scenario or "the reference scenario"} (plant {scenario.plant_type}, '
+        f'n_x={plant.n_x}, N={scenario.problem.n_steps}) ...')
     t0 = time.perf_counter()
-    d = run_design(scenario, show_progress=sys.stderr.isatty(), log=lambda m: log('  ' + m))
+    d = run_design(plant, scenario.problem, show_progress=sys.stderr.isatty(), log=lambda m: log('  ' + m))
     save_design(path, d)
     log(f'design written to {path} in {time.perf_counter() - t0:.1f} s')
     return d, path
@@ -136,10 +138,14 @@ def get_design(args, scenario, out: Path):
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from sep_plant.conformance import check_plant
+    from sep_plant.protocol import PlantError
     from sep_plant.scenario import ScenarioError, load_scenario
     try:
         scenario = load_scenario(args.scenario)
-    except ScenarioError as exc:
+        check_plant(scenario.plant, scenario.problem.channels('u_init', int(scenario.plant.n_u)),
+                    name=scenario.plant_type)
+    except (ScenarioError, PlantError) as exc:
         print(f'demo: {exc}', file=sys.stderr)
         return EXIT_USAGE
     out = Path(args.out).resolve()
@@ -186,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         ctl = ['--ros-args', '-p', f'design_file:={design_file}']
         if args.three:
             kids.start('estimator', [exes['estimator'], *ctl, '-p', f'summary_file:={files["estimator"]}'])
-            timeout = 0.4 * scenario.dt / args.rtf if args.mode == 'realtime' else 0.5
+            timeout = 0.4 * design.info.dt / args.rtf if args.mode == 'realtime' else 0.5
             kids.start('lqr', [exes['lqr'], *ctl, '-p', f'summary_file:={files["lqr"]}',
                                '-p', f'estimate_timeout_s:={timeout}'])
         else:
@@ -202,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
             plant_args += ['-p', f'scenario_file:={scenario_file}']
         log(f'running plant ({args.mode}' + (f', real_time_factor {args.rtf:g}' if args.mode == 'realtime' else '')
             + f', seed {args.seed} run {args.run}) + ' + ('estimator + lqr' if args.three else 'lqg')
-            + (' + record' if record else '') + f' for {scenario.n_steps} steps ({scenario.horizon_s:g} s simulated)')
+            + (' + record' if record else '') + f' for {design.n_steps} steps '
+            f'({design.n_steps * design.info.dt:g} s simulated)')
         t0 = time.perf_counter()
         kids.start('plant', plant_args)
         prc = kids.wait('plant', args.timeout)
@@ -223,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
             report, bag_metrics = run_analysis(kids, exes['analyze'], bag, design_file, out)
             if bag_metrics.get('coverage_2sigma') is not None:
                 metrics_['coverage_2sigma'] = bag_metrics['coverage_2sigma']
-        print_metrics(metrics_, args, scenario)
+        print_metrics(metrics_, design)
         if args.json:
             Path(args.json).parent.mkdir(parents=True, exist_ok=True)
             Path(args.json).write_text(json.dumps(metrics_, indent=2) + '\n')
@@ -246,8 +253,7 @@ def episode_metrics(design, traj: Path, files: dict, three: bool) -> dict:
 
     from sep_control import metrics as M
     z = np.load(traj, allow_pickle=False)
-    T, U = z['T'], z['U']
-    s = design.scenario
+    F, U = z['F'], z['U']
     plant = json.loads(files['plant'].read_text())
     if three:
         est = json.loads(files['estimator'].read_text())
@@ -255,7 +261,7 @@ def episode_metrics(design, traj: Path, files: dict, three: bool) -> dict:
     else:
         both = json.loads(files['lqg'].read_text())
         est, lqr = both['estimator'], both['lqr']
-    out = M.summarize(T[None], U[None], design.T_nom, s)
+    out = M.summarize(F[None], U[None], design.nominal.field, design.objective)
     out.update({'deadline_misses': plant['deadline_misses'],
                 'rejected_messages': plant['rejected_messages'] + est['rejected_messages'] + lqr['rejected_messages'],
                 'latency_p50_s': plant['latency_p50_s'], 'latency_p99_s': plant['latency_p99_s'],
@@ -288,15 +294,19 @@ def run_analysis(kids: Children, analyze: str, bag: Path, design_file: Path, out
     return report, data if isinstance(data, dict) else {}
 
 
-def print_metrics(m: dict, args, scenario) -> None:
+def print_metrics(m: dict, design) -> None:
     from sep_control import metrics as M
     keys = [k for k in M.JSON_KEYS if k in m]
+    info, obj = design.info, design.objective
+    horizon = design.n_steps * info.dt
+    k0, k1 = obj.window
+    target = f'{obj.target[0]:g}' if (obj.target == obj.target[0]).all() else 'the target pattern'
+    unit = f' {info.field_unit}' if info.field_unit else ''
     print()
     print(M.format_table({'rom_lqg (topics)': m}, keys))
-    print(f"\nin band (whole field within {scenario.t_target:g} +- {scenario.band:g} F from "
-          f"t = {scenario.k_band * scenario.dt:g} s): {'yes' if m['in_band'] >= 1 else 'NO'}; "
-          f"episode {m['wall_s']:.2f} s wall for {scenario.horizon_s:g} s simulated "
-          f"({scenario.horizon_s / m['wall_s']:.1f}x real time; {m['total_wall_s']:.1f} s with start-up); "
+    print(f"\nin band (whole field within {target} +- {obj.band:g}{unit} over t = {k0 * info.dt:g}..{k1 * info.dt:g} s): "
+          f"{'yes' if m['in_band'] >= 1 else 'NO'}; episode {m['wall_s']:.2f} s wall for {horizon:g} s simulated "
+          f"({horizon / m['wall_s']:.1f}x real time; {m['total_wall_s']:.1f} s with start-up); "
           f"LQR nominal fallbacks {m['lqr_fallbacks']}")
 
 

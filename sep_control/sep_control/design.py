@@ -1,4 +1,4 @@
-"""The offline design pipeline: black-box simulator in, design file out.
+"""The offline design pipeline: black-box plant and problem in, design out.
 
 1. open-loop nominal: mean-only Gauss-Newton/LM (or gradient descent), then the
    belief-space problem warm-started from it (EnKF belief along nominal observations);
@@ -6,7 +6,11 @@
    nominal, with the field output map;
 3. time-varying LQR (weights on the outputs) and Kalman filter on the ROM.
 
-Only `SlabSimulator.initial_state/step/observe` and state snapshots are used.
+    design = run_design(plant, problem, DesignSettings())
+
+The plant is checked against the plant protocol first (`sep_plant.conformance`), so a bad
+plant fails in a second with a message, not after the experiments. Only the plant's
+`initial_state`, `step`, `observe`, `field` and state snapshots are used.
 Pure numpy/scipy: no ROS import.
 """
 from __future__ import annotations
@@ -18,16 +22,19 @@ from typing import Any
 
 import numpy as np
 
-from sep_estimator.design_file import Design
-from sep_estimator.tvkf import field_std, kalman_gains
+from sep_estimator.design_file import Design, Nominal
+from sep_estimator.ltv import LTVModel
+from sep_plant.conformance import check_plant
+from sep_plant.plants import type_name_of
+from sep_plant.problem import Problem
+from sep_plant.protocol import Plant, PlantInfo, fields, outputs
 from sep_plant.scenario import Scenario
-from sep_plant.slab import SlabSimulator
 
 from . import __version__
-from .lqr import output_weights, tv_lqr
+from .lqr import design_lqg
 from .metrics import nominal_cost
-from .optimize import optimize, run_belief
-from .tvera import identify, rom_markov_all
+from .optimize import objective_of, optimize, run_belief
+from .tvera import Identification, identify, markov_relative_error
 
 
 @dataclass
@@ -63,29 +70,34 @@ class DesignSettings:
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
 
-
-def lqg_gains(A: np.ndarray, B: np.ndarray, C: np.ndarray, s: Scenario):
-    """TV-LQR gains K (weights on the outputs) and TV-KF schedule for a (padded) LTV model."""
-    Q = output_weights(C, s.lqr_output_weights())
-    R = np.eye(s.n_u) * s.lqr_r
-    K, _ = tv_lqr(A, B, Q, R)
-    kf = kalman_gains(A, B, C, np.eye(s.n_u) * s.w_std**2, np.eye(s.n_y) * s.v_std**2)
-    return K, kf
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
+        """The settings recorded in a design file's metadata (unknown keys ignored)."""
+        return cls(**{k: v for k, v in meta.get("settings", {}).items() if k in cls.__dataclass_fields__})
 
 
-def run_design(s: Scenario, settings: DesignSettings | None = None, show_progress: bool = True,
-               log=print) -> Design:
-    """Run the whole offline design for scenario `s` and return the `Design`."""
+def scenario_of(plant: Plant, problem: Problem) -> Scenario:
+    """The plain-data scenario (type string, complete plant keys, problem) of a plant object."""
+    return Scenario(type_name_of(plant), dict(plant.config()), problem.resolved())
+
+
+def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None = None,
+               show_progress: bool = True, log=print) -> Design:
+    """Run the whole offline design for `plant` and `problem` and return the `Design`."""
     st = settings or DesignSettings()
     st.check()
-    sim = SlabSimulator(s)
+    check_plant(plant, problem.channels("u_init", int(plant.n_u)))
+    scenario = scenario_of(plant, problem)
+    problem = scenario.problem
+    info = PlantInfo.of(plant)
+    obj = objective_of(plant, problem)
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
 
     # 1. nominal trajectory --------------------------------------------------
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse}
-    opt = optimize(sim, s, method=st.method, objective="nominal", max_iter=st.max_iter,
+    opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
                    jacobian=st.jacobian, rom=rom)
     log(f"mean-only {st.method} ({st.jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
@@ -93,30 +105,33 @@ def run_design(s: Scenario, settings: DesignSettings | None = None, show_progres
     U, mean_only_cost = opt.U, opt.cost
     belief_hist: list[float] = []
     if st.belief:
-        bopt = optimize(sim, s, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
+        bopt = optimize(plant, problem, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
                         eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
                         jacobian=st.jacobian, rom=rom)
         log(f"belief-space gn: J_b = {bopt.history[0]:.8g} -> {bopt.cost:.8g} "
             f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
         U, belief_hist = bopt.U, bopt.history
     timings["optimize_s"] = time.perf_counter() - t0
-    belief = run_belief(sim, U, s, st.ensemble, st.seed)
+    belief = run_belief(plant, U, problem, st.ensemble, st.seed)
 
     # 2. TV-ERA ------------------------------------------------------------
     t0 = time.perf_counter()
-    T_nom, data, real, delta = identify_rom(sim, U, st, show_progress)
+    ident = identify_rom(plant, U, st, show_progress)
     timings["identify_s"] = time.perf_counter() - t0
-    markov_err = markov_relative_error(real, data.Y)
-    log(f"TV-ERA: n_r = {int(real.dims.max())} (cap {st.n_r}), {data.experiments} impulse experiments, "
-        f"Markov relative error {markov_err:.2e}")
+    markov_err = markov_relative_error(ident.model, ident.data.Y)
+    log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
+        f"experiments, Markov relative error {markov_err:.2e}")
 
     # 3. LQG on the ROM ----------------------------------------------------
     t0 = time.perf_counter()
-    K, kf = lqg_gains(real.A, real.B, real.C, s)
-    fstd = field_std(real.G, kf.P_post)
+    lqg = design_lqg(ident.model, problem)
     timings["gains_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_all
 
+    N = problem.n_steps
+    X_nom = ident.X_ext[: N + 1]
+    F_nom = fields(plant, X_nom)
+    k0, k1 = obj.window
     meta: dict[str, Any] = {
         "settings": asdict(st),
         "provenance": {"tool": "sep design", "version": __version__, "python": platform.python_version(),
@@ -124,31 +139,21 @@ def run_design(s: Scenario, settings: DesignSettings | None = None, show_progres
         "timings": timings,
         "optimizer": {"method": st.method, "mean_only_cost": mean_only_cost,
                       "mean_only_history": opt.history, "belief_history": belief_hist,
-                      "experiments": opt.experiments, "nominal_cost": float(nominal_cost(T_nom, U, s))},
-        "validation": {"markov_rel_error": markov_err, "impulse_amplitude": delta,
-                       "max_dev_in_band_window": float(np.max(np.abs(T_nom[s.k_band:] - s.t_target)))},
+                      "experiments": opt.experiments, "nominal_cost": float(nominal_cost(F_nom, U, obj))},
+        "validation": {"markov_rel_error": markov_err, "impulse_amplitude": ident.delta,
+                       "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
     }
-    return Design(scenario=s, u_nom=U, y_nom=sim.observe(T_nom), T_nom=T_nom, belief_mean=belief.mean,
-                  belief_std=belief.std, rom_dims=real.dims, A=real.A, B=real.B, C=real.C, G=real.G,
-                  K=K, L=kf.L, P_post=kf.P_post, field_std=fstd, hankel_sv=real.hankel_sv, meta=meta)
+    nominal = Nominal(U, outputs(plant, X_nom), F_nom, belief.mean, belief.std)
+    return Design(scenario, info, obj, np.asarray(plant.field_coordinates(), dtype=float), nominal, lqg,
+                  ident.hankel_sv, meta)
 
 
-def identify_rom(sim: SlabSimulator, U: np.ndarray, st: DesignSettings, show_progress: bool = False):
-    """`tvera.identify` with the design's settings: (T_nom, MarkovData, Realization, delta)."""
-    return identify(sim, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress)
+def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False) -> Identification:
+    """`tvera.identify` with the design's settings."""
+    return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress)
 
 
-def with_rom(design: Design, real) -> Design:
-    """`design` with its ROM replaced by `real` and the LQG gains redesigned (same nominal)."""
-    s = design.scenario
-    K, kf = lqg_gains(real.A, real.B, real.C, s)
-    return replace(design, rom_dims=real.dims, A=real.A, B=real.B, C=real.C, G=real.G, K=K, L=kf.L,
-                   P_post=kf.P_post, field_std=field_std(real.G, kf.P_post), hankel_sv=real.hankel_sv)
-
-
-def markov_relative_error(real, Y: np.ndarray) -> float:
-    """|Y_rom - Y_exp|_F / |Y_exp|_F over every recorded Markov parameter with j + lag <= N."""
-    N, L = Y.shape[:2]
-    Yr = rom_markov_all(real, L)
-    valid = (np.arange(N)[:, None] + np.arange(1, L + 1)[None, :]) <= N
-    return float(np.linalg.norm((Yr - Y)[valid]) / np.linalg.norm(Y[valid]))
+def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:
+    """`design` with its ROM replaced by `model` and the LQG gains redesigned (same nominal)."""
+    return replace(design, lqg=design_lqg(model, design.problem),
+                   hankel_sv=design.hankel_sv if hankel_sv is None else hankel_sv)

@@ -6,28 +6,30 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-from sep_plant.slab import SlabSimulator
-
 from . import figures
-from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail
-from .design import DesignSettings, identify_rom, markov_relative_error, with_rom
+from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail, plant_or_exit
+from .design import DesignSettings, identify_rom, with_rom
 from .metrics import CONTROLLERS, format_table, write_json
 from .montecarlo import simulate
 from .oracle import oracle_lqg
 from .progress import progress
+from .tvera import markov_relative_error, tv_era
 
 DESCRIPTION = """\
-Monte Carlo evaluation of a design on the nonlinear simulator with process and sensor
-noise. Every controller sees the same random numbers (run i of seed s is the episode a
-plant node started with seed=s, run=i plays). Controllers: open_loop (nominal input),
-rom_lqg (the design's LQG), oracle_lqg (the same LQG on full-order finite-difference
-Jacobians). Prints the DESIGN.md §3 metrics; --json writes them, --figures the paper's
-figures as PNG; --sweep adds the ROM-order sweep (n_r = 5, 10, 20, 40).
+Monte Carlo evaluation of a design on the nonlinear plant with process and sensor noise.
+Every controller sees the same random numbers (run i of seed s is the episode a plant node
+started with seed=s, run=i plays). Controllers: open_loop (nominal input), rom_lqg (the
+design's LQG), oracle_lqg (the same LQG on full-order finite-difference Jacobians; only where
+n_x <= --oracle-max-nx, since it costs n_x^2 N memory and n_x^3 N time). Prints the DESIGN.md §3
+metrics; --json writes them, --figures the paper's figures as PNG (heat maps for grid plants);
+--sweep adds the ROM-order sweep (n_r = 5, 10, 20, 40). The plant is rebuilt from the design
+file's scenario.
 
 Example:  evaluate --design out/design.npz --runs 1000 --figures out/figures --sweep
 """
+
+TABLE_KEYS = ["cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "coverage_2sigma",
+              "n_runs", "seconds"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, default=1000, help="Monte Carlo runs per controller")
     p.add_argument("--seed", type=int, default=1, help="base seed of the noise (common random numbers)")
     p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=list(CONTROLLERS))
+    p.add_argument("--oracle-max-nx", type=int, default=500,
+                   help="skip the full-order oracle above this many states (n_x^2 N memory)")
     p.add_argument("--json", metavar="PATH", help="write metrics as JSON (one object per controller)")
     p.add_argument("--figures", metavar="DIR", help="write the PNG figures here")
     p.add_argument("--sweep", action="store_true", help="ROM-order sweep (re-identifies at each n_r)")
@@ -51,30 +55,34 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs < 1:
         fail(f"--runs must be >= 1, got {args.runs}")
     design = design_or_exit(args.design)
-    s = design.scenario
-    sim = SlabSimulator(s)
+    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
+    controllers = list(args.controllers)
+    oracle_fits = design.info.n_x <= args.oracle_max_nx
+    if "oracle_lqg" in controllers and not oracle_fits:
+        print(f"oracle_lqg skipped: n_x = {design.info.n_x} > --oracle-max-nx = {args.oracle_max_nx}")
+        controllers.remove("oracle_lqg")
     rows: dict[str, dict] = {}
     results = {}
     with blas_threads(args.threads):
-        oracle = None
-        if "oracle_lqg" in args.controllers or args.sweep:
+        oracle, oracle_s = None, 0.0
+        if "oracle_lqg" in controllers or (args.sweep and oracle_fits):
             t0 = time.perf_counter()
-            oracle = oracle_lqg(design, sim)
+            oracle = oracle_lqg(design, plant)
             oracle_s = time.perf_counter() - t0
-        for name in progress(args.controllers, desc="Monte Carlo", enabled=not args.quiet):
+        for name in progress(controllers, desc="Monte Carlo", enabled=not args.quiet):
             t0 = time.perf_counter()
-            res = simulate(design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1, sim=sim,
+            res = simulate(plant, design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1,
                            keep_trajectories=1)
-            rows[name] = res.metrics(design)
+            rows[name] = res.metrics()
             rows[name]["seconds"] = time.perf_counter() - t0
             results[name] = res
-        print(f"{args.runs} runs per controller, seed {args.seed}, n_x = {s.n_x}, n_r = {design.n_r}")
-        print(format_table(rows, ["cost_mean", "cost_std", "in_band", "rms", "mean_dev_37_5", "mean_dev_62_5",
-                                  "coverage_2sigma", "n_runs", "seconds"]))
+        print(f"{args.runs} runs per controller, seed {args.seed}, plant {design.scenario.plant_type}, "
+              f"n_x = {design.info.n_x}, n_r = {design.n_r}")
+        print(format_table(rows, TABLE_KEYS))
         if "rom_lqg" in rows and "oracle_lqg" in rows:
             ratio = rows["rom_lqg"]["cost_mean"] / rows["oracle_lqg"]["cost_mean"]
             print(f"ROM-LQG / oracle mean cost: {ratio:.5f}  (oracle design {oracle_s:.2f} s)")
-        sweep_rows = rom_sweep(design, sim, oracle, args) if args.sweep else None
+        sweep_rows = rom_sweep(plant, design, oracle, args) if args.sweep else None
     if args.json:
         write_json(args.json, rows)
         print(f"metrics written to {args.json}")
@@ -84,47 +92,50 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def rom_sweep(design, sim, oracle, args) -> list[dict]:
+def rom_sweep(plant, design, oracle, args) -> list[dict]:
     """Re-identify the ROM at each order cap; Markov error and closed-loop cost vs the oracle."""
-    settings = DesignSettings(**{k: v for k, v in design.meta.get("settings", {}).items()
-                                 if k in DesignSettings.__dataclass_fields__})
+    settings = DesignSettings.from_meta(design.meta)
     settings.n_r = max(args.sweep_orders)
-    _, data, _, _ = identify_rom(sim, design.u_nom, settings)
-    from .tvera import tv_era
-
-    oracle_cost = simulate(design, "oracle_lqg", args.seed, args.sweep_runs, oracle=oracle, keep_estimates=0,
-                           sim=sim, keep_trajectories=0).metrics()["cost_mean"]
+    ident = identify_rom(plant, design.nominal.u, settings)
+    oracle_cost = None
+    if oracle is not None:
+        oracle_cost = simulate(plant, design, "oracle_lqg", args.seed, args.sweep_runs, oracle=oracle,
+                               keep_estimates=0, keep_trajectories=0).metrics()["cost_mean"]
     rows = []
     for n_r in progress(args.sweep_orders, desc="ROM sweep", enabled=not args.quiet):
-        real = tv_era(data, design.n_steps, settings.p, settings.q, n_r, settings.sv_tol)
-        d = with_rom(design, real)
-        m = simulate(d, "rom_lqg", args.seed, args.sweep_runs, keep_estimates=0, sim=sim,
+        model, _ = tv_era(ident.data, design.n_steps, settings.p, settings.q, n_r, settings.sv_tol)
+        d = with_rom(design, model)
+        m = simulate(plant, d, "rom_lqg", args.seed, args.sweep_runs, keep_estimates=0,
                      keep_trajectories=0).metrics()
-        rows.append({"n_r": n_r, "n_r_used": int(real.dims.max()),
-                     "markov_rel_error": markov_relative_error(real, data.Y),
+        rows.append({"n_r": n_r, "n_r_used": int(model.dims.max()),
+                     "markov_rel_error": markov_relative_error(model, ident.data.Y),
                      "cost_mean": m["cost_mean"], "cost_oracle": oracle_cost, "in_band": m["in_band"]})
     print(f"\nROM-order sweep ({args.sweep_runs} runs each, relative singular-value cutoff {settings.sv_tol:g}):")
     table = {f"n_r={r['n_r']}": {"n_r_used": r["n_r_used"], "markov_rel_error": r["markov_rel_error"],
-                                 "cost_mean": r["cost_mean"], "cost/oracle": r["cost_mean"] / r["cost_oracle"],
+                                 "cost_mean": r["cost_mean"],
+                                 "cost/oracle": r["cost_mean"] / r["cost_oracle"] if r["cost_oracle"] else None,
                                  "in_band": r["in_band"]} for r in rows}
     print(format_table(table, ["n_r_used", "markov_rel_error", "cost_mean", "cost/oracle", "in_band"]))
     return rows
 
 
 def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
-    s = design.scenario
-    paths = [figures.fig_nominal(out / "nominal_belief_and_control.png", s, design.belief_mean,
-                                 design.belief_std, design.u_nom)]
-    means = {name: r.T_mean for name, r in results.items()}
+    info, xyz, obj, nom = design.info, design.field_xyz, design.objective, design.nominal
+    paths = [figures.fig_nominal(out / "nominal_belief_and_control.png", info, xyz, obj.target, obj.band,
+                                 nom.belief_mean, nom.belief_std, nom.u, obj.window)]
+    means = {name: r.F_mean for name, r in results.items()}
     if means:
-        paths.append(figures.fig_mean_vs_nominal(out / "closed_loop_mean_vs_nominal.png", s, design.T_nom, means))
+        paths.append(figures.fig_mean_vs_nominal(out / "closed_loop_mean_vs_nominal.png", info, xyz, obj.target,
+                                                 obj.band, nom.field, means, obj.window))
     closed = results.get("rom_lqg") or results.get("oracle_lqg")
-    if closed is not None and "open_loop" in results:
-        paths.append(figures.fig_estimation(out / "estimation_error_2sigma.png", s, design.T_nom, closed.T[0],
-                                            closed.T_hat[0], closed.T_std, results["open_loop"].T[0]))
+    if closed is not None:
+        ol = results["open_loop"].F[0] if "open_loop" in results else None
+        paths.append(figures.fig_estimation(out / "estimation_error_2sigma.png", info, xyz, nom.field, closed.F[0],
+                                            closed.F_hat[0], closed.F_std, ol, obj.window))
+        paths.append(figures.fig_std_map(out / "estimation_std.png", info, xyz, closed.F_std, obj.window))
     if sweep_rows:
         paths.append(figures.fig_rom_sweep(out / "rom_order_sweep.png", design.hankel_sv,
-                                           min(s.k_band, s.n_steps), sweep_rows))
+                                           min(obj.window[0], design.n_steps), sweep_rows))
     return paths
 
 

@@ -8,11 +8,16 @@ by the backward Riccati recursion (S_N = Q_N):
 so du_k = K_k a_k. On the ROM the state weight comes from the outputs, Q_k = C_k' Q_y,k C_k.
 
 Online: u_k = clip(ubar_k + K_k ahat_{k|k}, u_min, u_max).
+`design_lqg` puts the LQR and the Kalman filter together on one model (ROM or oracle).
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from sep_estimator.ltv import LQG, LTVModel
+from sep_estimator.tvkf import kalman_gains, schedule_from_posteriors
+from sep_plant.problem import Problem
 
 
 def tv_lqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -35,9 +40,21 @@ def output_weights(C: np.ndarray, q_y: np.ndarray) -> np.ndarray:
     return q_y[:, None, None] * np.einsum("kyi,kyj->kij", C, C)
 
 
-def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min: float, u_max: float) -> np.ndarray:
-    """u_k = clip(ubar_k + K_k ahat_k); a_hat (M, n) or (n,)."""
+def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min, u_max) -> np.ndarray:
+    """u_k = clip(ubar_k + K_k ahat_k); a_hat (M, n) or (n,); limits scalars or (n_u,)."""
     u = u_nom_k + a_hat @ K_k.T
-    if np.isfinite(u_min) or np.isfinite(u_max):
+    if np.any(np.isfinite(u_min)) or np.any(np.isfinite(u_max)):
         u = np.clip(u, u_min, u_max)
     return u
+
+
+def design_lqg(model: LTVModel, problem: Problem, name: str = "rom_lqg") -> LQG:
+    """TV-LQR (weights on the outputs) and TV Kalman filter for `model` under `problem`'s weights
+    and noise: Q_k = C_k' Q_y,k C_k, R = lqr_r I, W = diag(w_std^2), V = diag(v_std^2)."""
+    Q = output_weights(model.C, problem.lqr_output_weights(model.n_y))
+    R = np.eye(model.n_u) * problem.lqr_r
+    K, _ = tv_lqr(model.A, model.B, Q, R)
+    W, V = problem.noise_covariances(model.noise_input.shape[2], model.n_y)
+    kf = kalman_gains(model, W, V)
+    # priors from the posteriors, exactly as a loaded design file rebuilds them
+    return LQG(name, model, K, schedule_from_posteriors(model, kf.L, kf.P_post, W), W, V)

@@ -21,7 +21,7 @@ import numpy as np
 
 from sep_plant import contract as c
 from sep_plant import gate
-from sep_plant.node_util import (declare, fmt_s, limit_blas_threads, make_executor, parse_front, percentiles,
+from sep_plant.node_util import (SampleWindow, declare, fmt_s, limit_blas_threads, make_executor, parse_front,
                                  run_node, sim_time_default, steady)
 from sep_estimator.ros_common import DesignedNode, scenario_summary, spin_episode
 
@@ -53,15 +53,17 @@ class LqrNode(DesignedNode):
                                'nominal fallback when no estimate arrives this long after the '
                                'measurement of a step (0 = never)', lo=0.0, hi=3600.0)
         d = self.design
-        self.heaters = self.s.heater_labels()
+        self.heaters = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
+        self.u_nom, self.K = d.nominal.u, d.lqg.K
+        self.lo, self.hi = d.problem.limits(self.info.n_u)
         self.rej = gate.RejectionLog()
         self.sent = np.zeros(self.N + 1, dtype=bool)   # a command (or, for k = N, nothing) done
         self.current = -1                              # newest step announced by a measurement
         self.last_est = -1
         self.n_commands = self.n_fallbacks = self.n_late = 0
         self.fallback_steps: list[int] = []
-        self.compute_s: list[float] = []
+        self.compute_s = SampleWindow()
         self.on_command = None                         # lqg: tell the estimator the command
         self.pub_cmd = node.create_publisher(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND, c.LOOP_QOS)
         self.standalone = standalone
@@ -75,7 +77,7 @@ class LqrNode(DesignedNode):
                 self.timer = node.create_timer(self.timeout, self._on_timeout,
                                                clock=Clock(clock_type=ClockType.STEADY_TIME),
                                                autostart=False)
-        self.log.info(f'lqr: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(self.s)}), '
+        self.log.info(f'lqr: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
                       + (f'estimate_timeout_s {self.timeout:g}' if standalone else 'in-process estimator')
                       + f', namespace {node.get_namespace()}')
 
@@ -93,15 +95,14 @@ class LqrNode(DesignedNode):
             self.log.warning(f'estimate of step {k} arrived after the nominal fallback was sent',
                              throttle_duration_sec=1.0)
             return
-        d = self.design
-        u = command(d.u_nom[k], d.K[k], a_hat, self.s.u_min, self.s.u_max)
+        u = command(self.u_nom[k], self.K[k], a_hat, self.lo, self.hi)
         self._send(k, u)
         self.n_commands += 1
         self.compute_s.append(steady() - t0)
 
     def _send(self, k: int, u: np.ndarray) -> None:
         self.sent[k] = True
-        self.pub_cmd.publish(c.joint_state(k, self.s.dt, self.heaters, effort=u))
+        self.pub_cmd.publish(c.joint_state(k, self.dt, self.heaters, effort=u))
         if self.on_command is not None:
             self.on_command(k, u)
         if self.timer is not None and k == self.current:
@@ -120,9 +121,7 @@ class LqrNode(DesignedNode):
         if rej is None:
             a, rej = gate.check_vector(msg.name, msg.position, self.labels, 'state_estimate position')
         if rej is not None:
-            self.rej.add(rej)
-            self.log.warning(f'rejected state_estimate: {rej} ({self.rej.total} rejected so far)')
-            self.publish_diagnostics()
+            self.reject('state_estimate', rej, self.rej)
             return
         self.last_est = k
         self.on_estimate(k, a, t)
@@ -145,7 +144,7 @@ class LqrNode(DesignedNode):
             self.sent[k] = self.done = True
             self.log.warning(f'no state estimate of the last step {k}: ending the episode')
             return
-        u = np.clip(self.design.u_nom[k], self.s.u_min, self.s.u_max)
+        u = np.clip(self.u_nom[k], self.lo, self.hi)
         self._send(k, u)
         self.n_fallbacks += 1
         self.fallback_steps.append(k)
@@ -156,13 +155,13 @@ class LqrNode(DesignedNode):
 
     # --------------------------------------------------------------- report
     def health(self) -> c.Health:
-        comp = percentiles(self.compute_s)
+        comp = self.compute_s.percentiles()
         problems = []
         if self.n_fallbacks:
             problems.append(f'{self.n_fallbacks} nominal fallbacks (no estimate in time)')
         if self.rej.total:
             problems.append(f'{self.rej.total} rejected estimates')
-        return c.Health(name=self.node.get_fully_qualified_name(), hardware_id='slab_lqr',
+        return c.Health(name=self.node.get_fully_qualified_name(), hardware_id='sep_lqr',
                         level=c.WARN if problems else c.OK, message='; '.join(problems) or 'ok',
                         values={'step': self.last_k, 'n_steps': self.N, 'commands': self.n_commands,
                                 'fallbacks': self.n_fallbacks, 'late_estimates': self.n_late,
@@ -173,7 +172,7 @@ class LqrNode(DesignedNode):
                                 'design_file': self.design_file})
 
     def summary(self, status: str) -> dict:
-        comp = percentiles(self.compute_s)
+        comp = self.compute_s.percentiles()
         return {'node': 'lqr', 'status': status, 'design_file': self.design_file,
                 'steps': self.last_k, 'n_steps': self.N, 'commands': self.n_commands,
                 'fallbacks': self.n_fallbacks, 'fallback_steps': self.fallback_steps,

@@ -1,7 +1,8 @@
 """DESIGN.md §3 metrics, shared by evaluation, benchmarks and bag analysis.
 
-Arrays are batched: a leading run axis is optional everywhere. Trajectories are
-T (..., N+1, n_x) for k = 0..N, inputs U (..., N, n_u) for k = 0..N-1.
+Arrays are batched: a leading run axis is optional everywhere. Field trajectories are
+F (..., N+1, n_field) for k = 0..N, inputs U (..., N, n_u) for k = 0..N-1; the objective
+(target f*, weights q_k, band, band window) is a `sep_plant.problem.Objective`.
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -12,39 +13,40 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from sep_plant.scenario import Scenario
+from sep_plant.problem import Objective
 
-#: keys of the machine-readable results (DESIGN.md §3)
-JSON_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_37_5", "mean_dev_62_5", "n_runs",
+#: keys of the machine-readable results (DESIGN.md §3); mean_dev_start/end: at the band
+#: window's first and last step
+JSON_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "n_runs",
              "coverage_2sigma", "deadline_misses", "rejected_messages", "latency_p50_s", "latency_p99_s")
 CONTROLLERS = ("open_loop", "rom_lqg", "oracle_lqg")
 
 
-def nominal_cost(T: np.ndarray, U: np.ndarray, s: Scenario) -> np.ndarray:
-    """J = sum_{k=1..N} q_k mean_i (T_{k,i} - T*)^2 + r_u sum_{k=0..N-1} |u_k|^2."""
-    q = s.q_weights()[1:]
-    field = np.einsum("k,...k->...", q, np.mean((T[..., 1:, :] - s.t_target) ** 2, axis=-1))
-    return field + s.r_u * np.sum(U**2, axis=(-2, -1))
+def nominal_cost(F: np.ndarray, U: np.ndarray, obj: Objective) -> np.ndarray:
+    """J = sum_{k=1..N} q_k mean_i (f_{k,i} - f*_i)^2 + r_u sum_{k=0..N-1} |u_k|^2."""
+    q = obj.q[1:]
+    field = np.einsum("k,...k->...", q, np.mean((F[..., 1:, :] - obj.target) ** 2, axis=-1))
+    return field + obj.r_u * np.sum(U**2, axis=(-2, -1))
 
 
-def in_band(T: np.ndarray, s: Scenario) -> np.ndarray:
-    """True where the whole field stays in [T* - band, T* + band] for every k in [k_band, N]."""
-    return np.all(np.abs(T[..., s.k_band:, :] - s.t_target) <= s.band, axis=(-2, -1))
+def _window(F: np.ndarray, obj: Objective) -> np.ndarray:
+    k0, k1 = obj.window
+    return F[..., k0:k1 + 1, :] - obj.target
 
 
-def rms_in_window(T: np.ndarray, s: Scenario) -> np.ndarray:
-    """RMS(T - T*) over k in [k_band, N] and all nodes."""
-    return np.sqrt(np.mean((T[..., s.k_band:, :] - s.t_target) ** 2, axis=(-2, -1)))
+def in_band(F: np.ndarray, obj: Objective) -> np.ndarray:
+    """True where the whole field stays in [f* - band, f* + band] for every k in the band window."""
+    return np.all(np.abs(_window(F, obj)) <= obj.band, axis=(-2, -1))
 
 
-def step_at(s: Scenario, t: float) -> int:
-    """Step index of time t (clipped to [0, N])."""
-    return int(min(max(round(t / s.dt), 0), s.n_steps))
+def rms_in_window(F: np.ndarray, obj: Objective) -> np.ndarray:
+    """RMS(f - f*) over the band window and all nodes."""
+    return np.sqrt(np.mean(_window(F, obj) ** 2, axis=(-2, -1)))
 
 
-def mean_deviation(T_runs: np.ndarray, T_nom: np.ndarray, k: int) -> float:
-    """max_i |mean over runs of T_k - nominal T_k|."""
-    return float(np.max(np.abs(np.mean(T_runs[:, k], axis=0) - T_nom[k])))
+def mean_deviation(F_runs: np.ndarray, F_nom: np.ndarray, k: int) -> float:
+    """max_i |mean over runs of f_k - nominal f_k|."""
+    return float(np.max(np.abs(np.mean(F_runs[:, k], axis=0) - F_nom[k])))
 
 
 def coverage_2sigma(err: np.ndarray, std: np.ndarray) -> float:
@@ -52,18 +54,19 @@ def coverage_2sigma(err: np.ndarray, std: np.ndarray) -> float:
     return float(np.mean(np.abs(err) <= 2.0 * std))
 
 
-def summarize(T_runs: np.ndarray, U_runs: np.ndarray, T_nom: np.ndarray, s: Scenario,
+def summarize(F_runs: np.ndarray, U_runs: np.ndarray, F_nom: np.ndarray, obj: Objective,
               extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The §3 closed-loop metrics for a batch of runs (T_runs (M, N+1, n_x), U_runs (M, N, n_u))."""
-    J = nominal_cost(T_runs, U_runs, s)
+    """The §3 closed-loop metrics for a batch of runs (F_runs (M, N+1, n_field), U_runs (M, N, n_u))."""
+    J = nominal_cost(F_runs, U_runs, obj)
+    k0, k1 = obj.window
     out: dict[str, Any] = {
         "cost_mean": float(np.mean(J)),
         "cost_std": float(np.std(J)),
-        "in_band": float(np.mean(in_band(T_runs, s))),
-        "rms": float(np.mean(rms_in_window(T_runs, s))),
-        "mean_dev_37_5": mean_deviation(T_runs, T_nom, step_at(s, 37.5)),
-        "mean_dev_62_5": mean_deviation(T_runs, T_nom, step_at(s, 62.5)),
-        "n_runs": int(T_runs.shape[0]),
+        "in_band": float(np.mean(in_band(F_runs, obj))),
+        "rms": float(np.mean(rms_in_window(F_runs, obj))),
+        "mean_dev_start": mean_deviation(F_runs, F_nom, k0),
+        "mean_dev_end": mean_deviation(F_runs, F_nom, k1),
+        "n_runs": int(F_runs.shape[0]),
     }
     if extra:
         out.update(extra)
@@ -71,50 +74,53 @@ def summarize(T_runs: np.ndarray, U_runs: np.ndarray, T_nom: np.ndarray, s: Scen
 
 
 class MetricsAccumulator:
-    """The `summarize` metrics computed step by step, without storing (M, N+1, n_x) trajectories.
+    """The `summarize` metrics computed step by step, without storing (M, N+1, n_field) trajectories.
 
-    Feed `add_state(k, T_k)` for k = 0..N and `add_input(k, u_k)` for k = 0..N-1 (batched over
-    M runs); `result()` equals `summarize` on the stacked arrays. Memory O(M + N n_x), so a
-    Monte Carlo on a large grid does not need M N n_x numbers.
+    Feed `add_field(k, f_k)` for k = 0..N and `add_input(k, u_k)` for k = 0..N-1 (batched over
+    M runs); `result()` equals `summarize` on the stacked arrays. Memory O(M + N n_field), so a
+    Monte Carlo on a large grid does not need M N n_field numbers.
     """
 
-    def __init__(self, s: Scenario, T_nom: np.ndarray, runs: int):
-        self.s, self.T_nom, self.M = s, T_nom, runs
-        self.q = s.q_weights()
+    def __init__(self, obj: Objective, F_nom: np.ndarray, runs: int):
+        self.obj, self.F_nom, self.M = obj, F_nom, runs
         self.cost = np.zeros(runs)
         self.band_ok = np.ones(runs, dtype=bool)
         self.sq_sum = np.zeros(runs)
-        self.k_marks = [(step_at(s, 37.5), "mean_dev_37_5"), (step_at(s, 62.5), "mean_dev_62_5")]
+        k0, k1 = obj.window
+        self.k_marks = {k0: "mean_dev_start", k1: "mean_dev_end"}
         self.mean_dev: dict[str, float] = {}
-        self.mean_traj = np.zeros_like(T_nom)
+        self.mean_traj = np.zeros_like(F_nom)
 
-    def add_state(self, k: int, T_k: np.ndarray) -> None:
-        s = self.s
-        err = T_k - s.t_target
+    def add_field(self, k: int, f_k: np.ndarray) -> None:
+        obj = self.obj
+        err = f_k - obj.target
         sq = np.mean(err**2, axis=-1)
         if k >= 1:
-            self.cost += self.q[k] * sq
-        if k >= s.k_band:
-            self.band_ok &= np.all(np.abs(err) <= s.band, axis=-1)
+            self.cost += obj.q[k] * sq
+        k0, k1 = obj.window
+        if k0 <= k <= k1:
+            self.band_ok &= np.all(np.abs(err) <= obj.band, axis=-1)
             self.sq_sum += sq
-        mean_k = np.mean(T_k, axis=0)
+        mean_k = np.mean(f_k, axis=0)
         self.mean_traj[k] = mean_k
-        for k_mark, name in self.k_marks:
+        for k_mark, name in self.k_marks.items():
             if k == k_mark:
-                self.mean_dev[name] = float(np.max(np.abs(mean_k - self.T_nom[k])))
+                self.mean_dev[name] = float(np.max(np.abs(mean_k - self.F_nom[k])))
+        if k0 == k1 == k:       # a one-step window: both marks at once
+            self.mean_dev["mean_dev_start"] = self.mean_dev["mean_dev_end"]
 
     def add_input(self, k: int, u_k: np.ndarray) -> None:
-        self.cost += self.s.r_u * np.sum(u_k**2, axis=-1)
+        self.cost += self.obj.r_u * np.sum(u_k**2, axis=-1)
 
     def result(self, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        n_win = self.s.n_steps + 1 - self.s.k_band
+        k0, k1 = self.obj.window
         out: dict[str, Any] = {
             "cost_mean": float(np.mean(self.cost)),
             "cost_std": float(np.std(self.cost)),
             "in_band": float(np.mean(self.band_ok)),
-            "rms": float(np.mean(np.sqrt(self.sq_sum / n_win))),
-            "mean_dev_37_5": self.mean_dev.get("mean_dev_37_5"),
-            "mean_dev_62_5": self.mean_dev.get("mean_dev_62_5"),
+            "rms": float(np.mean(np.sqrt(self.sq_sum / (k1 - k0 + 1)))),
+            "mean_dev_start": self.mean_dev.get("mean_dev_start"),
+            "mean_dev_end": self.mean_dev.get("mean_dev_end"),
             "n_runs": int(self.M),
         }
         if extra:

@@ -1,15 +1,16 @@
 """Open-loop nominal trajectory optimization from black-box experiments only.
 
-Nominal cost (DESIGN.md §2) written as a sum of squares J(U) = |r(U)|^2 with
-    r = [ sqrt(q_k / n_x) (T_k - T*)  (k = 1..N),  sqrt(r_u) u_k  (k = 0..N-1) ].
+Nominal cost (`sep_plant.problem`) written as a sum of squares J(U) = |r(U)|^2 with
+    r = [ sqrt(q_k / n_f) (f_k - f*)  (k = 1..N),  sqrt(r_u) u_k  (k = 0..N-1) ],
+f_k = field(x_k) the plant's field (n_f nodes) along the noise-free trajectory.
 
-Sensitivities dT_k/du_j come from impulse-sensitivity experiments on the simulator:
+Sensitivities df_k/du_j come from impulse-sensitivity experiments on the plant:
 perturb input channel c at step j by eps and run from the nominal state at j. All
 N n_u experiments run as one batch in lockstep, so at step k only the n_u (k+1)
 experiments that have started are simulated (the active part), and their field
-deviations D_k (n_u (k+1), n_x) are folded straight into the Gauss-Newton normal
-equations  J'J += (q_k/n_x) D_k D_k',  J'r += (q_k/n_x) D_k (T_k - T*)  without
-storing the N n_x x N n_u Jacobian.
+deviations D_k (n_u (k+1), n_f) are folded straight into the Gauss-Newton normal
+equations  J'J += (q_k/n_f) D_k D_k',  J'r += (q_k/n_f) D_k (f_k - f*)  without
+storing the N n_f x N n_u Jacobian.
 
 Methods:
 * ``gn`` (default): Levenberg-Marquardt on (J'J + lambda diag(J'J)) dU = -J'r with
@@ -18,7 +19,7 @@ Methods:
   backtracking; slow, kept for comparison.
 
 Belief space: the cost of a belief b_k = (mu_k, Sigma_k) is
-    J_b = sum_k q_k mean_i [(mu_{k,i} - T*)^2 + Sigma_{k,ii}] + r_u sum |u_k|^2,
+    J_b = sum_k q_k mean_i [(mu_{k,i} - f*_i)^2 + Sigma_{k,ii}] + r_u sum |u_k|^2,
 with the belief from an EnKF along the nominal observations ybar_k = h(xbar_k(U)) (fixed
 random numbers and antithetic pairs, so J_b is a deterministic function of U whose mean
 has no first-order sampling noise to overfit). Its GN step uses the
@@ -35,8 +36,8 @@ from typing import Callable
 import numpy as np
 
 from sep_estimator.enkf import EnKFResult, EnsembleKalmanFilter
-from sep_plant.scenario import Scenario
-from sep_plant.slab import SlabSimulator
+from sep_plant.problem import Objective, Problem
+from sep_plant.protocol import Plant, clip_inputs, fields, nominal_states, noise_channels
 
 from .metrics import nominal_cost
 from .progress import progress
@@ -44,24 +45,26 @@ from .tvera import identify
 
 
 # ------------------------------------------------------------------ helpers
-def nominal_rollout(sim: SlabSimulator, U: np.ndarray) -> np.ndarray:
-    """xbar_k for k = 0..len(U): the noise-free trajectory from the known initial state."""
-    return sim.rollout(sim.initial_state()[None], U[None])[0]
+def objective_of(plant: Plant, problem: Problem) -> Objective:
+    """The problem's objective on this plant's field nodes."""
+    return Objective.of(problem, np.asarray(plant.field_coordinates()))
 
 
-def belief_cost(belief: EnKFResult, U: np.ndarray, s: Scenario) -> float:
+def belief_cost(belief: EnKFResult, U: np.ndarray, obj: Objective) -> float:
     """J_b: nominal cost of the belief mean plus the weighted mean variance."""
-    q = s.q_weights()[1:]
-    spread = float(q @ np.mean(belief.std[1:] ** 2, axis=1))
-    return float(nominal_cost(belief.mean, U, s)) + spread
+    spread = float(obj.q[1:] @ np.mean(belief.std[1:] ** 2, axis=1))
+    return float(nominal_cost(belief.mean, U, obj)) + spread
 
 
-def run_belief(sim: SlabSimulator, U: np.ndarray, s: Scenario, members: int, seed: int) -> EnKFResult:
-    """EnKF belief along the nominal observations of U (same random numbers for every U)."""
-    ybar = sim.observe(nominal_rollout(sim, U))
-    enkf = EnsembleKalmanFilter(sim.step, sim.observe, s.w_std, s.v_std, np.random.default_rng(seed),
-                                antithetic=True)
-    return enkf.run(sim.initial_state(members), U, ybar)
+def run_belief(plant: Plant, U: np.ndarray, problem: Problem, members: int, seed: int) -> EnKFResult:
+    """EnKF belief of the field along the nominal observations of U (same random numbers for every U)."""
+    ybar = plant.observe(nominal_states(plant, U))
+    n_w = noise_channels(plant)
+    enkf = EnsembleKalmanFilter(plant.step, plant.observe, problem.channels("w_std", n_w),
+                                problem.channels("v_std", int(plant.n_y)), np.random.default_rng(seed),
+                                antithetic=True, field=plant.field,
+                                noise_on_inputs=bool(getattr(plant, "noise_on_inputs", True)))
+    return enkf.run(plant.initial_state(members), U, ybar)
 
 
 @dataclass
@@ -72,86 +75,89 @@ class NormalEquations:
     run_steps: int     # run-steps simulated
 
 
-def sensitivity_normal_equations(sim: SlabSimulator, U: np.ndarray, Xbar: np.ndarray, s: Scenario,
+def sensitivity_normal_equations(plant: Plant, U: np.ndarray, Xbar: np.ndarray, obj: Objective,
                                  eps: float = 1e-4, residual_field: np.ndarray | None = None,
                                  gram: bool = True) -> NormalEquations:
     """Build J'J and J'r from N n_u batched impulse-sensitivity experiments around (Xbar, U).
 
-    `residual_field` (N+1, n_x) replaces Xbar as the trajectory whose residual T_k - T*
-    enters J'r (the belief mean, for the belief-space problem). Columns are ordered
-    (j, c) -> j n_u + c. With gram=False only J'r is formed (gradient descent).
+    Xbar (N+1, n_x) are the nominal states; `residual_field` (N+1, n_f) replaces their field as
+    the trajectory whose residual f_k - f* enters J'r (the belief mean, for the belief-space
+    problem). Columns are ordered (j, c) -> j n_u + c. With gram=False only J'r is formed.
     """
     N, n_u = U.shape
     n = N * n_u
-    q = s.q_weights()
-    res = (Xbar if residual_field is None else residual_field) - s.t_target
+    q = obj.q
+    Fbar = fields(plant, Xbar)
+    n_f = Fbar.shape[1]
+    res = (Fbar if residual_field is None else residual_field) - obj.target
     JtJ = np.zeros((n, n)) if gram else np.empty((0, 0))
     Jtr = np.zeros(n)
-    X = np.empty((0, s.n_x))
+    X = np.empty((0, Xbar.shape[1]))
     eye = np.eye(n_u) * eps
     run_steps = 0
     # J'J is formed chunk by chunk: the weighted Jacobian rows of `chunk` steps are stacked
     # (zero padded on the right) and multiplied in one large BLAS call, which runs several
     # times faster than one small product per step.
-    chunk = max(1, min(N, (1 << 22) // max(1, s.n_x * n)))
-    rows = np.zeros((chunk * s.n_x, n)) if gram else None
+    chunk = max(1, min(N, (1 << 22) // max(1, n_f * n)))
+    rows = np.zeros((chunk * n_f, n)) if gram else None
     filled = 0
     for k in range(N):
         # start the n_u experiments of step k from the nominal state, then step every active run
         X = np.vstack([X, np.repeat(Xbar[k][None], n_u, axis=0)])
         Uk = np.repeat(U[k][None], X.shape[0], axis=0)
         Uk[-n_u:] += eye
-        X = sim.step(X, Uk)
+        X = plant.step(X, Uk)
         run_steps += X.shape[0]
-        D = (X - Xbar[k + 1]) / eps                         # (n_u (k+1), n_x)
+        D = (plant.field(X) - Fbar[k + 1]) / eps               # (n_u (k+1), n_f)
         m = D.shape[0]
-        w = q[k + 1] / s.n_x
+        w = q[k + 1] / n_f
         Jtr[:m] += w * (D @ res[k + 1])
         if gram:
-            rows[filled * s.n_x:(filled + 1) * s.n_x, :m] = np.sqrt(w) * D.T
+            rows[filled * n_f:(filled + 1) * n_f, :m] = np.sqrt(w) * D.T
             filled += 1
             if filled == chunk or k == N - 1:
-                used = rows[:filled * s.n_x, :m]
+                used = rows[:filled * n_f, :m]
                 JtJ[:m, :m] += used.T @ used
                 rows[:] = 0.0
                 filled = 0
     # input penalty r_u |u|^2
     if gram:
-        JtJ[np.diag_indices(n)] += s.r_u
-    Jtr += s.r_u * U.ravel()
+        JtJ[np.diag_indices(n)] += obj.r_u
+    Jtr += obj.r_u * U.ravel()
     return NormalEquations(JtJ, Jtr, n, run_steps)
 
 
-def rom_normal_equations(sim: SlabSimulator, U: np.ndarray, s: Scenario, residual_field: np.ndarray,
+def rom_normal_equations(plant: Plant, U: np.ndarray, obj: Objective, residual_field: np.ndarray,
                          p: int = 15, q: int = 15, n_r: int = 20, sv_tol: float = 1e-10,
                          impulse: float = 0.01) -> NormalEquations:
     """J'J and J'r from a TV-ERA model of the field around U (the cheaper Jacobian).
 
-    The field sensitivities dT_k/du_j are taken from the identified ROM, G_k A_{k-1} ... A_{j+1} B_j,
+    The field sensitivities df_k/du_j are taken from the identified ROM, G_k A_{k-1} ... A_{j+1} B_j,
     instead of N n_u experiments of average length N/2: the TV-ERA experiments are 2 N n_u runs
     of p+q steps, and the normal equations cost O(N^3 n_u^2 n_r) flops whatever n_x is:
         M_k = [A_{k-1} M_{k-1}, B_{k-1}]   (n_r x k n_u: the state response to every past input)
-        J'J += M_k' (w_k G_k' G_k) M_k,   J'r += M_k' w_k G_k' (T_k - T*),   w_k = q_k / n_x.
+        J'J += M_k' (w_k G_k' G_k) M_k,   J'r += M_k' w_k G_k' (f_k - f*),   w_k = q_k / n_f.
     """
     N, n_u = U.shape
     n = N * n_u
-    _, data, real, _ = identify(sim, U, p, q, n_r, sv_tol, impulse)
-    res = residual_field - s.t_target
-    w = s.q_weights() / s.n_x
+    ident = identify(plant, U, p, q, n_r, sv_tol, impulse)
+    model = ident.model
+    res = residual_field - obj.target
+    w = obj.q / res.shape[1]
     JtJ = np.zeros((n, n))
     Jtr = np.zeros(n)
-    M = np.zeros((real.A.shape[1], n))
+    M = np.zeros((model.n, n))
     for k in range(1, N + 1):
         m = n_u * k
-        M[:, :m - n_u] = real.A[k - 1] @ M[:, :m - n_u]
-        M[:, m - n_u:m] = real.B[k - 1]
-        Gk = real.G[k]
+        M[:, :m - n_u] = model.A[k - 1] @ M[:, :m - n_u]
+        M[:, m - n_u:m] = model.B[k - 1]
+        Gk = model.G.matrix(k)
         Mk = M[:, :m]
         JtJ[:m, :m] += Mk.T @ ((w[k] * (Gk.T @ Gk)) @ Mk)
         Jtr[:m] += Mk.T @ (w[k] * (Gk.T @ res[k]))
-    JtJ[np.diag_indices(n)] += s.r_u
-    Jtr += s.r_u * U.ravel()
-    return NormalEquations(JtJ, Jtr, data.experiments, data.experiments * (p + q))
+    JtJ[np.diag_indices(n)] += obj.r_u
+    Jtr += obj.r_u * U.ravel()
+    return NormalEquations(JtJ, Jtr, ident.data.experiments, ident.data.experiments * (p + q))
 
 
 # --------------------------------------------------------------- optimizer
@@ -167,7 +173,7 @@ class OptimizationResult:
     objective: str = "nominal"
 
 
-def optimize(sim: SlabSimulator, s: Scenario, U0: np.ndarray | None = None, method: str = "gn",
+def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, method: str = "gn",
              objective: str = "nominal", max_iter: int | None = None, tol: float = 1e-7,
              eps: float = 1e-4, step_size: float = 1e-3, members: int = 200, seed: int = 0,
              show_progress: bool = True, jacobian: str = "sensitivity",
@@ -189,15 +195,18 @@ def optimize(sim: SlabSimulator, s: Scenario, U0: np.ndarray | None = None, meth
         raise ValueError(f"jacobian must be 'sensitivity' or 'rom', got {jacobian!r}")
     max_iter = max_iter if max_iter is not None else (10 if method == "gn" else 60)
     t0 = time.perf_counter()
-    U = np.full((s.n_steps, s.n_u), s.u_init) if U0 is None else np.array(U0, dtype=float)
-    lo, hi = s.u_min, s.u_max
+    n_u = int(plant.n_u)
+    U = problem.u_start(n_u) if U0 is None else np.array(U0, dtype=float)
+    lo, hi = problem.limits(n_u)
+    obj = objective_of(plant, problem)
 
     def evaluate(Uc: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        Xc = nominal_rollout(sim, Uc)
+        Xc = nominal_states(plant, Uc)
+        Fc = fields(plant, Xc)
         if objective == "nominal":
-            return float(nominal_cost(Xc, Uc, s)), Xc, Xc
-        b = run_belief(sim, Uc, s, members, seed)
-        return belief_cost(b, Uc, s), Xc, b.mean
+            return float(nominal_cost(Fc, Uc, obj)), Xc, Fc
+        b = run_belief(plant, Uc, problem, members, seed)
+        return belief_cost(b, Uc, obj), Xc, b.mean
 
     J, X, field_for_residual = evaluate(U)
     result = OptimizationResult(U, J, [J], method=method, objective=objective)
@@ -205,9 +214,9 @@ def optimize(sim: SlabSimulator, s: Scenario, U0: np.ndarray | None = None, meth
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
     for it in bar:
         if jacobian == "rom":
-            ne = rom_normal_equations(sim, U, s, field_for_residual, **(rom or {}))
+            ne = rom_normal_equations(plant, U, obj, field_for_residual, **(rom or {}))
         else:
-            ne = sensitivity_normal_equations(sim, U, X, s, eps, field_for_residual, gram=(method == "gn"))
+            ne = sensitivity_normal_equations(plant, U, X, obj, eps, field_for_residual, gram=(method == "gn"))
         result.experiments += ne.experiments
         accepted = False
         for _ in range(12):
@@ -216,7 +225,7 @@ def optimize(sim: SlabSimulator, s: Scenario, U0: np.ndarray | None = None, meth
                 dU = -np.linalg.solve(H, ne.Jtr).reshape(U.shape)
             else:
                 dU = -alpha * 2.0 * ne.Jtr.reshape(U.shape)
-            U_try = np.clip(U + dU, lo, hi)
+            U_try = clip_inputs(U + dU, lo, hi)
             J_try, X_try, f_try = evaluate(U_try)
             if np.isfinite(J_try) and J_try < J:
                 accepted = True

@@ -21,12 +21,19 @@ Robustness:
   (or `sep_control.bag_io.read_episode(..., allow_truncated=True)`) reads it, and
   `bag_io.repair_bag` rewrites it as a complete bag for other tools.
 * Stops by itself when the episode ends: `--final-grace` seconds after the plant's final
-  measurement (step N of the recorded slab/scenario) arrives (disable with --no-stop-at-end),
-  after `--stop-after-idle` seconds without messages, or after `--max-duration`.
+  measurement (step N = n_steps of the scenario topic's payload, stamp N dt with the plant's
+  dt) arrives (disable with --no-stop-at-end), after `--stop-after-idle` seconds without
+  messages, or after `--max-duration`.
+
+Topics: by default every contract topic of `sep_plant.topics` (`topics.RECORDED`), including
+the image topics that only grid plants publish; a topic nobody publishes is simply absent
+from the bag.
 
 Start-up: volatile topics are only recorded from the moment the publisher and the recorder
-have matched; `--ready-file PATH` is created once every recorded topic is matched, so an
-orchestrator (the main job, tests) starts the episode after it and the bag holds step 0.
+have matched; `--ready-file PATH` is created once every awaited topic is matched (all recorded
+topics, or those of --ready-topics; optional topics (`topics.OPTIONAL`, the images) only
+while they have a publisher), so an orchestrator (the main job, tests) starts the episode
+after it and the bag holds step 0.
 
 QoS: contract topics are subscribed reliable/volatile with a deep keep-last queue (the
 scenario topic transient_local, to get the plant's latched scenario); if every publisher
@@ -45,11 +52,22 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from sep_control.bag_io import contract_topics, topic_name
+from sep_plant import topics as T
 
 EXIT_BAD_INPUT = 2
 _STOP = object()
 _INF_SEC, _INF_NSEC = 2147483647, 4294967295
+
+
+def recording_topics(namespace: str = T.NAMESPACE, names: tuple[str, ...] = T.RECORDED
+                     ) -> dict[str, tuple[str, bool]]:
+    """{fully qualified topic: (ROS type, transient_local)} of the contract topics to record."""
+    return {full: (spec.type_name, spec.qos.transient_local) for full, spec in T.contract_topics(namespace, names).items()}
+
+
+def optional_topics(namespace: str = T.NAMESPACE) -> set[str]:
+    """Fully qualified names of the contract topics that only some plants publish."""
+    return {T.topic_name(n, namespace) for n in T.OPTIONAL}
 
 
 def _qos_to_rosbags(profile):
@@ -85,7 +103,7 @@ class BagSink:
     """
 
     def __init__(self, out: str | Path, storage: str = "mcap", flush_interval: float = 0.1,
-                 qos_lookup: Callable[[str], list] | None = None):
+                 qos_lookup: Callable[[str], list] | None = None, namespace: str = T.NAMESPACE):
         self.out = Path(out)
         self.storage = storage
         self.flush_interval = flush_interval
@@ -98,8 +116,8 @@ class BagSink:
         self.n_steps: int | None = None
         self.last_meas_ns = -1                # latest measurement stamp seen
         self.dt_ns: int | None = None
-        self.final_topic = topic_name("measurements")
-        self.scenario_topic = topic_name("scenario")
+        self.final_topic = T.topic_name(T.MEASUREMENTS, namespace)
+        self.scenario_topic = T.topic_name(T.SCENARIO, namespace)
         self.error: BaseException | None = None
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._opened = threading.Event()
@@ -170,8 +188,7 @@ class BagSink:
                         sec, nsec = struct.unpack_from("<iI", data, 4)
                         self.last_meas_ns = max(self.last_meas_ns, sec * 1_000_000_000 + nsec)
                     # the scenario may arrive after the final measurement (discovery order)
-                    if (self.final_seen is None and self.n_steps is not None
-                            and round(self.last_meas_ns / self.dt_ns) >= self.n_steps):
+                    if self.final_seen is None and self._final_step_recorded():
                         self.final_seen = now
                 if dirty and self._q.empty() and time.monotonic() - last_flush >= self.flush_interval:
                     _flush(writer)
@@ -201,14 +218,23 @@ class BagSink:
             return []
 
     def _note_scenario(self, data: bytes) -> None:
+        """N and dt from the scenario topic's payload (CDR std_msgs/String: uint32 length with
+        the terminating NUL, then the text)."""
         try:
-            from sep_plant.scenario import Scenario
+            from sep_plant.scenario import parse_scenario_payload
 
             (n,) = struct.unpack_from("<I", data, 4)
-            s = Scenario.from_json(data[8:8 + n - 1].decode())
-            self.n_steps, self.dt_ns = s.n_steps, int(round(s.dt * 1e9))
+            scenario, info = parse_scenario_payload(data[8:8 + n - 1].decode())
+            self.n_steps, self.dt_ns = scenario.problem.n_steps, T.dt_ns(info.dt)
         except Exception:  # noqa: BLE001 - then only idle/signal/duration stop the recording
             pass
+
+    def _final_step_recorded(self) -> bool:
+        """Whether the measurement of step N (of the recorded scenario) has arrived."""
+        if self.n_steps is None or self.dt_ns is None or self.last_meas_ns < 0:
+            return False
+        k = T.step_of_stamp(self.last_meas_ns, self.dt_ns)
+        return k is not None and k >= self.n_steps
 
 
 def _flush(writer) -> None:
@@ -228,14 +254,16 @@ def _msg_class(msgtype: str):
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
-def make_recorder_node(sink: BagSink, topics: dict[str, tuple[str, bool]] | None, namespace: str = "slab",
+def make_recorder_node(sink: BagSink, topics: dict[str, tuple[str, bool]] | None, namespace: str = T.NAMESPACE,
                        node_name: str = "sep_recorder"):
-    """The rclpy node: raw subscriptions feeding `sink`. `topics` None: the contract topics.
-    Topics outside the contract (given with --topics) get their type from the graph."""
+    """The rclpy node: raw subscriptions feeding `sink`. `topics` None: the recorded contract
+    topics (`recording_topics`). Topics outside the contract (given with --topics) get their
+    type from the graph."""
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    contract = contract_topics(namespace)
+    contract = recording_topics(namespace)
+    optional = optional_topics(namespace)
 
     class Recorder(Node):
         def __init__(self):
@@ -275,7 +303,10 @@ def make_recorder_node(sink: BagSink, topics: dict[str, tuple[str, bool]] | None
                     self.matched.add(topic)
 
         def all_matched(self, topics=None) -> bool:
+            """Every awaited topic (default: all recorded) is matched; an optional topic is only
+            awaited while it has a publisher (the slab publishes no images)."""
             want = set(topics) if topics is not None else set(self.wanted)
+            want -= {t for t in want & optional if t not in self.matched and self.count_publishers(t) == 0}
             return want <= self.matched
 
         def qos_lookup(self, topic):
@@ -317,9 +348,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "definitions. ROS arguments go after --ros-args.")
     p.add_argument("--out", required=True, metavar="BAG_DIR", help="bag directory to create (must not exist)")
     p.add_argument("--topics", nargs="+", metavar="T",
-                   help="topics to record (default: every contract topic); relative names are put in --namespace")
+                   help="topics to record (default: every contract topic of sep_plant.topics); relative names "
+                        "are put in --namespace")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="storage plugin (default mcap)")
-    p.add_argument("--namespace", default="slab", help="namespace of the contract topics (default slab)")
+    p.add_argument("--namespace", default=T.NAMESPACE,
+                   help=f"namespace of the contract topics (default {T.NAMESPACE})")
     p.add_argument("--stop-after-idle", type=float, default=None, metavar="S",
                    help="stop when no message arrived for S seconds (after the first one)")
     p.add_argument("--no-stop-at-end", action="store_true",
@@ -329,7 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--ready-file", metavar="PATH",
                    help="create PATH once every recorded topic (or those of --ready-topics) is matched with a "
-                        "publisher: start the episode after it appears so the bag holds step 0 of every topic")
+                        "publisher (optional topics such as the images only while they have one): start the "
+                        "episode after it appears so the bag holds step 0 of every topic")
     p.add_argument("--ready-topics", nargs="+", metavar="T",
                    help="topics that --ready-file waits for (default: all recorded topics)")
     p.add_argument("--flush-interval", type=float, default=0.1, metavar="S",
@@ -348,12 +382,12 @@ def main(argv: list[str] | None = None) -> int:
     if out.exists():
         print(f"record: error: {out} exists already; choose a new bag directory", file=sys.stderr)
         return EXIT_BAD_INPUT
-    contract = contract_topics(args.namespace)
+    contract = recording_topics(args.namespace)
     topics = None
     if args.topics:
         topics = {}
         for t in args.topics:
-            full = t if t.startswith("/") else topic_name(t, args.namespace)
+            full = T.topic_name(t, args.namespace)
             topics[full] = contract.get(full, ("", False))
 
     import rclpy
@@ -372,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     node = None
-    sink = BagSink(out, args.storage, args.flush_interval)
+    sink = BagSink(out, args.storage, args.flush_interval, namespace=args.namespace)
     try:
         try:
             sink.start()
@@ -386,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         ready_topics = None
         if args.ready_topics:
-            ready_topics = [t if t.startswith("/") else topic_name(t, args.namespace) for t in args.ready_topics]
+            ready_topics = [T.topic_name(t, args.namespace) for t in args.ready_topics]
         ready_done = not args.ready_file
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.05)

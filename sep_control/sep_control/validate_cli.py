@@ -8,14 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sep_plant.slab import SlabSimulator
+from sep_plant.protocol import Plant, fields, nominal_states, outputs
 
-from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail
-from .optimize import nominal_rollout
-from .tvera import Realization, impulse_experiments, rom_markov_all
+from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail, plant_or_exit
+from .tvera import impulse_experiments
 
 DESCRIPTION = """\
-Validate the reduced-order model of a design file against the nonlinear simulator:
+Validate the reduced-order model of a design file against the nonlinear plant (rebuilt from
+the design file's scenario):
   markov     ROM Markov parameters C_k A_{k-1}..A_{j+1} B_j vs long central-difference
              impulse experiments (lags up to --lags, beyond the p+q used to identify);
   prediction ROM output and field prediction vs the nonlinear simulator for a random
@@ -43,8 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.lags < 1 or not args.amplitude > 0:
         fail("--lags must be >= 1 and --amplitude > 0")
     design = design_or_exit(args.design)
+    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
     with blas_threads(args.threads):
-        out = validate(design, args.lags, args.amplitude, args.seed)
+        out = validate(plant, design, args.lags, args.amplitude, args.seed)
     for key, val in out.items():
         print(f"{key:28s} {val:.3e}" if isinstance(val, float) else f"{key:28s} {val}")
     if args.json:
@@ -53,43 +54,42 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def validate(design, lags: int = 60, amplitude: float = 0.01, seed: int = 0) -> dict:
-    s = design.scenario
-    sim = SlabSimulator(s)
-    U = design.u_nom
-    N = s.n_steps
-    real = Realization(design.rom_dims, design.A, design.B, design.C, design.G, design.hankel_sv)
+def validate(plant: Plant, design, lags: int = 60, amplitude: float = 0.01, seed: int = 0) -> dict:
+    U = design.nominal.u
+    N = design.n_steps
+    rom = design.rom
     rms_u = max(float(np.sqrt(np.mean(U**2))), 1e-3)
     delta = float(design.meta.get("validation", {}).get("impulse_amplitude", 0.01 * rms_u))
 
-    # Markov parameters vs long impulse experiments
-    data = impulse_experiments(sim, U, lags, 1, delta)
-    Yr = rom_markov_all(real, lags)
+    # Markov parameters (input channels) vs long impulse experiments
+    data = impulse_experiments(plant, U, lags, 1, delta)
+    Yr = rom.markov_all(lags)
+    Ye = data.Y_inputs
     valid = (np.arange(N)[:, None] + np.arange(1, lags + 1)[None, :]) <= N
-    markov = float(np.linalg.norm((Yr - data.Y)[valid]) / np.linalg.norm(data.Y[valid]))
+    markov = float(np.linalg.norm((Yr - Ye)[valid]) / np.linalg.norm(Ye[valid]))
 
     # output and field prediction for a random small input sequence
     rng = np.random.default_rng(seed)
     dU = rng.standard_normal(U.shape) * amplitude * rms_u
-    T_nom = nominal_rollout(sim, U)
-    T_pert = nominal_rollout(sim, U + dU)
-    a = np.zeros(design.n_r)
-    dy_rom = np.zeros((N + 1, s.n_y))
-    dT_rom = np.zeros((N + 1, s.n_x))
+    X_nom = nominal_states(plant, U)
+    X_pert = nominal_states(plant, U + dU)
+    a = np.zeros((1, rom.n))
+    dy_rom = np.zeros((N + 1, design.info.n_y))
+    df_rom = np.zeros((N + 1, design.info.n_field))
     for k in range(N + 1):
-        dy_rom[k] = design.C[k] @ a
-        dT_rom[k] = design.G[k] @ a
+        dy_rom[k] = a[0] @ rom.C[k].T
+        df_rom[k] = rom.G.apply(k, a)[0]
         if k < N:
-            a = design.A[k] @ a + design.B[k] @ dU[k]
-    dy_sim = sim.observe(T_pert) - sim.observe(T_nom)
-    dT_sim = T_pert - T_nom
+            a = a @ rom.A[k].T + dU[k] @ rom.B[k].T
+    dy_sim = outputs(plant, X_pert) - outputs(plant, X_nom)
+    df_sim = fields(plant, X_pert) - fields(plant, X_nom)
     return {
         "markov_rel_error": markov,
         "markov_lags": lags,
         "output_prediction_rel_error": float(np.linalg.norm(dy_rom - dy_sim) / np.linalg.norm(dy_sim)),
-        "field_prediction_rel_error": float(np.linalg.norm(dT_rom - dT_sim) / np.linalg.norm(dT_sim)),
+        "field_prediction_rel_error": float(np.linalg.norm(df_rom - df_sim) / np.linalg.norm(df_sim)),
         "input_deviation_std": float(amplitude * rms_u),
-        "n_r": int(design.rom_dims.max()),
+        "n_r": int(rom.dims.max()),
     }
 
 

@@ -1,19 +1,24 @@
 """The design file: the one place that knows its format (DESIGN.md §5).
 
-A design file is a numpy `.npz` archive read with ``allow_pickle=False`` (no code
-execution on load). Member ``meta`` holds a UTF-8 JSON document (format version,
-scenario, design settings, validation numbers, provenance); every other member is a
-float64/int64 array listed in `ARRAYS` with its expected shape. Loading checks the
-format version, every member's presence, dtype, shape and finiteness, and the zip
-CRCs, and raises `DesignFileError` with a message that says what is wrong.
+A design file is a numpy `.npz` archive read with ``allow_pickle=False`` (no code execution on
+load). Member ``meta`` holds a UTF-8 JSON document (format version, the scenario — plant type,
+plant keys and problem —, the plant's description, design settings, validation numbers,
+provenance); every other member is a float64/int64 array listed below with its expected
+shape. Loading checks the format version, every member's presence, dtype, shape and
+finiteness, and the zip CRCs, and raises `DesignFileError` with a message that says what is
+wrong. Loading never imports the plant's code: the file is self-contained data.
 
-Per-step ROM matrices have varying sizes n_k <= n_r near k = 0 (only k n_u past
-inputs exist); they are stored zero-padded to n_r with the true sizes in ``rom_dims``.
-Zero padding is exact: padded states start at zero and A, B never excite them.
+Arrays (N steps, n_r ROM order, n_field field nodes; index conventions of `sep_estimator.ltv`):
 
-Index conventions (k = 0..N): a_{k+1} = A_k a_k + B_k (du_k + w_k) for k < N;
-y_k - ybar_k = C_k a_k + v_k; dT_k = G_k a_k; du_k = K_k ahat_{k|k};
-ahat_{k|k} = ahat_{k|k-1} + L_k (y_k - ybar_k - C_k ahat_{k|k-1}).
+    u_nom (N, n_u)  y_nom (N+1, n_y)  field_nom, belief_mean, belief_std (N+1, n_field)
+    target (n_field,)  field_xyz (n_field, 3)  rom_dims (N+1,) int
+    A (N, n_r, n_r)  B (N, n_r, n_u)  C (N+1, n_y, n_r)  G (N+1, n_field, n_r)
+    Bw (N, n_r, n_w)   only for plants whose noise does not enter through the inputs
+    K (N, n_u, n_r)  L (N+1, n_r, n_y)  P_post (N+1, n_r, n_r)  field_std (N+1, n_field)
+    hankel_sv (N+1, n_sv)
+
+Version 1 files (sep 0.1, the slab only) are read too: their scenario is the flat slab format
+and their field is the state (``T_nom``).
 """
 from __future__ import annotations
 
@@ -25,10 +30,19 @@ from typing import Any
 
 import numpy as np
 
-from sep_plant.scenario import Scenario, ScenarioError, mismatches
+from sep_plant.problem import Objective
+from sep_plant.protocol import PlantInfo
+from sep_plant.scenario import Scenario, ScenarioError
+
+from .ltv import LQG, DenseFieldMap, LTVModel
+from .tvkf import schedule_from_posteriors
 
 FORMAT = "sep-design"
-VERSION = 1
+VERSION = 2
+READS = (1, 2)
+#: members every version-2 file has (Bw only for plants whose noise is not on the inputs)
+ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", "field_xyz", "rom_dims", "A",
+          "B", "C", "G", "K", "L", "P_post", "field_std", "hankel_sv")
 
 
 class DesignFileError(ValueError):
@@ -36,62 +50,86 @@ class DesignFileError(ValueError):
 
 
 @dataclass
-class Design:
-    """Everything the online nodes and the evaluation need (shapes with N steps, n_r ROM order)."""
+class Nominal:
+    """The optimized open-loop nominal and its belief (k = 0..N)."""
 
-    scenario: Scenario
-    u_nom: np.ndarray         # (N, n_u)       nominal inputs ubar_k
-    y_nom: np.ndarray         # (N+1, n_y)     nominal noise-free outputs ybar_k
-    T_nom: np.ndarray         # (N+1, n_x)     nominal field
-    belief_mean: np.ndarray   # (N+1, n_x)     EnKF belief mean along nominal observations
-    belief_std: np.ndarray    # (N+1, n_x)     EnKF belief per-node std
-    rom_dims: np.ndarray      # (N+1,) int     n_k, ROM order at step k
-    A: np.ndarray             # (N, n_r, n_r)
-    B: np.ndarray             # (N, n_r, n_u)
-    C: np.ndarray             # (N+1, n_y, n_r)
-    G: np.ndarray             # (N+1, n_x, n_r) field output map
-    K: np.ndarray             # (N, n_u, n_r)  LQR gains
-    L: np.ndarray             # (N+1, n_r, n_y) KF gains
-    P_post: np.ndarray        # (N+1, n_r, n_r) KF covariance after the update at k
-    field_std: np.ndarray     # (N+1, n_x)     std of the reconstructed field after the update at k
-    hankel_sv: np.ndarray     # (N+1, n_sv)    Hankel singular values (zero padded)
-    meta: dict[str, Any] = field(default_factory=dict)  # settings, validation, provenance
+    u: np.ndarray             # (N, n_u)      ubar_k
+    y: np.ndarray             # (N+1, n_y)    ybar_k, noise-free outputs
+    field: np.ndarray         # (N+1, n_field) fbar_k
+    belief_mean: np.ndarray   # (N+1, n_field) EnKF belief mean along the nominal observations
+    belief_std: np.ndarray    # (N+1, n_field) its per-node std
+
+
+@dataclass
+class Design:
+    """Everything the online nodes and the evaluation need."""
+
+    scenario: Scenario                 # plant spec + problem (plain data)
+    info: PlantInfo                    # dimensions, names, dt, field description
+    objective: Objective               # resolved target, weights, band window
+    field_xyz: np.ndarray              # (n_field, 3) node coordinates [m]
+    nominal: Nominal
+    lqg: LQG                           # the ROM LQG (model = the identified ROM)
+    hankel_sv: np.ndarray              # (N+1, n_sv)
+    meta: dict[str, Any] = field(default_factory=dict)   # settings, validation, provenance
+
+    @property
+    def rom(self) -> LTVModel:
+        return self.lqg.model
+
+    @property
+    def problem(self):
+        return self.scenario.problem
 
     @property
     def n_r(self) -> int:
-        return int(self.A.shape[1])
+        return self.rom.n
 
     @property
     def n_steps(self) -> int:
-        return int(self.u_nom.shape[0])
+        return int(self.nominal.u.shape[0])
 
 
-def _shapes(s: Scenario, n_r: int, n_sv: int) -> dict[str, tuple[int, ...]]:
-    N, nx, nu, ny = s.n_steps, s.n_x, s.n_u, s.n_y
-    return {
-        "u_nom": (N, nu), "y_nom": (N + 1, ny), "T_nom": (N + 1, nx),
-        "belief_mean": (N + 1, nx), "belief_std": (N + 1, nx), "rom_dims": (N + 1,),
-        "A": (N, n_r, n_r), "B": (N, n_r, nu), "C": (N + 1, ny, n_r), "G": (N + 1, nx, n_r),
-        "K": (N, nu, n_r), "L": (N + 1, n_r, ny), "P_post": (N + 1, n_r, n_r),
-        "field_std": (N + 1, nx), "hankel_sv": (N + 1, n_sv),
+def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool) -> dict[str, tuple[int, ...]]:
+    nf, nu, ny = info.n_field, info.n_u, info.n_y
+    out = {
+        "u_nom": (N, nu), "y_nom": (N + 1, ny), "field_nom": (N + 1, nf),
+        "belief_mean": (N + 1, nf), "belief_std": (N + 1, nf), "target": (nf,), "field_xyz": (nf, 3),
+        "rom_dims": (N + 1,), "A": (N, n_r, n_r), "B": (N, n_r, nu), "C": (N + 1, ny, n_r),
+        "G": (N + 1, nf, n_r), "K": (N, nu, n_r), "L": (N + 1, n_r, ny), "P_post": (N + 1, n_r, n_r),
+        "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
     }
+    if with_bw:
+        out["Bw"] = (N, n_r, info.noise_dim)
+    return out
 
 
-ARRAYS = tuple(_shapes(Scenario(), 1, 1))
+def arrays_of(d: Design) -> dict[str, np.ndarray]:
+    """The file's arrays of a design, by member name."""
+    m, nom = d.rom, d.nominal
+    if not isinstance(m.G, DenseFieldMap):
+        raise ValueError(f"design files store a dense field map; got {type(m.G).__name__}")
+    out = {"u_nom": nom.u, "y_nom": nom.y, "field_nom": nom.field, "belief_mean": nom.belief_mean,
+           "belief_std": nom.belief_std, "target": d.objective.target, "field_xyz": d.field_xyz,
+           "rom_dims": np.asarray(m.dims, dtype=np.int64), "A": m.A, "B": m.B, "C": m.C, "G": m.G.G,
+           "K": d.lqg.K, "L": d.lqg.kf.L, "P_post": d.lqg.kf.P_post, "field_std": d.lqg.field_std,
+           "hankel_sv": d.hankel_sv}
+    if m.Bw is not None:
+        out["Bw"] = m.Bw
+    return out
 
 
 def save_design(path: str | Path, d: Design) -> Path:
     """Write `d` to `path` (.npz, compressed); the file appears atomically."""
     path = Path(path)
-    expect = _shapes(d.scenario, d.n_r, d.hankel_sv.shape[1])
+    arrays = arrays_of(d)
+    expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays)
     for name, shape in expect.items():
-        arr = getattr(d, name)
-        if arr.shape != shape:
-            raise ValueError(f"design array {name} has shape {arr.shape}, expected {shape}")
-    meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": json.loads(d.scenario.to_json()),
-            "n_r": d.n_r}
-    arrays = {name: np.ascontiguousarray(getattr(d, name)) for name in expect}
-    arrays["rom_dims"] = arrays["rom_dims"].astype(np.int64)
+        if arrays[name].shape != shape:
+            raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
+    meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": d.scenario.to_dict(),
+            "plant_info": d.info.to_dict(), "n_r": d.n_r}
+    arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -124,18 +162,27 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
         raise DesignFileError(f"{path}: unreadable metadata ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise DesignFileError(f"{path}: not a sep design file (format {meta.get('format') if isinstance(meta, dict) else None!r})")
-    if meta.get("version") != VERSION:
-        raise DesignFileError(f"{path}: design file version {meta.get('version')!r}, this sep reads version "
-                              f"{VERSION}; re-run `design` with this version")
-    try:
-        scenario = Scenario.from_dict(meta.pop("scenario"), f"{path} scenario")
-    except (ScenarioError, KeyError, TypeError) as exc:
-        raise DesignFileError(f"{path}: bad scenario record: {exc}") from None
+    version = meta.get("version")
+    if version not in READS:
+        raise DesignFileError(f"{path}: design file version {version!r}; this sep reads versions "
+                              f"{', '.join(map(str, READS))}. Re-run `design --scenario SCENARIO --out {path}` "
+                              "with this version to regenerate it")
+    if version == 1:
+        scenario, info, raw = _upgrade_v1(path, meta, raw)
+    else:
+        try:
+            scenario = Scenario.from_dict(meta.pop("scenario"), f"{path} scenario", canonical=False)
+            info = PlantInfo.from_dict(meta.pop("plant_info"))
+        except (ScenarioError, KeyError, TypeError, ValueError) as exc:
+            raise DesignFileError(f"{path}: bad scenario or plant record: {exc}") from None
     n_r = meta.get("n_r")
-    hsv = raw.get("hankel_sv")
-    if not isinstance(n_r, int) or n_r < 1 or hsv is None or hsv.ndim != 2:
-        raise DesignFileError(f"{path}: bad ROM order or Hankel record")
-    expect = _shapes(scenario, n_r, hsv.shape[1])
+    hsv, u = raw.get("hankel_sv"), raw.get("u_nom")
+    if not isinstance(n_r, int) or n_r < 1 or hsv is None or hsv.ndim != 2 or u is None or u.ndim != 2:
+        raise DesignFileError(f"{path}: bad ROM order, nominal or Hankel record")
+    N = int(u.shape[0])
+    if N != scenario.problem.n_steps:
+        raise DesignFileError(f"{path}: nominal has {N} steps, its scenario {scenario.problem.n_steps}")
+    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw)
     missing = sorted(set(expect) - set(raw))
     if missing:
         raise DesignFileError(f"{path}: missing arrays {missing}")
@@ -143,16 +190,45 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
         arr = raw[name]
         if arr.shape != shape:
             raise DesignFileError(f"{path}: array {name} has shape {arr.shape}, expected {shape} "
-                                  f"for this scenario and n_r = {n_r}")
+                                  f"for this plant and n_r = {n_r}")
         if name == "rom_dims":
             if arr.dtype.kind not in "iu" or np.any(arr < 0) or np.any(arr > n_r):
                 raise DesignFileError(f"{path}: rom_dims must be integers in [0, {n_r}]")
         elif arr.dtype != np.float64 or not np.all(np.isfinite(arr)):
             raise DesignFileError(f"{path}: array {name} is not finite float64")
-    design = Design(scenario=scenario, meta=meta, **{name: raw[name] for name in expect})
+    design = _assemble(scenario, info, meta, raw)
     if expect_scenario is not None:
         check_matches(design, expect_scenario, str(path))
     return design
+
+
+def _assemble(scenario: Scenario, info: PlantInfo, meta: dict, a: dict[str, np.ndarray]) -> Design:
+    p = scenario.problem
+    model = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=DenseFieldMap(a["G"]), dims=a["rom_dims"],
+                     Bw=a.get("Bw"))
+    W, V = p.noise_covariances(info.noise_dim, info.n_y)
+    lqg = LQG("rom_lqg", model, a["K"], schedule_from_posteriors(model, a["L"], a["P_post"], W), W, V,
+              a["field_std"])
+    objective = Objective(a["target"], p.q_weights(), float(p.band), p.window, float(p.r_u))
+    nominal = Nominal(a["u_nom"], a["y_nom"], a["field_nom"], a["belief_mean"], a["belief_std"])
+    return Design(scenario, info, objective, a["field_xyz"], nominal, lqg, a["hankel_sv"], meta)
+
+
+def _upgrade_v1(path: Path, meta: dict, raw: dict) -> tuple[Scenario, PlantInfo, dict]:
+    """sep 0.1 design files: the slab only, flat scenario, field = state (T_nom)."""
+    try:
+        scenario = Scenario.from_dict(meta.pop("scenario"), f"{path} scenario")   # slab: built-in
+        plant = scenario.plant
+    except (ScenarioError, KeyError, TypeError) as exc:
+        raise DesignFileError(f"{path}: bad scenario record of a version 1 file: {exc}") from None
+    raw = dict(raw)
+    if "T_nom" not in raw:
+        raise DesignFileError(f"{path}: missing arrays ['T_nom']")
+    raw["field_nom"] = raw.pop("T_nom")
+    raw["field_xyz"] = plant.field_coordinates()
+    raw["target"] = scenario.problem.target_field(raw["field_xyz"])
+    meta.setdefault("upgraded_from_version", 1)
+    return scenario, PlantInfo.of(plant), raw
 
 
 def _check_members(path: Path) -> None:
@@ -179,7 +255,7 @@ def _check_members(path: Path) -> None:
 
 def check_matches(design: Design, plant: Scenario, where: str = "design file") -> None:
     """Raise `DesignFileError` naming every plant value where design and plant differ."""
-    diff = mismatches(design.scenario, plant)
+    diff = design.scenario.plant_mismatches(plant)
     if diff:
         raise DesignFileError(f"{where} was designed for another plant: " + "; ".join(diff) +
                               ". Re-run `design` with this plant's scenario, or run the plant with the "

@@ -21,23 +21,29 @@ from typing import Callable
 
 import numpy as np
 
-StepFn = Callable[[np.ndarray, np.ndarray], np.ndarray]     # (M, n_x), (M, n_u) -> (M, n_x)
+StepFn = Callable[..., np.ndarray]                          # (M, n_x), (M, n_u)[, (M, n_w)] -> (M, n_x)
 ObserveFn = Callable[[np.ndarray], np.ndarray]              # (M, n_x) -> (M, n_y)
+FieldFn = Callable[[np.ndarray], np.ndarray]                # (M, n_x) -> (M, n_field)
 
 
 @dataclass
 class EnKFResult:
-    mean: np.ndarray   # (N+1, n_x) analysis means (k = 0 is the initial ensemble)
-    std: np.ndarray    # (N+1, n_x) per-state standard deviations
+    mean: np.ndarray   # (N+1, n_f) analysis means of the field (k = 0 is the initial ensemble)
+    std: np.ndarray    # (N+1, n_f) per-node standard deviations (n_f = n_x without a field map)
 
 
 class EnsembleKalmanFilter:
     """Stochastic EnKF with a given random generator (reproducible)."""
 
     def __init__(self, step: StepFn, observe: ObserveFn, w_std: np.ndarray | float,
-                 v_std: np.ndarray | float, rng: np.random.Generator, antithetic: bool = False):
+                 v_std: np.ndarray | float, rng: np.random.Generator, antithetic: bool = False,
+                 field: FieldFn | None = None, noise_on_inputs: bool = True):
+        """`step(X, u + w)` when the noise enters the inputs, else `step(X, u, w)` with w of
+        len(w_std) channels; `field` maps members to the field whose mean/std `run` reports."""
         self.step, self.observe, self.rng = step, observe, rng
         self.antithetic = antithetic
+        self.field = field
+        self.noise_on_inputs = noise_on_inputs
         self.w_std = np.asarray(w_std, dtype=float)
         self.v_std = np.asarray(v_std, dtype=float)
 
@@ -51,8 +57,11 @@ class EnsembleKalmanFilter:
 
     def forecast(self, X: np.ndarray, u: np.ndarray) -> np.ndarray:
         M, n_u = X.shape[0], np.shape(u)[-1]
-        w = self._draw(M, n_u) * self.w_std
-        return self.step(X, np.broadcast_to(u, (M, n_u)) + w)
+        if self.noise_on_inputs:
+            w = self._draw(M, n_u) * self.w_std
+            return self.step(X, np.broadcast_to(u, (M, n_u)) + w)
+        w = self._draw(M, self.w_std.size) * self.w_std
+        return self.step(X, np.broadcast_to(u, (M, n_u)), w)
 
     def analysis(self, X: np.ndarray, y: np.ndarray) -> np.ndarray:
         M = X.shape[0]
@@ -72,10 +81,12 @@ class EnsembleKalmanFilter:
         """Filter along inputs U (N, n_u) and observations Y (N+1, n_y) (y_0 unused: x_0 is the prior)."""
         N = U.shape[0]
         X = np.array(X0, dtype=float)
-        mean = np.empty((N + 1, X.shape[1]))
+        F = X if self.field is None else self.field(X)
+        mean = np.empty((N + 1, F.shape[1]))
         std = np.empty_like(mean)
-        mean[0], std[0] = X.mean(axis=0), X.std(axis=0, ddof=1)
+        mean[0], std[0] = F.mean(axis=0), F.std(axis=0, ddof=1)
         for k in range(N):
             X = self.analysis(self.forecast(X, U[k]), Y[k + 1])
-            mean[k + 1], std[k + 1] = X.mean(axis=0), X.std(axis=0, ddof=1)
+            F = X if self.field is None else self.field(X)
+            mean[k + 1], std[k + 1] = F.mean(axis=0), F.std(axis=0, ddof=1)
         return EnKFResult(mean, std)

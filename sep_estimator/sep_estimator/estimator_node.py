@@ -1,10 +1,14 @@
 """`estimator`: the time-varying Kalman filter on the ROM as a ROS 2 node (DESIGN.md §4).
 
+A thin node around `sep_estimator.estimator_core.EstimatorCore` (the filter with its episode
+logic: gaps, restarts, late inputs, NIS); here: parameters, topics, message checks, diagnostics.
+
 Subscribes slab/measurements (y_k), slab/heat_applied (inputs the plant applied at step k),
 slab/heat_command (the commanded inputs, used only when the applied ones are late) and
 slab/scenario (checked against the design file); publishes slab/state_estimate (a_hat_k,
 names a_0..a_{n_r-1}), slab/field_estimate (T_nom_k + G_k a_hat_k with its per-node std, the
-contract PointCloud2) and /diagnostics.
+contract PointCloud2; for grid plants also slab/field_estimate_image) and /diagnostics. The
+estimate and field messages are built only while somebody subscribes to them.
 
 Per step: measurement y_k -> ``update(k, y_k - ybar_k)`` (or ``skip(k)`` if the measurement
 is rejected) -> publish the estimate; the time update ``predict(k, u_k - ubar_k)`` runs as
@@ -28,15 +32,15 @@ updates is reported with the 99 % interval for a consistent filter (WARN outside
 from __future__ import annotations
 
 import sys
-from collections import deque
 
 import numpy as np
 
 from sep_plant import contract as c
 from sep_plant import gate
-from sep_plant.node_util import (fmt_s, limit_blas_threads, make_executor, parse_front, percentiles, run_node,
-                                 sim_time_default, steady)
+from sep_plant.node_util import (SampleWindow, declare, fmt_s, limit_blas_threads, make_executor, parse_front,
+                                 run_node, sim_time_default, steady)
 
+from .estimator_core import EstimatorCore
 from .ros_common import DesignedNode, scenario_summary, spin_episode
 
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/estimator.yaml):
@@ -49,48 +53,29 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/co
   summary_file (str, '')           end-of-episode summary JSON
   use_sim_time (bool, true)        time from the plant's /clock"""
 
-NIS_WINDOW = 50
-
-
 class EstimatorNode(DesignedNode):
     role = 'estimator'
 
     def __init__(self, design=None, subscribe_command: bool = True, on_estimate=None):
-        from sep_estimator.tvkf import filter_from_design
-
         super().__init__('estimator', design)
         node = self.node
-        self.publish_field = c_decl(node, 'publish_field_estimate', True,
-                                    'publish slab/field_estimate (reconstructed field with std)')
+        self.publish_field = declare(node, 'publish_field_estimate', True,
+                                     'publish slab/field_estimate (reconstructed field with std)')
         d = self.design
-        self.kf = filter_from_design(d)
-        self.sensors = self.s.sensor_labels()
-        self.heaters = self.s.heater_labels()
+        nom = d.nominal
+        self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field)
+        self.sensors = list(self.info.output_names)
+        self.heaters = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
-        self.x_grid = self.s.grid()
-        self.v_var = self.s.v_std ** 2
+        self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name)
         self.on_estimate = on_estimate           # direct hook (lqg): f(k, a_hat (n_r,)) -> None
-        self.started = False
-        self.last_meas = -1
-        self.applied = np.full((self.N, self.s.n_u), np.nan)
-        self.commanded = np.full((self.N, self.s.n_u), np.nan)
-        self.used_du: dict[int, np.ndarray] = {}  # step -> du used when the applied input was late
-        self.meas_kind: dict[int, str] = {}       # step -> 'update' | 'skip' (for late corrections)
         self.rej = gate.RejectionLog()
-        self.n_updates = self.n_skipped = self.n_gap = self.restarts = 0
-        self.input_source = {'applied': 0, 'commanded': 0, 'nominal': 0}
-        self.late_corrected = self.late_uncorrected = 0
-        self.nis: deque[float] = deque(maxlen=NIS_WINDOW)
-        self.nis_sum = 0.0
-        self.nis_n = 0
-        self.compute_s: list[float] = []
-        self._prior = None
-        # innovation covariance inverses S_k^-1 = (C_k P_{k|k-1} C_k' + V)^-1 of the schedule (NIS)
-        C, Pp = d.C, self.kf.P_prior_sched
-        self.S_inv = np.linalg.inv(C @ Pp @ C.transpose(0, 2, 1) + self.v_var * np.eye(self.s.n_y))
+        self.compute_s = SampleWindow()
 
         self.pub_est = node.create_publisher(c.TOPIC_TYPES[c.STATE_ESTIMATE], c.STATE_ESTIMATE, c.LOOP_QOS)
         self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE], c.FIELD_ESTIMATE, c.FIELD_QOS)
+        self.pub_image = (node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE_IMAGE], c.FIELD_ESTIMATE_IMAGE,
+                                                c.FIELD_QOS) if self.info.grid_shape else None)
         # heat_applied before measurements: when both are ready, the executor takes them in
         # creation order, so u_k is used before y_{k+1} is processed
         self.sub_u = node.create_subscription(c.TOPIC_TYPES[c.HEAT_APPLIED], c.HEAT_APPLIED,
@@ -101,7 +86,7 @@ class EstimatorNode(DesignedNode):
                                                  self._on_command, c.LOOP_QOS)
                         if subscribe_command else None)
         self._warm_up()
-        self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(self.s)}), '
+        self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
                       f'namespace {node.get_namespace()}, use_sim_time '
                       f"{node.get_parameter('use_sim_time').value}")
 
@@ -109,76 +94,31 @@ class EstimatorNode(DesignedNode):
         """Run every per-step code path once on throwaway objects (first calls into numpy,
         LAPACK and the message type support are slow), so step 0 meets a real-time deadline."""
         from rclpy.serialization import serialize_message
-        from sep_estimator.tvkf import filter_from_design
 
         d = self.design
-        kf = filter_from_design(d)
-        a = kf.update(0, np.zeros(self.s.n_y))
-        np.clip(d.u_nom[0] + a @ d.K[0].T, self.s.u_min, self.s.u_max)   # the LQR law's ops
-        kf.field_std(precomputed=d.field_std)
-        kf.predict(0, np.zeros(self.s.n_u))
-        kf.skip(1)
-        kf.field_std()
-        y = d.y_nom[0]
-        gate.check_vector(self.sensors, y, self.sensors)
-        for msg in (c.joint_state(0, self.s.dt, self.labels, position=a[0]),
-                    c.joint_state(0, self.s.dt, self.heaters, effort=d.u_nom[0]),
-                    c.field_cloud(0, self.s.dt, self.x_grid, d.T_nom[0] + d.G[0] @ a[0], d.field_std[0])):
+        core = EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field)
+        a, _ = core.measurement(0, d.nominal.y[0])
+        lo, hi = d.problem.limits(self.info.n_u)
+        np.clip(d.nominal.u[0] + a @ d.lqg.K[0].T, lo, hi)   # the LQR law's ops
+        f, std = core.field_estimate()
+        core.applied(0, d.nominal.u[0])
+        core.measurement(2, None)                            # gap + skip: the off-schedule paths
+        core.field_estimate()
+        gate.check_vector(self.sensors, d.nominal.y[0], self.sensors)
+        for msg in (c.joint_state(0, self.dt, self.labels, position=a),
+                    c.joint_state(0, self.dt, self.heaters, effort=d.nominal.u[0]),
+                    self.cloud.build(0, self.dt, f, std)):
             serialize_message(msg)
-        C = d.C[0]
-        np.linalg.solve(C @ kf.P @ C.T + self.v_var * np.eye(C.shape[0]), y)
 
     # -------------------------------------------------------------- helpers
-    def _reject(self, what: str, rej: gate.Rejection, k: int | None = None) -> None:
-        self.rej.add(rej)
-        self.log.warning(f"rejected {what}{'' if k is None else f' (step {k})'}: {rej} "
-                         f'({self.rej.total} rejected so far)')
-        self.publish_diagnostics()
-
     def _step_of(self, msg, what: str, last_step: int) -> int | None:
         k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if rej is None:
             rej = gate.check_horizon(k, last_step)
         if rej is not None:
-            self._reject(what, rej)
+            self.reject(what, rej, self.rej)
             return None
         return k
-
-    def filter_step(self) -> int:
-        """The step whose measurement the filter expects next."""
-        return self.kf.k + 1 if self.kf.posterior else self.kf.k
-
-    def _du(self, j: int) -> np.ndarray:
-        """Input deviation of step j for the time update: applied, else commanded, else nominal."""
-        if not np.isnan(self.applied[j, 0]):
-            self.input_source['applied'] += 1
-            return self.applied[j] - self.design.u_nom[j]
-        if not np.isnan(self.commanded[j, 0]):
-            self.input_source['commanded'] += 1
-            du = self.commanded[j] - self.design.u_nom[j]
-        else:
-            self.input_source['nominal'] += 1
-            du = np.zeros(self.s.n_u)
-        self.used_du[j] = du
-        return du
-
-    def _advance_to(self, k: int) -> None:
-        """Bring the filter to the prior of step k (restart, or skip/predict through a gap)."""
-        if not self.started:
-            self.started = True
-            if k > 0:
-                self.kf.restart_at(k)
-                self.restarts += 1
-                self.log.warning(f'joining the episode at step {k}: restart_at({k}) '
-                                 '(estimate = nominal, open-loop covariance)')
-            return
-        while self.kf.k < k:
-            j = self.kf.k
-            if not self.kf.posterior:
-                self.kf.skip(j)
-                self.meas_kind[j] = 'skip'
-                self.n_gap += 1
-            self.kf.predict(j, self._du(j))
 
     # -------------------------------------------------------------- inputs
     def _on_measurement(self, msg) -> None:
@@ -186,96 +126,47 @@ class EstimatorNode(DesignedNode):
         k = self._step_of(msg, 'measurement', self.N)
         if k is None:
             return
-        if self.started:
-            rej = gate.check_step(k, expected=self.filter_step(), last=self.last_meas, allow_ahead=True)
-            if rej is not None:
-                self._reject('measurement', rej, k)
-                return
-        y, rej = gate.check_vector(msg.name, msg.position, self.sensors, 'measurement position')
-        self.last_meas = k
+        y, bad = gate.check_vector(msg.name, msg.position, self.sensors, 'measurement position')
+        restarts = self.core.restarts
+        a, rej = self.core.measurement(k, y)
+        if rej is not None:                    # stale or duplicate: the filter is untouched
+            self.reject('measurement', rej, self.rej, k)
+            return
+        if bad is not None:                    # malformed: the filter skipped the update
+            self.reject('measurement', bad, self.rej, k)
+        if self.core.restarts > restarts:
+            self.log.warning(f'joining the episode at step {k}: restart_at({k}) '
+                             '(estimate = nominal, open-loop covariance)')
         self.last_k = k
-        self._advance_to(k)
-        if rej is not None:
-            self._reject('measurement', rej, k)
-            a = self.kf.skip(k)
-            self.meas_kind[k] = 'skip'
-            self.n_skipped += 1
-            self._prior = None
-        else:
-            self._prior = (k, self.kf.a.copy(), None if self.kf.on_schedule else self.kf.P.copy(), y)
-            a = self.kf.update(k, y - self.design.y_nom[k])
-            self.meas_kind[k] = 'update'
-            self.n_updates += 1
-        self._emit(k, a[0], t)
+        self._emit(k, a, t)
 
     def _emit(self, k: int, a: np.ndarray, t_recv: float) -> None:
         if self.on_estimate is not None:       # lqg: the command goes out first
             self.on_estimate(k, a)
-        self.pub_est.publish(c.joint_state(k, self.s.dt, self.labels, position=a))
+        # everything below is for other processes and viewers: built only when somebody listens
+        if self.pub_est.get_subscription_count() > 0:
+            self.pub_est.publish(c.joint_state(k, self.dt, self.labels, position=a))
         self.compute_s.append(steady() - t_recv)
-        # the cloud is n_x points: build it only when someone listens (viewers, recorder)
-        if self.publish_field and self.pub_field.get_subscription_count() > 0:
-            d = self.design
-            T_hat = d.T_nom[k] + d.G[k] @ a
-            std = self.kf.field_std(precomputed=d.field_std)
-            self.pub_field.publish(c.field_cloud(k, self.s.dt, self.x_grid, T_hat, std))
-        self._nis()
+        cloud = self.publish_field and self.pub_field.get_subscription_count() > 0
+        image = self.publish_field and self.pub_image is not None and self.pub_image.get_subscription_count() > 0
+        if cloud or image:
+            f, std = self.core.field_estimate()
+            if cloud:
+                self.pub_field.publish(self.cloud.build(k, self.dt, f, std))
+            if image:
+                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape))
         if k == self.N:
             self.done = True
-        # the applied input of step k may already be here (it never is in a healthy loop)
-        if k < self.N and not np.isnan(self.applied[k, 0]):
-            self.kf.predict(k, self._du(k))
-
-    def _nis(self) -> None:
-        if self._prior is None:
-            return
-        k, a, P, y = self._prior
-        self._prior = None
-        C = self.design.C[k]
-        innov = y - self.design.y_nom[k] - C @ a[0]
-        if P is None:                                   # on schedule: precomputed S_k^-1
-            val = float(innov @ self.S_inv[k] @ innov)
-        else:
-            S = C @ P @ C.T + self.v_var * np.eye(C.shape[0])
-            val = float(innov @ np.linalg.solve(S, innov))
-        self.nis.append(val)
-        self.nis_sum += val
-        self.nis_n += 1
 
     def _on_applied(self, msg) -> None:
         j = self._step_of(msg, 'heat_applied', self.N - 1)
         if j is None:
             return
         u, rej = gate.check_vector(msg.name, msg.effort, self.heaters, 'heat_applied effort')
-        if rej is None and not np.isnan(self.applied[j, 0]):
-            rej = gate.Rejection(gate.DUPLICATE, f'second heat_applied for step {j}')
+        if rej is None:
+            rej = self.core.applied(j, u)
         if rej is not None:
-            self._reject('heat_applied', rej, j)
-            return
-        self.applied[j] = u
-        if not self.started:
-            return
-        kf = self.kf
-        if kf.k == j and kf.posterior:
-            kf.predict(j, self._du(j))            # the usual case: time update right away
-        elif j in self.used_du and kf.k == j + 1:
-            self._correct_late(j, u)
-        elif j in self.used_du:
-            self.late_uncorrected += 1
-
-    def _correct_late(self, j: int, u: np.ndarray) -> None:
-        """The filter predicted step j with an assumed input; the applied one differs."""
-        used = self.used_du.pop(j)
-        delta_du = (u - self.design.u_nom[j]) - used
-        if not np.any(delta_du):
-            return
-        delta = self.design.B[j] @ delta_du
-        if self.kf.posterior and self.meas_kind.get(j + 1) == 'update':
-            C = self.design.C[j + 1]
-            L = self.kf.P @ C.T / self.v_var          # Kalman gain = P_{k|k} C' V^-1
-            delta = delta - L @ (C @ delta)
-        self.kf.a = self.kf.a + delta
-        self.late_corrected += 1
+            self.reject('heat_applied', rej, self.rej, j)
 
     def _on_command(self, msg) -> None:
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
@@ -287,20 +178,12 @@ class EstimatorNode(DesignedNode):
 
     def note_command(self, j: int, u: np.ndarray) -> None:
         """The command of step j (from the LQR in the same process, or heat_command)."""
-        self.commanded[j] = u
+        self.core.commanded(j, u)
 
     # -------------------------------------------------------------- report
-    def nis_stats(self) -> dict:
-        n_y = self.s.n_y
-        recent = float(np.mean(self.nis)) if self.nis else None
-        lo, hi = gate.chi2_interval(n_y, len(self.nis), 0.99)
-        return {'nis_mean': self.nis_sum / self.nis_n if self.nis_n else None,
-                'nis_recent_mean': recent, 'nis_expected': n_y, 'nis_recent_interval_99': [lo, hi],
-                'nis_consistent': None if recent is None else bool(lo <= recent <= hi)}
-
     def health(self) -> c.Health:
-        nis = self.nis_stats()
-        comp = percentiles(self.compute_s)
+        nis = self.core.nis_stats()
+        comp = self.compute_s.percentiles()
         level, message = c.OK, 'ok'
         problems = []
         if self.rej.total:
@@ -310,30 +193,21 @@ class EstimatorNode(DesignedNode):
                             f"[{nis['nis_recent_interval_99'][0]:.2f}, {nis['nis_recent_interval_99'][1]:.2f}]")
         if problems:
             level, message = c.WARN, '; '.join(problems)
-        return c.Health(name=self.node.get_fully_qualified_name(), hardware_id='slab_estimator',
+        return c.Health(name=self.node.get_fully_qualified_name(), hardware_id='sep_estimator',
                         level=level, message=message, values={
-                            'step': self.last_k, 'n_steps': self.N,
-                            'updates': self.n_updates, 'skipped_updates': self.n_skipped,
-                            'missing_measurements': self.n_gap, 'restarts': self.restarts,
+                            'step': self.last_k, 'n_steps': self.N, **self.core.counters(),
                             'rejected_messages': self.rej.total,
                             'rejected_by_reason': self.rej.as_dict(),
                             'last_rejection': str(self.rej.last or ''),
-                            'input_source': self.input_source,
-                            'late_inputs_corrected': self.late_corrected,
-                            'late_inputs_uncorrected': self.late_uncorrected,
                             **nis, 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
                             'design_file': self.design_file})
 
     def summary(self, status: str) -> dict:
-        comp = percentiles(self.compute_s)
+        comp = self.compute_s.percentiles()
         return {'node': 'estimator', 'status': status, 'design_file': self.design_file,
-                'steps': self.last_k, 'n_steps': self.N, 'updates': self.n_updates,
-                'skipped_updates': self.n_skipped, 'missing_measurements': self.n_gap,
-                'restarts': self.restarts, 'rejected_messages': self.rej.total,
-                'rejected_by_reason': self.rej.as_dict(), 'input_source': self.input_source,
-                'late_inputs_corrected': self.late_corrected,
-                'late_inputs_uncorrected': self.late_uncorrected, **self.nis_stats(),
-                'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99']}
+                'steps': self.last_k, 'n_steps': self.N, **self.core.counters(),
+                'rejected_messages': self.rej.total, 'rejected_by_reason': self.rej.as_dict(),
+                **self.core.nis_stats(), 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99']}
 
     def summary_line(self, s: dict) -> str:
         nis = 'n/a' if s['nis_mean'] is None else f"{s['nis_mean']:.2f} (expected {s['nis_expected']})"
@@ -342,12 +216,7 @@ class EstimatorNode(DesignedNode):
                 f"compute p50 {fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}")
 
     def publishers(self):
-        return [self.pub_est, self.pub_field, self.pub_diag]
-
-
-def c_decl(node, name, default, description):
-    from sep_plant.node_util import declare
-    return declare(node, name, default, description)
+        return [p for p in (self.pub_est, self.pub_field, self.pub_image, self.pub_diag) if p is not None]
 
 
 class _Process:

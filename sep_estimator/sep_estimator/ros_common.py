@@ -11,9 +11,14 @@ from __future__ import annotations
 
 from typing import Iterable, Sequence
 
+import numpy as np
+
 from sep_plant import contract as c
-from sep_plant.node_util import (EXIT_OK, StartError, declare, flush_publishers, fmt_s, percentiles,
+from sep_plant.node_util import (EXIT_OK, StartError, Throttle, declare, flush_publishers, fmt_s, log_rejection,
                                  steady, write_json)
+
+#: at most this often a rejected message triggers an immediate /diagnostics message
+REJECTION_DIAGNOSTICS_PERIOD_S = 0.2
 
 _DESIGN_CACHE: dict[str, object] = {}
 
@@ -44,9 +49,12 @@ def load_design_checked(path: str, scenario_file: str = ''):
     return design
 
 
-def scenario_summary(s) -> str:
-    return (f'n_x={s.n_x}, n_u={s.n_u}, n_y={s.n_y}, dt={s.dt:g} s, N={s.n_steps}, '
-            f'u in [{s.u_min:g}, {s.u_max:g}]')
+def scenario_summary(design) -> str:
+    i, p = design.info, design.problem
+    lo, hi = p.limits(i.n_u)
+    lim = f'[{lo.min():g}, {hi.max():g}]' if np.all(lo == lo[0]) and np.all(hi == hi[0]) else 'per input'
+    return (f'plant {design.scenario.plant_type}, n_field={i.n_field}, n_u={i.n_u}, n_y={i.n_y}, '
+            f'dt={i.dt:g} s, N={p.n_steps}, u in {lim}')
 
 
 class DesignedNode:
@@ -79,9 +87,11 @@ class DesignedNode:
                                    '/diagnostics period (wall seconds)', lo=0.01, hi=3600.0)
         self.design = design if design is not None else load_design_checked(
             self.design_file, self.scenario_file)
-        self.s = self.design.scenario
+        self.info = self.design.info
+        self.dt = self.info.dt
         self.N = self.design.n_steps
-        self.dt_ns = c.dt_ns(self.s.dt)
+        self.dt_ns = c.dt_ns(self.dt)
+        self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
         self.done = False
         self.fatal: StartError | None = None
         self.finished = False
@@ -98,9 +108,10 @@ class DesignedNode:
     # ----------------------------------------------------------- scenario
     def _on_scenario(self, msg) -> None:
         from sep_estimator.design_file import DesignFileError, check_matches
+        from sep_plant.scenario import parse_scenario_payload
 
         try:
-            plant = c.parse_scenario(msg)
+            plant, _ = parse_scenario_payload(msg.data)
         except ValueError as exc:
             self.fatal = StartError(f'unreadable plant scenario on {self.sub_scenario.topic_name}: {exc}')
             return
@@ -131,10 +142,17 @@ class DesignedNode:
 
     def publish_diagnostics(self) -> None:
         try:
-            self.pub_diag.publish(c.diagnostics(c.stamp(max(self.last_k, 0), self.s.dt),
+            self.pub_diag.publish(c.diagnostics(c.stamp(max(self.last_k, 0), self.dt),
                                                 [self.health()]))
         except Exception:  # noqa: BLE001 - context gone during shutdown
             pass
+
+    def reject(self, what: str, rej, log, k: int | None = None) -> None:
+        """Count a rejected message, log it (throttled) and report it on /diagnostics (rate
+        limited), so a storm of bad messages costs neither memory nor the loop."""
+        log_rejection(self.log, log, rej, f"rejected {what}{'' if k is None else f' (step {k})'}")
+        if self.diag_throttle.ready():
+            self.publish_diagnostics()
 
     # -------------------------------------------------------------- finish
     def summary(self, status: str) -> dict:  # pragma: no cover - overridden
@@ -182,10 +200,4 @@ def spin_episode(executor, nodes: Sequence[DesignedNode]) -> int:
     return EXIT_OK
 
 
-def stats_values(prefix: str, samples) -> dict:
-    p = percentiles(samples)
-    return {f'{prefix}_p50_s': p['p50'], f'{prefix}_p99_s': p['p99'], f'{prefix}_max_s': p['max']}
-
-
-__all__ = ['DesignedNode', 'load_design_checked', 'scenario_summary', 'spin_episode', 'stats_values',
-           'fmt_s']
+__all__ = ['DesignedNode', 'load_design_checked', 'scenario_summary', 'spin_episode', 'fmt_s']

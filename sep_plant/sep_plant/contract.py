@@ -1,26 +1,8 @@
-"""The topic contract of DESIGN.md §4 on the ROS side: names, QoS, message builders/parsers.
+"""The topic contract on the ROS side: QoS profiles and message builders/parsers.
 
-Every node of sep (plant, estimator, LQR, lqg, recorder, test collectors) takes its topic
-names, QoS profiles and message layouts from here, so there is exactly one definition.
-Bag readers that do not import ROS (helper tools using `rosbags`) decode the same layouts:
-they are fixed below and documented field by field.
-
-Topics (relative names resolve in the node's namespace, ``slab`` by default; remap the whole
-graph with ``--ros-args -r __ns:=/other``; /clock and /diagnostics are absolute):
-
-======================  ===========================  ==========================================
-topic                   type                         content
-======================  ===========================  ==========================================
-/clock                  rosgraph_msgs/Clock          simulated time k*dt (plant)
-slab/measurements       sensor_msgs/JointState       position = y_k [F]; names = sensor_i
-slab/heat_command       sensor_msgs/JointState       effort = u_k; names = heater_j
-slab/heat_applied       sensor_msgs/JointState       effort = inputs applied at step k
-slab/state_estimate     sensor_msgs/JointState       position = ROM estimate a_hat_k; names a_i
-slab/field_estimate     sensor_msgs/PointCloud2      x, y, z, temperature, temperature_std
-slab/field              sensor_msgs/PointCloud2      true field (temperature_std = 0)
-slab/scenario           std_msgs/String              the plant's scenario as JSON (latched)
-/diagnostics            diagnostic_msgs/DiagnosticArray  node health
-======================  ===========================  ==========================================
+The contract itself (names, types, QoS as data, stamps, cloud layout) is `sep_plant.topics`
+(no ROS import), shared with the recorder and the bag reader; this module turns it into rclpy
+objects. Every node takes its topic names, QoS profiles and message layouts from here.
 
 QoS, chosen on purpose:
 
@@ -30,30 +12,20 @@ QoS, chosen on purpose:
   nothing measurable (see bench/bench_latency.py).  Depth 10: a subscriber that falls a few
   steps behind still gets every step in order; a stale one is then refused by its step gate.
   VOLATILE: a late joiner must not act on old steps.
-* **Field clouds** (field, field_estimate): the publisher offers RELIABLE, KEEP_LAST depth 50.
-  Nothing in the loop reads them: they are for viewers and bags.  A reliable *offer* matches
-  both kinds of subscriber: the recorder subscribes reliably (a bag should hold every step,
-  so its metrics equal the live run's), while viewers, where loss is fine, subscribe with the
-  sensor-data profile (`FIELD_VIEWER_QOS`, best effort, depth 5) and never slow the writer.
+* **Field clouds and images**: the publisher offers RELIABLE, KEEP_LAST depth 50. Nothing in
+  the loop reads them: they are for viewers and bags.  A reliable *offer* matches both kinds of
+  subscriber: the recorder subscribes reliably (a bag should hold every step, so its metrics
+  equal the live run's), while viewers (RViz, Foxglove), where loss is fine, subscribe with the
+  sensor-data profile (`VIEWER_QOS`, best effort, depth 5) and never slow the writer.
 * **/diagnostics**: RELIABLE, VOLATILE, depth 10, like diagnostic_updater.
-* **slab/scenario**: RELIABLE, TRANSIENT_LOCAL, depth 1 (latched): the plant publishes its
-  scenario once; nodes started later (a restarted estimator, the recorder) still receive it
-  and can refuse a design file made for another plant.
+* **scenario**: RELIABLE, TRANSIENT_LOCAL, depth 1 (latched): the plant publishes its scenario
+  once; nodes started later (a restarted estimator, the recorder) still receive it and can
+  refuse a design file made for another plant.
 * **/clock**: the plant publishes RELIABLE depth 10; rclpy's time source subscribes best
   effort depth 1 (the latest time is all that matters), which matches.
 
-Stamps: a message of step k carries header.stamp = k*dt on the simulated clock, computed in
-integer nanoseconds as k * round(dt * 1e9) (no float drift over long episodes), frame_id
-``slab``.  `step_of_stamp` inverts it with a tolerance.
-
-PointCloud2 layout (fixed; little endian): height 1, width n_x, fields
-x, y, z, temperature, temperature_std, all FLOAT64 (datatype 8, count 1) at offsets
-0, 8, 16, 24, 32; point_step 40, row_step 40 n_x, is_dense true, is_bigendian false.
-x = node position [L units], y = z = 0; temperature [F]; temperature_std [F] (0 for the true
-field).
-
 This module imports rclpy and the message packages; the pure checks of message content
-(lengths, names, finiteness, stamp order) are in `sep_estimator.gate` (no ROS import).
+(lengths, names, finiteness, stamp order) are in `sep_plant.gate` (no ROS import).
 """
 from __future__ import annotations
 
@@ -68,58 +40,47 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState, PointCloud2, PointField
+from sensor_msgs.msg import Image, JointState, PointCloud2, PointField
 from std_msgs.msg import Header, String
 
-# ---------------------------------------------------------------------------- names
-NAMESPACE = 'slab'
-FRAME_ID = 'slab'
+from . import topics as T
+from .topics import (CLOCK, DIAGNOSTICS, FIELD, FIELD_ESTIMATE, FIELD_ESTIMATE_IMAGE, FIELD_IMAGE,  # noqa: F401
+                     FRAME_ID, HEAT_APPLIED, HEAT_COMMAND, MEASUREMENTS, NAMESPACE, SCENARIO, STATE_ESTIMATE,
+                     CloudLayoutError, dt_ns, stamp_ns, topic_name)
 
-CLOCK = '/clock'
-DIAGNOSTICS = '/diagnostics'
-MEASUREMENTS = 'measurements'
-HEAT_COMMAND = 'heat_command'
-HEAT_APPLIED = 'heat_applied'
-STATE_ESTIMATE = 'state_estimate'
-FIELD_ESTIMATE = 'field_estimate'
-FIELD = 'field'
-SCENARIO = 'scenario'
+_CLASSES = {T.JOINT_STATE: JointState, T.POINT_CLOUD2: PointCloud2, T.IMAGE: Image, T.STRING: String,
+            T.CLOCK_TYPE: Clock, T.DIAGNOSTIC_ARRAY: DiagnosticArray}
 
-#: relative topic name -> message type, for the contract topics in the node namespace
-TOPIC_TYPES = {
-    MEASUREMENTS: JointState,
-    HEAT_COMMAND: JointState,
-    HEAT_APPLIED: JointState,
-    STATE_ESTIMATE: JointState,
-    FIELD_ESTIMATE: PointCloud2,
-    FIELD: PointCloud2,
-    SCENARIO: String,
-}
+#: contract name -> message class
+TOPIC_TYPES = {t.name: _CLASSES[t.type_name] for t in T.TOPICS}
 
-#: ROS type names (as in a rosbag2 metadata file) of every contract topic
-TYPE_NAMES = {
-    JointState: 'sensor_msgs/msg/JointState',
-    PointCloud2: 'sensor_msgs/msg/PointCloud2',
-    String: 'std_msgs/msg/String',
-    Clock: 'rosgraph_msgs/msg/Clock',
-    DiagnosticArray: 'diagnostic_msgs/msg/DiagnosticArray',
-}
+
+def qos(spec: T.QosSpec) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=spec.depth,
+                      reliability=ReliabilityPolicy.RELIABLE if spec.reliable else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if spec.transient_local
+                      else DurabilityPolicy.VOLATILE)
+
+
+#: QoS of every contract topic as *published* (subscribers use the same, except viewers)
+TOPIC_QOS = {t.name: qos(t.qos) for t in T.TOPICS}
+LOOP_QOS = qos(T.LOOP)
+FIELD_QOS = qos(T.VIEW)
+SCENARIO_QOS = qos(T.LATCHED)
+DIAGNOSTICS_QOS = TOPIC_QOS[DIAGNOSTICS]
+CLOCK_QOS = TOPIC_QOS[CLOCK]
+#: for subscribers of the field clouds and images that only display them (loss is fine)
+VIEWER_QOS = qos_profile_sensor_data
 
 
 def topic(name: str, namespace: str = NAMESPACE) -> str:
     """Fully qualified name of a contract topic (absolute names are returned unchanged)."""
-    if name.startswith('/'):
-        return name
-    ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
-    return f'{ns}/{name}'
+    return topic_name(name, namespace)
 
 
 def all_topics(namespace: str = NAMESPACE) -> dict[str, str]:
     """Fully qualified topic name -> ROS type name, for every topic of the contract."""
-    out = {topic(n, namespace): TYPE_NAMES[t] for n, t in TOPIC_TYPES.items()}
-    out[CLOCK] = TYPE_NAMES[Clock]
-    out[DIAGNOSTICS] = TYPE_NAMES[DiagnosticArray]
-    return out
+    return {topic_name(t.name, namespace): t.type_name for t in T.TOPICS}
 
 
 def state_labels(n_r: int) -> list[str]:
@@ -127,44 +88,7 @@ def state_labels(n_r: int) -> list[str]:
     return [f'a_{i}' for i in range(n_r)]
 
 
-# ------------------------------------------------------------------------------ QoS
-LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                      reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
-FIELD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-#: for subscribers of the field clouds that only display them (loss is fine)
-FIELD_VIEWER_QOS = qos_profile_sensor_data
-DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                             reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.VOLATILE)
-SCENARIO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-
-#: QoS of every contract topic as *published* (subscribers use the same, except viewers)
-TOPIC_QOS = {
-    MEASUREMENTS: LOOP_QOS, HEAT_COMMAND: LOOP_QOS, HEAT_APPLIED: LOOP_QOS,
-    STATE_ESTIMATE: LOOP_QOS, FIELD_ESTIMATE: FIELD_QOS, FIELD: FIELD_QOS,
-    SCENARIO: SCENARIO_QOS, CLOCK: CLOCK_QOS, DIAGNOSTICS: DIAGNOSTICS_QOS,
-}
-
-
 # --------------------------------------------------------------------------- stamps
-def dt_ns(dt: float) -> int:
-    """The step length in integer nanoseconds."""
-    return int(round(dt * 1e9))
-
-
-def stamp_ns(k: int, dt: float) -> int:
-    """Simulated time of step k in nanoseconds: k * round(dt * 1e9)."""
-    return int(k) * dt_ns(dt)
-
-
 def stamp(k: int, dt: float) -> Time:
     """builtin_interfaces/Time of step k."""
     ns = stamp_ns(k, dt)
@@ -179,19 +103,10 @@ def time_ns(t: Time) -> int:
     return int(t.sec) * 1_000_000_000 + int(t.nanosec)
 
 
-def step_of_stamp(t: Time | int, dt: float, tol_ns: int | None = None) -> int | None:
-    """Step k whose stamp is k*dt, or None when the stamp is not within `tol_ns` of a step
-    (default tolerance: 1 % of dt) or is negative."""
-    ns = t if isinstance(t, int) else time_ns(t)
-    step = dt_ns(dt)
-    if tol_ns is None:
-        tol_ns = max(1, step // 100)
-    if ns < -tol_ns:
-        return None
-    k = (ns + step // 2) // step
-    if abs(ns - k * step) > tol_ns or k < 0:
-        return None
-    return int(k)
+def step_of_stamp(t: Time | int, dt: float) -> int | None:
+    """Step k of a stamp (a Time or integer nanoseconds), or None when off the step grid
+    (`sep_plant.topics.step_of_stamp`: one tolerance, 0.1 % of dt)."""
+    return T.step_of_stamp(t if isinstance(t, int) else time_ns(t), dt_ns(dt))
 
 
 def clock_msg(k: int, dt: float) -> Clock:
@@ -211,72 +126,56 @@ def joint_state(k: int, dt: float, names: Sequence[str], *, position=None, effor
     return msg
 
 
-def joint_values(msg: JointState, field: str) -> np.ndarray:
-    """The `position` / `effort` / `velocity` array of a JointState as float64 numpy."""
-    return np.asarray(getattr(msg, field), dtype=np.float64)
-
-
 # ---------------------------------------------------------------------- PointCloud2
-CLOUD_FIELDS = ('x', 'y', 'z', 'temperature', 'temperature_std')
-CLOUD_POINT_STEP = 8 * len(CLOUD_FIELDS)
-_CLOUD_DTYPE = np.dtype('<f8')
-_POINT_FIELDS = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
-                 for i, n in enumerate(CLOUD_FIELDS)]
+class CloudBuilder:
+    """Builds the contract PointCloud2 of one plant's field (layout fixed once)."""
 
+    def __init__(self, xyz: np.ndarray, field_name: str):
+        self.xyz = np.asarray(xyz, dtype=np.float64)
+        self.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
+                       for i, n in enumerate(T.cloud_fields(field_name))]
 
-def field_cloud(k: int, dt: float, x: np.ndarray, temperature: np.ndarray,
-                std: np.ndarray | None = None) -> PointCloud2:
-    """The fixed-layout PointCloud2 of a field at step k (std None -> zeros, the true field)."""
-    n = x.shape[0]
-    buf = np.empty((n, len(CLOUD_FIELDS)), dtype=_CLOUD_DTYPE)
-    buf[:, 0] = x
-    buf[:, 1:3] = 0.0
-    buf[:, 3] = np.ravel(temperature)
-    buf[:, 4] = 0.0 if std is None else np.ravel(std)
-    msg = PointCloud2()
-    msg.header = header(k, dt)
-    msg.height = 1
-    msg.width = n
-    msg.fields = _POINT_FIELDS
-    msg.is_bigendian = False
-    msg.point_step = CLOUD_POINT_STEP
-    msg.row_step = CLOUD_POINT_STEP * n
-    msg.data = buf.tobytes()
-    msg.is_dense = True
-    return msg
-
-
-class CloudLayoutError(ValueError):
-    """A PointCloud2 does not have the contract layout."""
+    def build(self, k: int, dt: float, values: np.ndarray, std: np.ndarray | None = None) -> PointCloud2:
+        n = self.xyz.shape[0]
+        msg = PointCloud2()
+        msg.header = header(k, dt)
+        msg.height = 1
+        msg.width = n
+        msg.fields = self.fields
+        msg.is_bigendian = False
+        msg.point_step = T.POINT_STEP
+        msg.row_step = T.POINT_STEP * n
+        msg.data = T.cloud_payload(self.xyz, values, std)
+        msg.is_dense = True
+        return msg
 
 
 def parse_field_cloud(msg: PointCloud2) -> dict[str, np.ndarray]:
-    """Arrays x, y, z, temperature, temperature_std of a contract PointCloud2 (layout checked)."""
+    """Arrays x, y, z, <field>, <field>_std of a contract PointCloud2 (layout checked)."""
     names = [f.name for f in msg.fields]
-    if names != list(CLOUD_FIELDS):
-        raise CloudLayoutError(f'fields {names}, expected {list(CLOUD_FIELDS)}')
-    for i, f in enumerate(msg.fields):
-        if f.datatype != PointField.FLOAT64 or f.offset != 8 * i or f.count != 1:
-            raise CloudLayoutError(f'field {f.name}: datatype {f.datatype} offset {f.offset} '
-                                   f'count {f.count}, expected FLOAT64 at {8 * i}')
-    if msg.is_bigendian or msg.point_step != CLOUD_POINT_STEP or msg.height != 1:
-        raise CloudLayoutError('expected little endian, height 1, point_step 40')
-    n = msg.width
-    if len(msg.data) != n * CLOUD_POINT_STEP:
-        raise CloudLayoutError(f'data has {len(msg.data)} bytes, expected {n * CLOUD_POINT_STEP}')
-    arr = np.frombuffer(bytes(msg.data), dtype=_CLOUD_DTYPE).reshape(n, len(CLOUD_FIELDS))
-    return {name: arr[:, i].copy() for i, name in enumerate(CLOUD_FIELDS)}
+    T.check_cloud_layout(names, [f.datatype for f in msg.fields], [f.offset for f in msg.fields],
+                         msg.point_step, msg.height, msg.is_bigendian, msg.width, len(msg.data))
+    arr = T.parse_cloud_payload(msg.data, msg.width)
+    return {name: arr[:, i].copy() for i, name in enumerate(names)}
+
+
+# --------------------------------------------------------------------------- images
+def field_image(k: int, dt: float, values: np.ndarray, grid_shape: tuple[int, ...]) -> Image:
+    """sensor_msgs/Image 32FC1 of a grid field (the middle slice of a 3-D grid)."""
+    img = T.image_of_field(values, grid_shape)
+    msg = Image()
+    msg.header = header(k, dt)
+    msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
+    msg.encoding = '32FC1'
+    msg.is_bigendian = 0
+    msg.step = 4 * msg.width
+    msg.data = img.astype('<f4').tobytes()
+    return msg
 
 
 # ---------------------------------------------------------------------- scenario JSON
-def scenario_msg(scenario) -> String:
-    return String(data=scenario.to_json())
-
-
-def parse_scenario(msg: String):
-    """The Scenario of a slab/scenario message (raises ScenarioError / ValueError if bad)."""
-    from .scenario import Scenario
-    return Scenario.from_json(msg.data)
+def scenario_msg(scenario_json: str) -> String:
+    return String(data=scenario_json)
 
 
 # ------------------------------------------------------------------------ diagnostics

@@ -17,6 +17,8 @@ from typing import Sequence
 
 import numpy as np
 
+from . import topics
+
 # Rejection categories (counter keys on /diagnostics).
 NON_FINITE = 'non_finite'
 WRONG_LENGTH = 'wrong_length'
@@ -71,15 +73,15 @@ def check_vector(names: Sequence[str], values: Sequence[float], expected: Sequen
     return vals, None
 
 
-def step_of_stamp(ns: int, dt_ns: int, tol_ns: int | None = None) -> tuple[int | None, Rejection | None]:
-    """Step k of a stamp of `ns` nanoseconds on the grid k * dt_ns (tolerance: 1 % of dt)."""
-    if tol_ns is None:
-        tol_ns = max(1, dt_ns // 100)
-    k = (ns + dt_ns // 2) // dt_ns
-    if k < 0 or abs(ns - k * dt_ns) > tol_ns:
+def step_of_stamp(ns: int, dt_ns: int) -> tuple[int | None, Rejection | None]:
+    """Step k of a stamp of `ns` nanoseconds on the grid k * dt_ns, within the contract's
+    tolerance (`sep_plant.topics.STAMP_TOLERANCE`, 0.1 % of dt)."""
+    k = topics.step_of_stamp(ns, dt_ns)
+    if k is None:
         return None, Rejection(BAD_STAMP, f'stamp {ns * 1e-9:.9f} s is not a step of '
-                                          f'dt = {dt_ns * 1e-9:g} s')
-    return int(k), None
+                                          f'dt = {dt_ns * 1e-9:g} s (tolerance '
+                                          f'{topics.tolerance_ns(dt_ns) * 1e-6:g} ms)')
+    return k, None
 
 
 def check_step(k: int, *, expected: int, last: int, allow_ahead: bool) -> Rejection | None:

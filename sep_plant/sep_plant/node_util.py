@@ -221,3 +221,56 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
         if rclpy.ok():
             rclpy.shutdown()
     return rc
+
+
+class SampleWindow:
+    """The last `size` samples (seconds) for percentiles, plus the count and maximum of all:
+    memory stays bounded however long a node runs."""
+
+    def __init__(self, size: int = 4096):
+        from collections import deque
+
+        self._d: 'deque[float]' = deque(maxlen=size)
+        self.n = 0
+        self.max: float | None = None
+
+    def append(self, v: float) -> None:
+        self._d.append(v)
+        self.n += 1
+        self.max = v if self.max is None or v > self.max else self.max
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def percentiles(self) -> dict[str, float | None]:
+        out = percentiles(self._d)
+        out['n'], out['max'] = self.n, self.max
+        return out
+
+
+def log_rejection(logger, rejections, rej, text: str) -> None:
+    """Count a rejected message in `rejections` (a gate.RejectionLog) and log it: the first of
+    each kind at once, later ones at most once a second (a storm of bad messages must not flood
+    the log)."""
+    rejections.add(rej)
+    line = f'{text}: {rej} ({rejections.total} rejected so far)'
+    if rejections.counts[rej.category] == 1:
+        logger.warning(line)
+    else:
+        logger.warning(line, throttle_duration_sec=1.0)
+
+
+class Throttle:
+    """At most one event per `period` seconds (steady clock): rate-limits the diagnostics sent
+    on rejected messages, so a storm of bad messages cannot flood /diagnostics or the loop."""
+
+    def __init__(self, period: float):
+        self.period = period
+        self._next = 0.0
+
+    def ready(self) -> bool:
+        now = steady()
+        if now < self._next:
+            return False
+        self._next = now + self.period
+        return True

@@ -1,13 +1,16 @@
-"""`plant`: the simulated heat slab as a ROS 2 node (DESIGN.md §4).
+"""`plant`: any plant of the plant protocol as a ROS 2 node (DESIGN.md §4); the slab by default.
 
 Publishes /clock (simulated time k*dt), slab/measurements (y_k), slab/heat_applied (u applied
-at step k), slab/field (true field), slab/scenario (its scenario as JSON, latched) and
-/diagnostics; subscribes slab/heat_command.  One episode of N steps per process, then exit 0.
+at step k), slab/field (true field as a PointCloud2 with the nodes' x, y, z), for grid plants
+slab/field_image (32FC1; the middle slice of a 3-D grid), slab/scenario (its scenario and plant
+description as JSON, latched) and /diagnostics; subscribes slab/heat_command.  One episode of N
+steps per process, then exit 0.  The plant is checked against the protocol before step 0.
 
-Per step k = 0..N: publish /clock and y_k = h(T_k) + v_k; if k < N get the command u_k, apply
-clip(u_k), publish it on heat_applied, publish the field T_k, T_{k+1} = f(T_k, u + w_k).  The noise
-of (seed, run) is run `run` of `noise_sequences(scenario, seed, runs)`, the numbers the offline
-Monte Carlo uses for that run, so a lockstep episode reproduces it exactly.
+Per step k = 0..N: publish /clock and y_k = h(x_k) + v_k; if k < N get the command u_k, apply
+clip(u_k), publish it on heat_applied, publish the field f(x_k), x_{k+1} = f(x_k, u, w_k).  The
+noise of (seed, run) is run `run` of `noise_sequences(problem, info, seed, runs)`, the numbers the
+offline Monte Carlo uses for that run, so a lockstep episode reproduces it exactly.  The field
+messages are built only while somebody subscribes to them.
 
 Modes:
 * lockstep (default): after y_k, wait (up to command_timeout_s) for a valid command stamped k;
@@ -31,9 +34,10 @@ import numpy as np
 
 from . import contract as c
 from . import gate
-from .slab import clip_inputs
-from .node_util import (EXIT_OK, EpisodeError, StartError, declare, fmt_s, limit_blas_threads,
-                        flush_publishers, make_executor, parse_front, percentiles, run_node, steady, write_json)
+from .node_util import (EXIT_OK, EpisodeError, StartError, Throttle, declare, fmt_s, limit_blas_threads,
+                        flush_publishers, log_rejection, make_executor, parse_front, percentiles, run_node, steady,
+                        write_json)
+from .protocol import clip_inputs
 
 MODES = ('lockstep', 'realtime')
 
@@ -48,9 +52,13 @@ PARAMETERS = """parameters (set with --ros-args -p NAME:=VALUE or --params-file 
   wait_for_field_subscribers (int, 0)  matched slab/field subscribers needed before step 0
   start_timeout_s (float, 30)      give up (exit 3) if they do not appear in time
   start_delay_s (float, 0.2)       settle time after they appeared (endpoint matching)
-  diagnostics_period_s (float, 1)  /diagnostics period (also sent on every rejection)
+  diagnostics_period_s (float, 1)  /diagnostics period (also sent on a rejection, at most 5 Hz)
   summary_file (str, '')           write the end-of-episode summary as JSON
-  trajectory_file (str, '')        write T (N+1,n_x), U (N,n_u), Y (N+1,n_y) as .npz"""
+  trajectory_file (str, '')        write F (N+1,n_field), U (N,n_u), Y (N+1,n_y) as .npz (kept
+                                   in memory only when set)"""
+
+#: at most this often a rejected message triggers an immediate /diagnostics message
+REJECTION_DIAGNOSTICS_PERIOD_S = 0.2
 
 
 class PlantNode:
@@ -59,9 +67,10 @@ class PlantNode:
     def __init__(self, args: list[str], summary_json: str | None = None, executor: str = 'events'):
         from rclpy.node import Node
 
+        from .conformance import check_plant
         from .noise import noise_sequences
-        from .scenario import ScenarioError, load_scenario
-        from .slab import SlabSimulator
+        from .protocol import PlantError, PlantInfo
+        from .scenario import ScenarioError, load_scenario, scenario_payload
 
         self.node = node = Node('plant', namespace=c.NAMESPACE)
         self.log = node.get_logger()
@@ -98,22 +107,29 @@ class PlantNode:
             p['summary_file'] = summary_json
         self.p = p
         try:
-            s = load_scenario(p['scenario_file'] or None)
-        except ScenarioError as exc:
-            raise StartError(f'bad scenario_file: {exc}') from None
-        self.s = s
-        self.sim = SlabSimulator(s)
-        w, v = noise_sequences(s, p['seed'], range(p['run'], p['run'] + 1))
+            scen = load_scenario(p['scenario_file'] or None)
+            plant = scen.plant
+            check_plant(plant, scen.problem.channels('u_init', int(plant.n_u)), name=scen.plant_type)
+        except (ScenarioError, PlantError) as exc:
+            raise StartError(f"bad scenario_file {p['scenario_file'] or '<reference>'}: {exc}") from None
+        self.scenario, self.plant, self.problem = scen, plant, scen.problem
+        self.info = info = PlantInfo.of(plant)
+        self.dt = info.dt
+        w, v = noise_sequences(self.problem, info, p['seed'], [p['run']])
         self.w, self.v = w[0], v[0]
-        self.x_grid = s.grid()
-        self.heaters = s.heater_labels()
-        self.sensors = s.sensor_labels()
-        self.dt_ns = c.dt_ns(s.dt)
-        self.N = s.n_steps
+        self.lo, self.hi = self.problem.limits(info.n_u)
+        self.cloud = c.CloudBuilder(plant.field_coordinates(), info.field_name)
+        self.heaters = list(info.input_names)
+        self.sensors = list(info.output_names)
+        self.dt_ns = c.dt_ns(info.dt)
+        self.N = self.problem.n_steps
+        self.payload = scenario_payload(scen, info)
 
         self.pub_y = node.create_publisher(c.TOPIC_TYPES[c.MEASUREMENTS], c.MEASUREMENTS, c.LOOP_QOS)
         self.pub_u = node.create_publisher(c.TOPIC_TYPES[c.HEAT_APPLIED], c.HEAT_APPLIED, c.LOOP_QOS)
         self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD], c.FIELD, c.FIELD_QOS)
+        self.pub_image = (node.create_publisher(c.TOPIC_TYPES[c.FIELD_IMAGE], c.FIELD_IMAGE, c.FIELD_QOS)
+                          if info.grid_shape else None)
         self.pub_scen = node.create_publisher(c.TOPIC_TYPES[c.SCENARIO], c.SCENARIO, c.SCENARIO_QOS)
         from rosgraph_msgs.msg import Clock
         from diagnostic_msgs.msg import DiagnosticArray
@@ -129,24 +145,27 @@ class PlantNode:
         self.k = 0
         self.last_cmd_step = -1
         self.pending: np.ndarray | None = None     # accepted command for step self.k
-        self.held = np.zeros(s.n_u)               # last applied (zeros before the first command)
+        self.held = np.zeros(info.n_u)            # last applied (zeros before the first command)
         self.rejections = gate.RejectionLog()
+        self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
         self.deadline_misses = 0
         self.t_pub = np.full(self.N + 1, np.nan)   # wall time y_k was published
         self.t_cmd = np.full(self.N, np.nan)       # wall time command k arrived
-        self.T = np.empty((self.N + 1, s.n_x))
-        self.U = np.empty((self.N, s.n_u))
-        self.Y = np.empty((self.N + 1, s.n_y))
+        keep = bool(p['trajectory_file'])          # the trajectory is kept only when asked for
+        self.F = np.empty((self.N + 1, info.n_field)) if keep else None
+        self.U = np.empty((self.N, info.n_u)) if keep else None
+        self.Y = np.empty((self.N + 1, info.n_y)) if keep else None
         self.finished = False
         self._next_diag = 0.0
         self._t_start = None
         self._t_end = None
 
         self.log.info(
-            f"plant: scenario {p['scenario_file'] or '<reference>'} (n_x={s.n_x}, n_u={s.n_u}, "
-            f"n_y={s.n_y}, dt={s.dt:g} s, N={s.n_steps}), mode {p['mode']}"
+            f"plant: {scen.plant_type}, scenario {p['scenario_file'] or '<reference>'} (n_x={info.n_x}, "
+            f"n_field={info.n_field}, n_u={info.n_u}, n_y={info.n_y}, dt={info.dt:g} s, N={self.N}), "
+            f"mode {p['mode']}"
             + (f" at real_time_factor {p['real_time_factor']:g} (a step every "
-               f"{fmt_s(s.dt / p['real_time_factor'])})" if p['mode'] == 'realtime' else
+               f"{fmt_s(info.dt / p['real_time_factor'])})" if p['mode'] == 'realtime' else
                f", command_timeout_s {p['command_timeout_s']:g}")
             + f", seed {p['seed']} run {p['run']}, namespace {node.get_namespace()}")
 
@@ -169,27 +188,36 @@ class PlantNode:
         self.t_cmd[k] = t
 
     def _reject(self, rej: gate.Rejection) -> None:
-        self.rejections.add(rej)
-        self.log.warning(f'rejected heat_command at step {self.k}: {rej} '
-                         f'({self.rejections.total} rejected so far)')
-        self._publish_diagnostics()
+        log_rejection(self.log, self.rejections, rej, f'rejected heat_command at step {self.k}')
+        if self.diag_throttle.ready():
+            self._publish_diagnostics()
 
     # ---------------------------------------------------------------- output
-    def _publish_step(self, k: int, T: np.ndarray) -> None:
+    def _publish_step(self, k: int, x: np.ndarray) -> None:
         """/clock k, then y_k: the controllers' clock reads k*dt when y_k arrives.  The field
         (analysis only) is published later by `_publish_field`, off the measurement-to-command
-        path: serializing n_x points here would delay taking the command."""
-        y = self.sim.observe(T) + self.v[k]
-        self.Y[k] = y
-        self.T[k] = T
-        msg = c.joint_state(k, self.s.dt, self.sensors, position=y)
-        self.pub_clock.publish(c.clock_msg(k, self.s.dt))
+        path: serializing n_field points here would delay taking the command."""
+        y = self.plant.observe(x)[0] + self.v[k]
+        if self.Y is not None:
+            self.Y[k] = y
+            self.F[k] = self.plant.field(x)[0]
+        msg = c.joint_state(k, self.dt, self.sensors, position=y)
+        self.pub_clock.publish(c.clock_msg(k, self.dt))
         self.t_pub[k] = steady()
         self.pub_y.publish(msg)
 
-    def _publish_field(self, k: int, T: np.ndarray) -> None:
-        if self.p['publish_field'] and self.pub_field.get_subscription_count() > 0:
-            self.pub_field.publish(c.field_cloud(k, self.s.dt, self.x_grid, T))
+    def _publish_field(self, k: int, x: np.ndarray) -> None:
+        """The true field as a cloud (and an image for grid plants), built only when subscribed."""
+        if not self.p['publish_field']:
+            return
+        cloud = self.pub_field.get_subscription_count() > 0
+        image = self.pub_image is not None and self.pub_image.get_subscription_count() > 0
+        if cloud or image:
+            f = self.plant.field(x)[0]
+            if cloud:
+                self.pub_field.publish(self.cloud.build(k, self.dt, f))
+            if image:
+                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape))
 
     def health(self) -> c.Health:
         lat = percentiles(self._latencies())
@@ -197,7 +225,7 @@ class PlantNode:
         if self.deadline_misses or self.rejections.total:
             level = c.WARN
             msg = f'{self.deadline_misses} deadline misses, {self.rejections.total} rejected commands'
-        return c.Health(name=f'{self.node.get_fully_qualified_name()}', hardware_id='slab_plant',
+        return c.Health(name=f'{self.node.get_fully_qualified_name()}', hardware_id=f'{self.scenario.plant_type}_plant',
                         level=level, message=msg, values={
                             'step': self.k, 'n_steps': self.N, 'mode': self.p['mode'],
                             'deadline_misses': self.deadline_misses,
@@ -209,7 +237,7 @@ class PlantNode:
 
     def _publish_diagnostics(self) -> None:
         try:
-            self.pub_diag.publish(c.diagnostics(c.stamp(self.k, self.s.dt), [self.health()]))
+            self.pub_diag.publish(c.diagnostics(c.stamp(self.k, self.dt), [self.health()]))
         except Exception:  # noqa: BLE001 - context gone during shutdown
             pass
         self._next_diag = steady() + self.p['diagnostics_period_s']
@@ -253,19 +281,19 @@ class PlantNode:
         self._spin_until(steady() + self.p['start_delay_s'])
 
     def run(self) -> int:
-        self.pub_scen.publish(c.scenario_msg(self.s))
+        self.pub_scen.publish(c.scenario_msg(self.payload))
         self._publish_diagnostics()
         self._wait_for_peers()
         realtime = self.p['mode'] == 'realtime'
-        period = self.s.dt / self.p['real_time_factor']
-        T = self.sim.initial_state()
+        period = self.dt / self.p['real_time_factor']
+        x = self.plant.initial_state(1)
         self._t_start = t0 = steady()
         self.log.info(f'episode start: {self.N} steps')
         for k in range(self.N + 1):
             self.k = k
-            self._publish_step(k, T)
+            self._publish_step(k, x)
             if k == self.N:
-                self._publish_field(k, T)
+                self._publish_field(k, x)
                 break
             have = lambda: self.pending is not None
             if realtime:
@@ -283,17 +311,18 @@ class PlantNode:
                     why = (f'; {self.rejections.total} command(s) rejected, last: {self.rejections.last}'
                            if self.rejections.total else '')
                     raise EpisodeError(
-                        f"lockstep: no valid heat_command stamped step {k} (t = {k * self.s.dt:g} s) "
+                        f"lockstep: no valid heat_command stamped step {k} (t = {k * self.dt:g} s) "
                         f"within command_timeout_s = {self.p['command_timeout_s']:g} s{why}; is the "
                         f"lqg (or estimator + lqr) running on {self.node.get_namespace()}?")
                 u = self.pending
-            u_app = clip_inputs(u, self.s)
+            u_app = clip_inputs(u, self.lo, self.hi)
             self.pending = None
             self.held = u_app
-            self.U[k] = u_app
-            self.pub_u.publish(c.joint_state(k, self.s.dt, self.heaters, effort=u_app))
-            self._publish_field(k, T)
-            T = self.sim.step(T, u_app, self.w[k])
+            if self.U is not None:
+                self.U[k] = u_app
+            self.pub_u.publish(c.joint_state(k, self.dt, self.heaters, effort=u_app))
+            self._publish_field(k, x)
+            x = self.plant.step(x, u_app[None], self.w[k][None])
         self.k = self.N
         self.finish('completed')
         return EXIT_OK
@@ -311,7 +340,8 @@ class PlantNode:
                 'rejected_by_reason': self.rejections.as_dict(),
                 'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'],
                 'latency_max_s': lat['max'], 'wall_s': wall,
-                'scenario_file': self.p['scenario_file'], 'namespace': self.node.get_namespace()}
+                'scenario_file': self.p['scenario_file'], 'plant': self.scenario.plant_type,
+                'namespace': self.node.get_namespace()}
 
     def finish(self, status: str, error: str | None = None) -> None:
         if self.finished:
@@ -334,11 +364,12 @@ class PlantNode:
             n = summ['steps']
             path = Path(self.p['trajectory_file'])
             path.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(path, T=self.T[:n + 1], U=self.U[:n], Y=self.Y[:n + 1],
-                     scenario=np.frombuffer(self.s.to_json().encode(), dtype=np.uint8),
+            np.savez(path, F=self.F[:n + 1], U=self.U[:n], Y=self.Y[:n + 1],
+                     scenario=np.frombuffer(self.payload.encode(), dtype=np.uint8),
                      seed=self.p['seed'], run=self.p['run'])
         # Let reliable subscribers receive the last messages before the writers go away.
-        flush_publishers((self.pub_y, self.pub_field, self.pub_u, self.pub_clock, self.pub_diag))
+        flush_publishers([pub for pub in (self.pub_y, self.pub_field, self.pub_image, self.pub_u, self.pub_clock,
+                                          self.pub_diag) if pub is not None])
 
     def destroy_node(self) -> None:
         self.executor.shutdown(timeout_sec=0.1)
@@ -350,8 +381,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument('--summary-json', metavar='PATH',
                             help='write the end-of-episode summary as JSON (same as -p summary_file:=PATH)')
 
-    opts, args = parse_front('plant', 'Simulated heat slab (sep_plant): the plant node of the '
-                             'sep closed loop.', argv, add, PARAMETERS)
+    opts, args = parse_front('plant', 'Simulated plant (sep_plant; the heat slab by default, any plant '
+                             'of the plant protocol via scenario_file): the plant node of the sep closed loop.',
+                             argv, add, PARAMETERS)
     limit_blas_threads(1)
     return run_node(lambda a: PlantNode(a, opts.summary_json, opts.executor), args, 'plant')
 

@@ -1,194 +1,178 @@
-"""Scenario: every number that defines the heat-slab problem, with validation.
+"""Scenario: one plant (its type and its own keys) and one control problem, from YAML.
 
-The reference scenario of DESIGN.md §2 is the default of every field. A scenario
-loads from YAML (`load_scenario`) with unknown keys and out-of-range values
-refused by a `ScenarioError` that names the offending key.
+A scenario file has a ``plant:`` section (``type:`` and the plant's own keys) and the problem
+keys (`sep_plant.problem.Problem`) beside it::
 
+    plant:
+      type: slab              # built-in, a `sep.plants` entry point, or "package.module:ClassName"
+      n_x: 100
+      dt: 0.25
+    n_steps: 250
+    target: 150.0
+    band_window: [150, 250]
+
+Files in the earlier flat format (every key of the slab and its problem at the top level, as in
+sep 0.1's ``reference.yaml``) are still read: they mean the slab. Unknown keys and out-of-range
+values are refused with a `ScenarioError` that names the key.
+
+`load_scenario` builds the plant once (its constructor checks its keys), checks that the
+problem fits it (vector lengths, target), and stores the plant's complete configuration, so
+two scenarios that mean the same plant compare equal. Scenarios read from JSON (a design file,
+the scenario topic, a bag) are plain data: nothing is imported until `plant` is asked for.
 Pure Python/numpy: no ROS import.
 """
 from __future__ import annotations
 
-import dataclasses
+import functools
 import json
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from .plants import PlantConfigError, PlantTypeError, make_plant
+from .problem import Problem, ProblemError
+from .protocol import PlantInfo, noise_channels
+
+FORMAT = "sep-scenario"
+FORMAT_VERSION = 2
+
+#: keys of the sep 0.1 flat scenario format that belong to the slab plant
+LEGACY_PLANT_KEYS = ("n_x", "length", "k0", "beta", "gamma", "t_ref", "t_scale", "eta", "t_right", "t_init",
+                     "heater_centers", "heater_sigma", "sensor_positions", "dt")
+#: flat-format problem keys -> problem keys (k_band is handled separately: [k_band, n_steps])
+LEGACY_PROBLEM_KEYS = {"n_steps": "n_steps", "t_target": "target", "band": "band", "q_late": "q_window",
+                       "q_early": "q_outside", "r_u": "r_u", "w_std": "w_std", "v_std": "v_std",
+                       "u_min": "u_min", "u_max": "u_max", "lqr_k_switch": "lqr_k_switch",
+                       "lqr_q_late": "lqr_q_late", "lqr_q_early": "lqr_q_early", "lqr_r": "lqr_r",
+                       "u_init": "u_init"}
+
 
 class ScenarioError(ValueError):
-    """A scenario value is missing, unknown or out of range."""
+    """A scenario value is missing, unknown or out of range, or its plant cannot be built."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Scenario:
-    """The nonlinear 1-D heat slab problem (DESIGN.md §2).
+    """A plant (type + its own keys) and a problem. Equality and hash follow `to_json`."""
 
-    dT/dt = K(x,T) T_xx - eta T + sum_j b_j(x) (u_j + w_j),
-    K(x,T) = k0 (1 + beta (T - T_ref)/T_scale)(1 + gamma x/L),
-    dT/dx(0) = 0, T(L) = T_right; y = T(sensor nodes) + v.
-    """
+    plant_type: str = "slab"
+    plant_config: Mapping[str, Any] = field(default_factory=dict)
+    problem: Problem = field(default_factory=Problem)
 
-    # geometry and physics
-    n_x: int = 100                     # nodes x_i = i L / n_x, i = 0..n_x-1
-    length: float = 1.0                # L (scaled)
-    k0: float = 0.01                   # diffusivity scale
-    beta: float = 0.5                  # temperature dependence of K
-    gamma: float = 0.2                 # spatial dependence of K
-    t_ref: float = 100.0               # K(T) reference temperature [F]
-    t_scale: float = 50.0              # K(T) temperature scale [F]
-    eta: float = 0.002                 # convective loss coefficient [1/s]
-    t_right: float = 150.0             # Dirichlet value at x = L [F]
-    t_init: float = 100.0              # T(x, 0), known exactly [F]
-    # actuators and sensors (positions as fractions of L)
-    heater_centers: tuple[float, ...] = (0.1, 0.3, 0.5, 0.7, 0.9)
-    heater_sigma: float = 0.02         # Gaussian width, fraction of L
-    sensor_positions: tuple[float, ...] = (0.1, 0.3, 0.5, 0.7, 0.9)
-    u_min: float = -math.inf           # heater limits (applied by plant and LQR)
-    u_max: float = math.inf
-    # time
-    dt: float = 0.25                   # [s]
-    n_steps: int = 250                 # N
-    # noise
-    w_std: float = 0.3                 # process noise on heater inputs
-    v_std: float = 1.0                 # sensor noise [F]
-    # objective
-    t_target: float = 150.0
-    band: float = 3.0                  # +- band [F]
-    k_band: int = 150                  # first step of the band / high weight
-    q_late: float = 1.0
-    q_early: float = 1e-5
-    r_u: float = 0.1                   # input weight in the nominal cost
-    # LQR/KF design weights (on sensor outputs)
-    lqr_k_switch: int = 120
-    lqr_q_late: float = 1.0            # Q_y = lqr_q_late I / n_y for k >= lqr_k_switch
-    lqr_q_early: float = 0.1           # ... lqr_q_early I / n_y before
-    lqr_r: float = 0.01                # R = lqr_r I
-    # initial input guess for the optimizer
-    u_init: float = 0.1
-
-    # ------------------------------------------------------------------ checks
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "heater_centers", tuple(float(c) for c in self.heater_centers))
-        object.__setattr__(self, "sensor_positions", tuple(float(c) for c in self.sensor_positions))
-        problems = list(_problems(self))
-        if problems:
-            raise ScenarioError("invalid scenario: " + "; ".join(problems))
-
-    # ------------------------------------------------------------ derived data
-    @property
-    def n_u(self) -> int:
-        return len(self.heater_centers)
+    # -------------------------------------------------------------- the plant
+    @functools.cached_property
+    def plant(self):
+        """The plant object (built on first use; its constructor checks its keys)."""
+        try:
+            p = make_plant(self.plant_type, self.plant_config)
+        except (PlantTypeError, PlantConfigError) as exc:
+            raise ScenarioError(str(exc)) from None
+        try:
+            self.problem.check_dims(int(p.n_u), int(p.n_y), noise_channels(p), np.asarray(p.field_coordinates()))
+        except ProblemError as exc:
+            raise ScenarioError(f"plant {self.plant_type!r}: {exc}") from None
+        return p
 
     @property
-    def n_y(self) -> int:
-        return len(self.sensor_positions)
+    def info(self) -> PlantInfo:
+        return PlantInfo.of(self.plant)
 
-    @property
-    def h(self) -> float:
-        """Grid spacing L / n_x."""
-        return self.length / self.n_x
+    def canonical(self) -> "Scenario":
+        """The same scenario with the plant's complete configuration (builds the plant)."""
+        return Scenario(self.plant_type, _plain_config(self.plant.config()), self.problem.resolved())
 
-    @property
-    def horizon_s(self) -> float:
-        return self.n_steps * self.dt
+    # ------------------------------------------------------------ variations
+    def replace(self, **problem_changes: Any) -> "Scenario":
+        """A scenario with some problem keys changed (same plant)."""
+        return Scenario(self.plant_type, dict(self.plant_config), self.problem.replace(**problem_changes))
 
-    def grid(self) -> np.ndarray:
-        """Node positions x_i = i L / n_x (the Dirichlet node x = L is eliminated)."""
-        return np.arange(self.n_x) * self.h
+    def with_plant(self, plant_type: str | None = None, **config_changes: Any) -> "Scenario":
+        """A canonical scenario with some plant keys changed (or another plant type)."""
+        cfg = {} if plant_type not in (None, self.plant_type) else dict(self.plant_config)
+        cfg.update(config_changes)
+        return Scenario(plant_type or self.plant_type, cfg, self.problem).canonical()
 
-    def sensor_nodes(self) -> np.ndarray:
-        """Index of the node nearest each sensor position."""
-        x = self.grid()
-        return np.array([int(np.argmin(np.abs(x - p * self.length))) for p in self.sensor_positions])
-
-    def heater_profiles(self) -> np.ndarray:
-        """b_j(x_i), shape (n_x, n_u): Gaussians integrating to 1 over the slab."""
-        x = self.grid()[:, None]
-        c = np.asarray(self.heater_centers)[None, :] * self.length
-        s = self.heater_sigma * self.length
-        return np.exp(-0.5 * ((x - c) / s) ** 2) / (s * math.sqrt(2.0 * math.pi))
-
-    def q_weights(self) -> np.ndarray:
-        """q_k for k = 0..N of the nominal cost (q_0 unused: T_0 is fixed)."""
-        k = np.arange(self.n_steps + 1)
-        return np.where(k >= self.k_band, self.q_late, self.q_early)
-
-    def lqr_output_weights(self) -> np.ndarray:
-        """Scalar Q_y multiplier per step k = 0..N (Q_y,k = w_k I / n_y)."""
-        k = np.arange(self.n_steps + 1)
-        return np.where(k >= self.lqr_k_switch, self.lqr_q_late, self.lqr_q_early) / self.n_y
-
-    def heater_labels(self) -> list[str]:
-        return [f"heater_{j}" for j in range(self.n_u)]
-
-    def sensor_labels(self) -> list[str]:
-        return [f"sensor_{j}" for j in range(self.n_y)]
-
-    # ----------------------------------------------------------- (de)serialize
+    # ------------------------------------------------------- (de)serialize
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["heater_centers"] = list(self.heater_centers)
-        d["sensor_positions"] = list(self.sensor_positions)
-        return d
+        return {"format": FORMAT, "version": FORMAT_VERSION,
+                "plant": {"type": self.plant_type, **dict(self.plant_config)}, **self.problem.to_dict()}
 
     def to_json(self) -> str:
-        # math.inf is not JSON: encode as strings the loader understands
-        return json.dumps({k: _encode(v) for k, v in self.to_dict().items()}, sort_keys=True)
+        return json.dumps(self.to_dict(), sort_keys=True, default=_plain)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Scenario) and self.to_json() == other.to_json()
+
+    def __hash__(self) -> int:
+        return hash(self.to_json())
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], source: str = "scenario") -> "Scenario":
+    def from_dict(cls, data: Mapping[str, Any], source: str = "scenario", canonical: bool = True) -> "Scenario":
+        """Parse a scenario mapping (current or flat sep 0.1 format). With `canonical`, build the
+        plant to check it and store its complete configuration."""
         if not isinstance(data, Mapping):
             raise ScenarioError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(data) - set(known), key=str)
-        if unknown:
-            raise ScenarioError(f"{source}: unknown key(s) {unknown}; known keys: {sorted(known)}")
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            kwargs[key] = _coerce(key, _decode(value), known[key].default, source)
-        return cls(**kwargs)
+        data = dict(data)
+        if "plant" in data:
+            scen = _parse_current(data, source)
+        else:
+            scen = _parse_legacy(data, source)
+        if canonical:
+            try:
+                return scen.canonical()
+            except ScenarioError as exc:
+                raise ScenarioError(f"{source}: {exc}") from None
+        return scen
 
     @classmethod
-    def from_json(cls, text: str) -> "Scenario":
-        return cls.from_dict(json.loads(text), "scenario JSON")
+    def from_json(cls, text: str, canonical: bool = False) -> "Scenario":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ScenarioError(f"scenario JSON: {exc}") from None
+        return cls.from_dict(data, "scenario JSON", canonical=canonical)
 
-    def replace(self, **changes: Any) -> "Scenario":
-        return dataclasses.replace(self, **changes)
+    # -------------------------------------------------------------- compare
+    def plant_mismatches(self, other: "Scenario") -> list[str]:
+        """Where `other` means another plant or horizon than this scenario (empty when they
+        match): the plant type, every plant key, and n_steps. Problem keys (noise, weights,
+        limits) may differ: each node uses its own."""
+        out = []
+        if self.plant_type != other.plant_type:
+            return [f"plant type: {self.plant_type!r} != {other.plant_type!r}"]
+        a, b = dict(self.plant_config), dict(other.plant_config)
+        for k in sorted(set(a) | set(b), key=str):
+            if k not in a or k not in b:
+                out.append(f"plant.{k}: {'missing' if k not in a else repr(a[k])} != "
+                           f"{'missing' if k not in b else repr(b[k])}")
+            elif not _same(a[k], b[k]):
+                out.append(f"plant.{k}: {a[k]!r} != {b[k]!r}")
+        if self.problem.n_steps != other.problem.n_steps:
+            out.append(f"n_steps: {self.problem.n_steps} != {other.problem.n_steps}")
+        return out
 
 
-# Fields that must agree between a design file and the plant it runs against.
-PLANT_KEYS: tuple[str, ...] = (
-    "n_x", "length", "dt", "n_steps", "heater_centers", "heater_sigma", "sensor_positions",
-    "k0", "beta", "gamma", "t_ref", "t_scale", "eta", "t_right", "t_init",
-)
+def mismatches(a: Scenario, b: Scenario) -> list[str]:
+    """Human-readable list of plant keys where two scenarios differ (empty when they match)."""
+    return a.plant_mismatches(b)
 
 
-def mismatches(a: Scenario, b: Scenario, keys: tuple[str, ...] = PLANT_KEYS) -> list[str]:
-    """Human-readable list of keys where two scenarios differ (empty when they match)."""
-    out = []
-    for k in keys:
-        va, vb = getattr(a, k), getattr(b, k)
-        if isinstance(va, tuple):
-            same = len(va) == len(vb) and all(math.isclose(p, q, rel_tol=1e-12, abs_tol=1e-12) for p, q in zip(va, vb))
-        elif isinstance(va, float):
-            same = math.isclose(va, vb, rel_tol=1e-12, abs_tol=1e-12)
-        else:
-            same = va == vb
-        if not same:
-            out.append(f"{k}: {va!r} != {vb!r}")
-    return out
+@functools.lru_cache(maxsize=1)
+def reference() -> Scenario:
+    """The shipped reference scenario (DESIGN.md §2): the slab with every default."""
+    return Scenario().canonical()
 
 
 def load_scenario(path: str | Path | None) -> Scenario:
-    """Load a YAML scenario file; None gives the shipped reference scenario.
+    """Load a YAML scenario file (canonical); None gives the reference scenario.
 
-    Only keys that differ from the reference need to be present.
+    Only keys that differ from the defaults need to be present.
     """
     if path is None:
-        return Scenario()
+        return reference()
     import yaml  # local import: only file loading needs PyYAML
 
     p = Path(path)
@@ -208,87 +192,97 @@ def load_scenario(path: str | Path | None) -> Scenario:
 
 
 # ---------------------------------------------------------------- internals
-def _encode(v: Any) -> Any:
-    if isinstance(v, float) and math.isinf(v):
-        return "inf" if v > 0 else "-inf"
-    return v
+def _parse_current(data: dict, source: str) -> Scenario:
+    plant = data.pop("plant")
+    data.pop("format", None)
+    version = data.pop("version", FORMAT_VERSION)
+    if version != FORMAT_VERSION:
+        raise ScenarioError(f"{source}: scenario format version {version!r}, this sep reads {FORMAT_VERSION}")
+    if not isinstance(plant, Mapping):
+        raise ScenarioError(f"{source}: `plant:` must be a mapping with `type:` and the plant's keys, got {plant!r}")
+    plant = dict(plant)
+    ptype = plant.pop("type", None)
+    if not isinstance(ptype, str) or not ptype.strip():
+        raise ScenarioError(f"{source}: `plant:` needs `type:` (e.g. slab, or 'package.module:ClassName')")
+    try:
+        problem = Problem.from_dict(data, source)
+    except ProblemError as exc:
+        raise ScenarioError(str(exc)) from None
+    return Scenario(ptype.strip(), _plain_config(plant), problem)
 
 
-def _decode(v: Any) -> Any:
+def _parse_legacy(data: dict, source: str) -> Scenario:
+    known = set(LEGACY_PLANT_KEYS) | set(LEGACY_PROBLEM_KEYS) | {"k_band"}
+    unknown = sorted((str(k) for k in data if k not in known))
+    if unknown:
+        raise ScenarioError(f"{source}: unknown key(s) {unknown}; a scenario has a `plant:` section "
+                            f"(type and plant keys) and the problem keys {sorted(Problem.__dataclass_fields__)}; "
+                            f"the flat slab format knows {sorted(known)}")
+    plant = {k: _decode_inf(data[k]) for k in LEGACY_PLANT_KEYS if k in data}
+    prob = {LEGACY_PROBLEM_KEYS[k]: data[k] for k in LEGACY_PROBLEM_KEYS if k in data}
+    # the flat format's semantics: band from k_band (default 150) to N, LQR switch default 120
+    prob["band_window"] = [data.get("k_band", 150), prob.get("n_steps", Problem().n_steps)]
+    prob.setdefault("lqr_k_switch", 120)
+    try:
+        problem = Problem.from_dict(prob, source)
+    except ProblemError as exc:
+        raise ScenarioError(str(exc)) from None
+    return Scenario("slab", _plain_config(plant), problem)
+
+
+def _decode_inf(v: Any) -> Any:
     if isinstance(v, str) and v.strip().lower() in ("inf", "+inf", ".inf", "-inf", "-.inf"):
         return -math.inf if v.strip().startswith("-") else math.inf
     return v
 
 
-def _coerce(key: str, value: Any, default: Any, source: str) -> Any:
-    def bad(expect: str) -> ScenarioError:
-        return ScenarioError(f"{source}: {key} must be {expect}, got {value!r}")
+def _plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """YAML/JSON data as plain JSON types (tuples -> lists), keys as given."""
+    return json.loads(json.dumps(dict(cfg), default=_plain))
 
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            if isinstance(value, float) and value.is_integer():
-                return int(value)
-            raise bad("an integer")
-        return int(value)
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-            raise bad("a number")
-        return float(value)
-    if isinstance(default, tuple):
-        if not isinstance(value, (list, tuple)) or not value:
-            raise bad("a non-empty list of numbers")
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, tuple):
+        return list(v)
+    raise TypeError(f"not JSON serializable: {type(v).__name__}")
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a == b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=1e-12)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        return set(a) == set(b) and all(_same(a[k], b[k]) for k in a)
+    return a == b
+
+
+# ------------------------------------------------------------- scenario topic
+def scenario_payload(scenario: Scenario, info: PlantInfo) -> str:
+    """The JSON the plant publishes on the scenario topic (and bags keep): the scenario and the
+    plant's description, so that nodes, the recorder and the analysis need not import the plant."""
+    return json.dumps({"scenario": scenario.to_dict(), "plant_info": info.to_dict()}, sort_keys=True,
+                      default=_plain)
+
+
+def parse_scenario_payload(text: str) -> tuple[Scenario, PlantInfo]:
+    """(scenario, plant description) of a scenario-topic message. sep 0.1 published the flat slab
+    scenario alone: its description comes from the built-in slab."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ScenarioError(f"scenario message: {exc}") from None
+    if isinstance(data, Mapping) and "scenario" in data and "plant_info" in data:
+        scen = Scenario.from_dict(data["scenario"], "scenario message", canonical=False)
         try:
-            return tuple(float(x) for x in value)
-        except (TypeError, ValueError):
-            raise bad("a non-empty list of numbers") from None
-    return value
-
-
-def _problems(s: Scenario):
-    finite_pos = ["length", "k0", "dt", "heater_sigma", "t_scale", "lqr_r", "lqr_q_late", "lqr_q_early",
-                  "q_late", "band"]
-    for k in finite_pos:
-        v = getattr(s, k)
-        if not (math.isfinite(v) and v > 0):
-            yield f"{k} must be a finite number > 0 (got {v!r})"
-    for k in ["beta", "gamma", "eta", "t_ref", "t_right", "t_init", "t_target", "u_init"]:
-        if not math.isfinite(getattr(s, k)):
-            yield f"{k} must be finite (got {getattr(s, k)!r})"
-    for k in ["w_std", "v_std", "q_early", "r_u"]:
-        v = getattr(s, k)
-        if not (math.isfinite(v) and v >= 0):
-            yield f"{k} must be a finite number >= 0 (got {v!r})"
-    if s.v_std <= 0:
-        yield "v_std must be > 0 (the Kalman filter needs a positive sensor noise)"
-    if s.n_x < 4:
-        yield f"n_x must be >= 4 (got {s.n_x})"
-    if s.n_steps < 2:
-        yield f"n_steps must be >= 2 (got {s.n_steps})"
-    if not 0 <= s.k_band <= s.n_steps:
-        yield f"k_band must be in [0, n_steps] (got {s.k_band})"
-    if not 0 <= s.lqr_k_switch <= s.n_steps:
-        yield f"lqr_k_switch must be in [0, n_steps] (got {s.lqr_k_switch})"
-    if not s.u_min < s.u_max:
-        yield f"u_min must be < u_max (got {s.u_min}, {s.u_max})"
-    if not s.u_min <= s.u_init <= s.u_max:
-        yield f"u_init must lie within [u_min, u_max] (got {s.u_init})"
-    for name in ("heater_centers", "sensor_positions"):
-        pos = getattr(s, name)
-        if not pos:
-            yield f"{name} must not be empty"
-        bad = [p for p in pos if not (math.isfinite(p) and 0.0 <= p <= 1.0)]
-        if bad:
-            yield f"{name} must be fractions of L in [0, 1] (got {bad})"
-    if s.sensor_positions and s.n_x >= 4:
-        nodes = [int(round(p * s.n_x)) for p in s.sensor_positions]
-        if len(set(min(n, s.n_x - 1) for n in nodes)) != len(nodes):
-            yield "two sensors map to the same grid node: refine n_x or move them"
-    # K(x,T) must stay positive over the plausible temperature range
-    for temp in (s.t_init, s.t_right, s.t_target):
-        if 1 + s.beta * (temp - s.t_ref) / s.t_scale <= 0 or 1 + s.gamma <= 0:
-            yield f"K(x,T) is not positive at T = {temp}: check beta/gamma/t_ref/t_scale"
-            break
+            return scen, PlantInfo.from_dict(data["plant_info"])
+        except (TypeError, ValueError, KeyError) as exc:
+            raise ScenarioError(f"scenario message: bad plant_info: {exc}") from None
+    scen = Scenario.from_dict(data, "scenario message (sep 0.1 format)")
+    return scen, scen.info

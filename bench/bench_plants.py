@@ -1,0 +1,158 @@
+"""Cost and accuracy of the built-in plants' time steps: one table (no assertions; one run).
+
+Per plant (slab n_x = 100 and 10^4, plate 64^2 and 128^2, block 24^3, Allen-Cahn 50^2):
+* cost: ns per node-step of ONE batched step at batch sizes 1 and 64 (and 200 for the slab),
+  best of several repeats (the machine may be shared), and ms per step of one run;
+* accuracy: the scheme at its default dt after a fixed horizon (default 10 s) from the default
+  initial state under a constant input (0.1 per heater/lamp, 0.05 per Allen-Cahn actuator),
+  against fine-step references, relative to the largest change of the field over the horizon:
+  (a) the same scheme at dt/64 and dt/128, Richardson-extrapolated (first order:
+  2 x_{dt/128} - x_{dt/64}); (b) for the default-size grid plants also classical RK4 of the
+  semi-discrete system (plant.rhs) at half its stability limit, an integrator independent of
+  the split (its distance to (a) is printed: both references agree).
+
+--solvers adds a second table: the grid plants' cost with each line solver of adi.py ("auto",
+the default; "lapack": dptsv on every axis; "thomas": vectorized Thomas on every axis).
+
+    OPENBLAS_NUM_THREADS=1 python bench/bench_plants.py [--solvers] [--horizon 10] [--repeats 5]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from sep_plant.plants import make_plant
+
+CASES = [  # label, type, config, batch sizes, constant input, RK4 reference
+    ("slab 100", "slab", {"n_x": 100}, (1, 64, 200), 0.1, False),
+    ("slab 10^4", "slab", {"n_x": 10_000}, (1, 64, 200), 0.1, False),
+    ("plate 64^2", "plate", {}, (1, 64), 0.1, True),
+    ("plate 128^2", "plate", {"nodes": [128, 128]}, (1, 64), 0.1, False),
+    ("block 24^3", "block", {}, (1, 64), 0.1, True),
+    ("allen_cahn 50^2", "allen_cahn", {}, (1, 64), 0.05, True),
+]
+
+
+def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> float:
+    """Best-of-`repeats` time of one step of a batch, per node and run [ns]."""
+    rng = np.random.default_rng(0)
+    X = plant.initial_state(batch) + 0.1 * rng.standard_normal((batch, plant.n_x))
+    U = np.full((batch, plant.n_u), 0.1)
+    plant.step(X, U)                                                   # warm up
+    t0 = time.perf_counter()
+    plant.step(X, U)
+    once = time.perf_counter() - t0
+    reps = max(1, int(budget_s / max(once, 1e-6) / repeats))
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            plant.step(X, U)
+        best = min(best, (time.perf_counter() - t0) / reps)
+    return best / (batch * plant.n_x) * 1e9
+
+
+def rollout(plant, x, u, steps: int) -> np.ndarray:
+    for _ in range(steps):
+        x = plant.step(x, u)
+    return x
+
+
+def rk4(plant, x, u, horizon: float, h: float) -> np.ndarray:
+    n = int(np.ceil(horizon / h))
+    h = horizon / n
+    for _ in range(n):
+        k1 = plant.rhs(x, u)
+        k2 = plant.rhs(x + 0.5 * h * k1, u)
+        k3 = plant.rhs(x + 0.5 * h * k2, u)
+        k4 = plant.rhs(x + h * k3, u)
+        x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def rk4_step_size(plant, fields: np.ndarray) -> float:
+    """Half of RK4's real-axis stability limit 2.78 / lambda_max: a Gershgorin bound of the
+    diffusion at the largest conductivity over `fields` (+10 %), plus the loss or reaction."""
+    if hasattr(plant, "k0"):
+        T = np.array([fields.min(), fields.max()])
+        K = 1.1 * float(np.max(plant.k0 * (1 + plant.beta * (T - plant.t_ref) / plant.t_scale)))
+        extra = plant.eta + 4 * plant.radiation * float(np.max(plant._kelvin(T))) ** 3
+    else:
+        K, extra = plant.eps ** 2, 2.0
+    lam = sum(4.0 * K / h**2 for h in plant.grid.h) + extra
+    return 0.5 * 2.78 / lam
+
+
+def relative_errors(x: np.ndarray, ref: np.ndarray, x0: np.ndarray) -> tuple[float, float]:
+    change = np.abs(ref - x0).max()
+    return float(np.abs(x - ref).max() / change), float(np.sqrt(np.mean((x - ref) ** 2)) / change)
+
+
+def accuracy(kind: str, cfg: dict, u: float, horizon: float, with_rk4: bool) -> list[str]:
+    """[max change, Richardson max, rms, RK4 max, rms, RK4 vs Richardson] as strings."""
+    p = make_plant(kind, cfg)
+    x0 = p.initial_state(1)
+    U = np.full(p.n_u, u)
+    steps = int(round(horizon / p.dt))
+    x = rollout(p, x0, U, steps)
+    fine = {m: rollout(make_plant(kind, {**cfg, "dt": p.dt / m}), x0, U, steps * m) for m in (64, 128)}
+    richardson = 2.0 * fine[128] - fine[64]
+    e_max, e_rms = relative_errors(x, richardson, x0)
+    row = [f"{np.abs(richardson - x0).max():.3g}", f"{e_max:.2e}", f"{e_rms:.2e}"]
+    if not with_rk4:
+        return row + ["-", "-", "-"]
+    ref = rk4(p, x0, U, horizon, rk4_step_size(p, np.concatenate([x0, richardson])))
+    r_max, r_rms = relative_errors(x, ref, x0)
+    return row + [f"{r_max:.2e}", f"{r_rms:.2e}", f"{np.abs(ref - richardson).max() / np.abs(ref - x0).max():.1e}"]
+
+
+def print_table(title: str, header: list[str], rows: list[list[str]]) -> None:
+    widths = [max(len(str(r[i])) for r in [header] + rows) for i in range(len(header))]
+    print(f"\n{title}")
+    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths)) + " |")
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for r in rows:
+        print("| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths)) + " |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=5, help="timing repeats (best is reported)")
+    ap.add_argument("--horizon", type=float, default=10.0, help="accuracy horizon [s]")
+    ap.add_argument("--solvers", action="store_true", help="also compare the line solvers")
+    args = ap.parse_args()
+
+    rows = []
+    for label, kind, cfg, batches, u, with_rk4 in CASES:
+        p = make_plant(kind, cfg)
+        cost = {b: ns_per_node_step(p, b, args.repeats) for b in batches}
+        rows.append([label, str(p.n_x), f"{p.dt:g}"]
+                    + [f"{cost[b]:.1f}" if b in cost else "-" for b in (1, 64, 200)]
+                    + [f"{cost[1] * p.n_x * 1e-6:.3f}"] + accuracy(kind, cfg, u, args.horizon, with_rk4))
+    print_table(f"Cost [ns per node-step of one batched step; one core, best of {args.repeats}] and accuracy at the "
+                f"default dt after {args.horizon:g} s (error / largest change of the field)",
+                ["plant", "n_x", "dt [s]", "M = 1", "M = 64", "M = 200", "ms/step M=1", "max change",
+                 "vs Richardson max", "rms", "vs RK4 max", "rms", "RK4 vs Richardson"], rows)
+
+    if args.solvers:
+        rows = []
+        for label, kind, cfg, *_ in CASES:
+            if kind == "slab":
+                continue
+            p = make_plant(kind, cfg)
+            row = [label]
+            for batch in (1, 64):
+                for solver in ("auto", "lapack", "thomas"):
+                    p.solver = solver
+                    row.append(f"{ns_per_node_step(p, batch, args.repeats):.1f}")
+            rows.append(row)
+        print_table("Line solvers [ns per node-step]: auto (dptsv on the last axis, Thomas on the others from "
+                    "2048 lines), lapack (dptsv on every axis), thomas (Thomas on every axis)",
+                    ["plant", "M=1 auto", "M=1 lapack", "M=1 thomas", "M=64 auto", "M=64 lapack",
+                     "M=64 thomas"], rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,184 @@
+"""The linear time-varying model around a nominal, and the LQG designed on it.
+
+One container (`LTVModel`) serves the identified reduced-order model (ROM), the full-order
+oracle, the Monte Carlo, validation and the design file (k = 0..N, zero-padded to n states):
+
+    a_{k+1} = A_k a_k + B_k du_k + B_w,k w_k        (k < N; B_w = B when noise enters the inputs)
+    dy_k    = C_k a_k + v_k
+    df_k    = G_k a_k                               (field deviation; G is an operator)
+
+Near k = 0 the ROM order n_k grows (only k past inputs exist); arrays are zero-padded to n with
+the true orders in `dims`. Zero padding is exact: padded states start at zero and A, B never
+excite them.
+
+`FieldMap` is what the filter and the reports need from G: apply it to states, its rows'
+variances under a covariance. `DenseFieldMap` stores G_k (N+1, n_field, n); `IdentityFieldMap`
+is the oracle's G = I when the field is the state (no n_x^2 storage).
+Pure numpy: no ROS import.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+class FieldMap(Protocol):
+    """G_k as an operator: the field deviation df_k = G_k a_k of a state a_k."""
+
+    n_field: int
+    n: int
+
+    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
+        """G_k a for a batch a (M, n) -> (M, n_field)."""
+
+    def matrix(self, k: int) -> np.ndarray:
+        """G_k as a dense (n_field, n) array."""
+
+    def std(self, k: int, P: np.ndarray) -> np.ndarray:
+        """sqrt(diag(G_k P G_k')) (n_field,)."""
+
+
+class DenseFieldMap:
+    """G_k stored as (N+1, n_field, n)."""
+
+    def __init__(self, G: np.ndarray):
+        self.G = G
+        self.n_field, self.n = int(G.shape[1]), int(G.shape[2])
+
+    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
+        return a @ self.G[k].T
+
+    def matrix(self, k: int) -> np.ndarray:
+        return self.G[k]
+
+    def std(self, k: int, P: np.ndarray) -> np.ndarray:
+        return field_std(self.G[k], P)
+
+    def std_all(self, P: np.ndarray) -> np.ndarray:
+        """(N+1, n_field) for covariances P (N+1, n, n)."""
+        return field_std(self.G, P)
+
+
+class IdentityFieldMap:
+    """G_k = I (the state is the field): the oracle's field map."""
+
+    def __init__(self, n: int):
+        self.n_field = self.n = int(n)
+
+    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
+        return a
+
+    def matrix(self, k: int) -> np.ndarray:
+        return np.eye(self.n)
+
+    def std(self, k: int, P: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diagonal(P), 0.0))
+
+    def std_all(self, P: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.maximum(np.einsum("kii->ki", P), 0.0))
+
+
+def field_std(G: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """sqrt(diag(G P G')) per node, for one step (G (n_f, n)) or all steps (G (N+1, n_f, n))."""
+    var = np.einsum("...ij,...jk,...ik->...i", G, P, G)
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+@dataclass
+class LTVModel:
+    """(A_k, B_k, C_k, G_k) for k = 0..N, zero-padded to n states (see the module docstring)."""
+
+    A: np.ndarray            # (N, n, n)
+    B: np.ndarray            # (N, n, n_u)
+    C: np.ndarray            # (N+1, n_y, n)
+    G: FieldMap              # field output map
+    dims: np.ndarray         # (N+1,) int: true order n_k at step k
+    Bw: np.ndarray | None = None   # (N, n, n_w) noise input map; None: noise enters the inputs (B)
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.A.shape[0])
+
+    @property
+    def n(self) -> int:
+        return int(self.A.shape[1])
+
+    @property
+    def n_u(self) -> int:
+        return int(self.B.shape[2])
+
+    @property
+    def n_y(self) -> int:
+        return int(self.C.shape[1])
+
+    @property
+    def noise_input(self) -> np.ndarray:
+        """B_w,k (N, n, n_w): B when the noise enters through the inputs."""
+        return self.B if self.Bw is None else self.Bw
+
+    def markov(self, k: int, j: int) -> np.ndarray:
+        """Markov parameter C_k A_{k-1} ... A_{j+1} B_j (n_y, n_u), j < k."""
+        M = self.B[j]
+        for i in range(j + 1, k):
+            M = self.A[i] @ M
+        return self.C[k] @ M
+
+    def markov_all(self, lags: int) -> np.ndarray:
+        """Markov parameters for all j < N and lags 1..lags with j + lag <= N: (N, lags, n_y, n_u),
+        zero where j + lag > N. Vectorized over j (one batched product per lag)."""
+        N = self.n_steps
+        out = np.zeros((N, lags, self.n_y, self.n_u))
+        M = self.B.copy()                                   # state response at step j+1: (N, n, n_u)
+        for lag in range(1, lags + 1):
+            j = np.arange(N - lag + 1)                      # j + lag <= N
+            out[j, lag - 1] = self.C[j + lag] @ M[j]
+            if lag < lags:
+                nxt = j[j + lag < N]
+                M[nxt] = self.A[nxt + lag] @ M[nxt]
+        return out
+
+
+@dataclass
+class KalmanSchedule:
+    """Time-varying Kalman gains and covariances along the horizon (k = 0..N)."""
+
+    L: np.ndarray        # (N+1, n, n_y)
+    P_post: np.ndarray   # (N+1, n, n) after the update at k
+    P_prior: np.ndarray  # (N+1, n, n) before it
+
+
+@dataclass
+class LQG:
+    """A time-varying LQG around a nominal: model, LQR gains, Kalman schedule, noise.
+
+    du_k = K_k ahat_{k|k};  ahat_{k|k} = ahat_{k|k-1} + L_k (dy_k - C_k ahat_{k|k-1}).
+    """
+
+    name: str                    # 'rom_lqg' or 'oracle_lqg'
+    model: LTVModel
+    K: np.ndarray                # (N, n_u, n)
+    kf: KalmanSchedule
+    W: np.ndarray                # (n_w, n_w) process noise covariance
+    V: np.ndarray                # (n_y, n_y) sensor noise covariance
+    field_std: np.ndarray | None = None   # (N+1, n_field) reconstruction std after the update
+
+    def __post_init__(self) -> None:
+        if self.field_std is None:
+            self.field_std = field_std_schedule(self.model.G, self.kf.P_post)
+
+
+def field_std_schedule(G: FieldMap, P: np.ndarray) -> np.ndarray:
+    """sqrt(diag(G_k P_k G_k')) for every k: (N+1, n_field)."""
+    if hasattr(G, "std_all"):
+        return G.std_all(P)
+    return np.stack([G.std(k, P[k]) for k in range(P.shape[0])])
+
+
+def prior_covariances(model: LTVModel, P_post: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """P_{k|k-1} from the posteriors: P_{0|-1} = 0, P_{k+1|k} = A_k P_{k|k} A_k' + B_w W B_w'."""
+    A, Bw = model.A, model.noise_input
+    P_prior = np.zeros_like(P_post)
+    P_prior[1:] = A @ P_post[:-1] @ A.transpose(0, 2, 1) + Bw @ W @ Bw.transpose(0, 2, 1)
+    return P_prior
