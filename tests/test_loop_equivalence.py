@@ -85,3 +85,4 @@ def test_lockstep_equivalence_reference(launcher, probe, reference_case, tmp_pat
     check_equivalence(pr, reference_case, 0, 5)
     lqg = json.loads((tmp_path / 'lqg.json').read_text())
     assert lqg['estimator']['updates'] == 251 and lqg['estimator']['nis_consistent'] in (True, None)
+    assert lqg['estimator']['state_estimates_published'] == 251      # the probe subscribes to them

@@ -42,3 +42,5 @@ def test_realtime_rtf10_reference_episode_no_deadline_miss(launcher, probe, refe
     assert bool(metrics.in_band(T, obj)) == bool(metrics.in_band(ref.F[0], obj))
     lqg_summ = json.loads((tmp_path / 'lqg.json').read_text())
     assert lqg_summ['estimator']['updates'] == 251
+    # nobody subscribes to state_estimate: the lqg (estimate handed over in-process) builds none
+    assert lqg_summ['estimator']['state_estimates_published'] == 0

@@ -71,6 +71,7 @@ class EstimatorNode(DesignedNode):
         self.on_estimate = on_estimate           # direct hook (lqg): f(k, a_hat (n_r,)) -> None
         self.rej = gate.RejectionLog()
         self.compute_s = SampleWindow()
+        self.n_estimates_published = 0
 
         self.pub_est = node.create_publisher(c.TOPIC_TYPES[c.STATE_ESTIMATE], c.STATE_ESTIMATE, c.LOOP_QOS)
         self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE], c.FIELD_ESTIMATE, c.FIELD_QOS)
@@ -146,6 +147,7 @@ class EstimatorNode(DesignedNode):
         # everything below is for other processes and viewers: built only when somebody listens
         if self.pub_est.get_subscription_count() > 0:
             self.pub_est.publish(c.joint_state(k, self.dt, self.labels, position=a))
+            self.n_estimates_published += 1
         self.compute_s.append(steady() - t_recv)
         cloud = self.publish_field and self.pub_field.get_subscription_count() > 0
         image = self.publish_field and self.pub_image is not None and self.pub_image.get_subscription_count() > 0
@@ -207,6 +209,7 @@ class EstimatorNode(DesignedNode):
         return {'node': 'estimator', 'status': status, 'design_file': self.design_file,
                 'steps': self.last_k, 'n_steps': self.N, **self.core.counters(),
                 'rejected_messages': self.rej.total, 'rejected_by_reason': self.rej.as_dict(),
+                'state_estimates_published': self.n_estimates_published,
                 **self.core.nis_stats(), 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99']}
 
     def summary_line(self, s: dict) -> str:
