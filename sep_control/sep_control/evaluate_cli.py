@@ -6,6 +6,8 @@ import sys
 import time
 from pathlib import Path
 
+from sep_estimator.ltv import sensed_nodes
+
 from . import figures
 from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail, plant_or_exit
 from .design import DesignSettings, identify_rom, with_rom
@@ -131,7 +133,8 @@ def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
     if closed is not None:
         ol = results["open_loop"].F[0] if "open_loop" in results else None
         paths.append(figures.fig_estimation(out / "estimation_error_2sigma.png", info, xyz, nom.field, closed.F[0],
-                                            closed.F_hat[0], closed.F_std, ol, obj.window))
+                                            closed.F_hat[0], closed.F_std, ol, obj.window,
+                                            sensed=sensed_nodes(design.rom)))
         paths.append(figures.fig_std_map(out / "estimation_std.png", info, xyz, closed.F_std, obj.window))
     if sweep_rows:
         paths.append(figures.fig_rom_sweep(out / "rom_order_sweep.png", design.hankel_sv,

@@ -82,11 +82,14 @@ def band_limits(target: np.ndarray, band: float) -> tuple[float, float]:
     return float(np.min(target) - band), float(np.max(target) + band)
 
 
-def spread_nodes(score: np.ndarray, xyz: np.ndarray, count: int = 2, min_frac: float = 0.25) -> list[int]:
+def spread_nodes(score: np.ndarray, xyz: np.ndarray, count: int = 2, min_frac: float = 0.25,
+                 exclude: Sequence[int] = ()) -> list[int]:
     """`count` nodes with the largest `score`, each at least `min_frac` of the domain's extent away
-    from those already chosen (else the next best): e.g. the unsensed nodes where the
-    reconstruction std is largest."""
+    from those already chosen (else the next best), none in `exclude`: e.g. the unsensed nodes
+    where the reconstruction std is largest."""
     extent = float(np.max(np.ptp(xyz, axis=0))) or 1.0
+    score = np.array(score, dtype=float)
+    score[list(exclude)] = -np.inf
     chosen: list[int] = []
     for i in np.argsort(-score, kind="stable"):
         if all(np.linalg.norm(xyz[i] - xyz[j]) >= min_frac * extent for j in chosen):
@@ -179,14 +182,13 @@ def fig_mean_vs_nominal(path: Path, info: PlantInfo, xyz: np.ndarray, target: np
 
 def fig_estimation(path: Path, info: PlantInfo, xyz: np.ndarray, F_nom: np.ndarray, F_cl: np.ndarray,
                    F_hat: np.ndarray, F_std: np.ndarray, F_ol: np.ndarray | None, window: tuple[int, int],
-                   nodes: Sequence[int] | None = None) -> Path:
+                   sensed: Sequence[int] = ()) -> Path:
     """One run: estimation error f_hat - f with +-2 sigma, and f - f_nom closed vs open loop, at
-    `nodes` (default: the two unsensed nodes where the mean reconstruction std over the band
-    window is largest)."""
+    the two unsensed nodes (not in `sensed`) where the mean reconstruction std over the band
+    window is largest."""
     plt = pyplot()
     k0, k1 = window
-    if nodes is None:
-        nodes = spread_nodes(F_std[k0:k1 + 1].mean(axis=0), xyz)
+    nodes = spread_nodes(F_std[k0:k1 + 1].mean(axis=0), xyz, exclude=sensed)
     t = np.arange(F_nom.shape[0]) * info.dt
     fig, axes = plt.subplots(1, len(nodes), figsize=(5.5 * len(nodes), 4), sharey=True, squeeze=False)
     for ax, i in zip(axes[0], nodes):

@@ -25,6 +25,7 @@ import numpy as np
 from sep_control import metrics as M
 from sep_control.analyze import AggregateReport, EpisodeReport
 from sep_control.bag_io import BagError, Episode, read_episode
+from sep_estimator.ltv import sensed_nodes
 from sep_control.figures import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot, save_figure,
                                  spread_nodes)
 from sep_plant import topics as T
@@ -122,13 +123,14 @@ def _field_maps(r0: EpisodeReport, F: np.ndarray, path: Path) -> Path:
 
 # ----------------------------------------------------------------- estimation figure
 def estimation_nodes(reps: list[EpisodeReport]) -> list[int]:
-    """The two unsensed nodes where the reconstruction std (mean over the band window and the
-    runs) is largest, spread apart (`figures.spread_nodes`)."""
+    """The two unsensed nodes (with a design: those no sensor reads, `ltv.sensed_nodes`) where the
+    reconstruction std (mean over the band window and the runs) is largest, spread apart."""
     r0 = reps[0]
     k0, k1 = r0.objective.window if r0.objective is not None else (1, r0.episode.n_steps)
     std = np.stack([r.episode.F_std[k0:k1 + 1] for r in reps])
     score = np.nan_to_num(np.nanmean(std, axis=(0, 1)), nan=-np.inf)
-    return spread_nodes(score, r0.xyz)
+    sensed = sensed_nodes(r0.design.rom) if r0.design is not None else []
+    return spread_nodes(score, r0.xyz, exclude=sensed)
 
 
 def fig_estimation(rep, path: Path) -> Path | None:

@@ -140,6 +140,24 @@ class LTVModel:
         return out
 
 
+def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3) -> list[int]:
+    """Field nodes that a sensor reads directly: output i reads node j when the row C_k[i] equals
+    the field map's row G_k[j] (to `rtol`), found from the identified model alone (k: the last
+    step by default). Sensors that average or mix the field read no single node."""
+    k = model.C.shape[0] - 1 if k is None else k
+    G = model.G.matrix(k)
+    out = []
+    for c in model.C[k]:
+        scale = float(np.linalg.norm(c))
+        if scale == 0.0:
+            continue
+        d = np.linalg.norm(G - c, axis=1)
+        j = int(np.argmin(d))
+        if d[j] <= rtol * scale:       # identified rows agree to ~1e-12 for a point sensor
+            out.append(j)
+    return out
+
+
 @dataclass
 class KalmanSchedule:
     """Time-varying Kalman gains and covariances along the horizon (k = 0..N)."""
