@@ -16,8 +16,9 @@ finite values, stamp on the step grid; `sep_plant.gate`):
   du_used), and that change passes through the update of step j+1 with the gain
   P_{j+1|j+1} C' V^{-1} (equal to the Kalman gain).
 * NIS: the normalized innovation squared dy' S_k^{-1} dy of every update (S_k^{-1}
-  precomputed from the schedule while on it); the mean over the last `nis_window` updates with
-  its 99 % interval tells whether the filter is consistent.
+  precomputed from the schedule while on it), computed in `finish_step` after the node has sent
+  the command (off the measurement-to-command path); the mean over the last `nis_window`
+  updates with its 99 % interval tells whether the filter is consistent.
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -61,6 +62,7 @@ class EstimatorCore:
         self.nis: deque[float] = deque(maxlen=nis_window)
         self.nis_sum = 0.0
         self.nis_n = 0
+        self._nis_pending: tuple | None = None     # the last update's prior, for `finish_step`
 
     # ---------------------------------------------------------------- state
     @property
@@ -94,18 +96,24 @@ class EstimatorCore:
             self.meas_kind[k] = 'skip'
             self.n_skipped += 1
         else:
-            prior_a = self.kf.a[0].copy()
-            prior_P = None if self.kf.on_schedule else self.kf.P.copy()
+            prior = (k, self.kf.a[0].copy(), None if self.kf.on_schedule else self.kf.P.copy())
             dy = y - self.y_nom[k]
             a = self.kf.update(k, dy)
             self.meas_kind[k] = 'update'
             self.n_updates += 1
-            self._nis(k, dy - self.lqg.model.C[k] @ prior_a, prior_P)
+            self._nis_pending = (*prior, dy)
         out = a[0].copy()
         # the applied input of step k may already be here (it never is in a healthy loop)
         if k < self.N and not np.isnan(self.applied_u[k, 0]):
             self.kf.predict(k, self._du(k))
         return out, None
+
+    def finish_step(self) -> None:
+        """Book-keeping of the last update that can wait until the command is out: its NIS."""
+        if self._nis_pending is not None:
+            k, a_prior, P_prior, dy = self._nis_pending
+            self._nis_pending = None
+            self._nis(k, dy - self.lqg.model.C[k] @ a_prior, P_prior)
 
     def applied(self, j: int, u: np.ndarray) -> gate.Rejection | None:
         """The input the plant applied at step j (0 <= j < N)."""
@@ -183,6 +191,7 @@ class EstimatorCore:
 
     # --------------------------------------------------------------- report
     def nis_stats(self) -> dict[str, Any]:
+        self.finish_step()
         recent = float(np.mean(self.nis)) if self.nis else None
         lo, hi = gate.chi2_interval(self.n_y, len(self.nis), 0.99)
         return {'nis_mean': self.nis_sum / self.nis_n if self.nis_n else None,

@@ -157,6 +157,7 @@ class EstimatorNode(DesignedNode):
                 self.pub_field.publish(self.cloud.build(k, self.dt, f, std))
             if image:
                 self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape))
+        self.core.finish_step()
         if k == self.N:
             self.done = True
 
