@@ -38,15 +38,7 @@ def run(plant, x, u, steps: int):
 
 def rk4(plant, x, u, horizon: float, h: float):
     """The semi-discrete system (plant.rhs) integrated by classical RK4 with small steps."""
-    n = int(math.ceil(horizon / h))
-    h = horizon / n
-    for _ in range(n):
-        k1 = plant.rhs(x, u)
-        k2 = plant.rhs(x + 0.5 * h * k1, u)
-        k3 = plant.rhs(x + 0.5 * h * k2, u)
-        k4 = plant.rhs(x + h * k3, u)
-        x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-    return x
+    return adi.rk4(plant.rhs, x, u, horizon, h)
 
 
 def p_dim(name: str) -> int:

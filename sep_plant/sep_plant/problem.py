@@ -295,19 +295,14 @@ def _coerce(key: str, v: Any, source: str) -> Any:
         return None if v is None else _int(key, v, source)
     if key in _FLOATS:
         return _num(key, v, source)
-    if key in _VECTORS:
-        if isinstance(v, (list, tuple)):
-            if not v:
-                raise ProblemError(f"{source}: {key} must be a number or a non-empty list of numbers")
-            return tuple(_num(f"{key}[{i}]", x, source) for i, x in enumerate(v))
-        return _num(key, v, source)
-    if key == "target":
-        if isinstance(v, str):
+    if key in _VECTORS or key == "target":
+        if key == "target" and isinstance(v, str):
             return v
         if isinstance(v, (list, tuple)):
             if not v:
-                raise ProblemError(f"{source}: target must be a number, a list of values or an expression")
-            return tuple(_num(f"target[{i}]", x, source) for i, x in enumerate(v))
+                raise ProblemError(f"{source}: {key} must be a number or a non-empty list of numbers"
+                                   + (" or an expression" if key == "target" else ""))
+            return tuple(_num(f"{key}[{i}]", x, source) for i, x in enumerate(v))
         return _num(key, v, source)
     if key == "band_window":
         if v is None:

@@ -395,3 +395,17 @@ def axes_for(shape: Sequence[int], lengths: Sequence[float], held: Mapping[str, 
 
 __all__ = ["Axis", "AxisOperator", "FACES", "Grid", "Held", "SOLVERS", "axes_for", "diffusion",
            "douglas_step", "held_faces", "solve_lapack", "solve_thomas"]
+
+
+def rk4(rhs, x: np.ndarray, u: np.ndarray, horizon: float, h: float) -> np.ndarray:
+    """Reference integrator for checking the schemes: classical RK4 of the semi-discrete system
+    dx/dt = rhs(x, u) over `horizon` with steps of at most h (independent of the ADI split)."""
+    n = int(np.ceil(horizon / h))
+    h = horizon / n
+    for _ in range(n):
+        k1 = rhs(x, u)
+        k2 = rhs(x + 0.5 * h * k1, u)
+        k3 = rhs(x + 0.5 * h * k2, u)
+        k4 = rhs(x + h * k3, u)
+        x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
