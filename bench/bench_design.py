@@ -2,13 +2,15 @@
 
 Measured in one run, printed as a table with ratios (no assertions). For each grid
 n_x it times: one noise-free rollout of the N-step horizon; the whole design
-(optimization + identification + gains) and its stages; the Monte Carlo of each
-controller (runs per controller as given; the oracle only where its n_x^2 N matrices
-fit comfortably). Also compares BLAS thread counts on the n_x = 100 design, and
+(optimization + identification + gains) and its stages, with the default Jacobian ("auto":
+the ROM one at N = 250) and with the sensitivity one; the Monte Carlo of each controller
+(runs per controller as given; the oracle only where its n_x^2 N matrices fit comfortably);
+one Gauss-Newton linearization + step by each Jacobian; and the crossover of the two over
+the horizon N (`--crossover`). Also compares BLAS thread counts on the n_x = 100 design, and
 reports the mean-only vs belief-space optimum.
 
     python bench/bench_design.py                       # n_x = 100, 400, 1600
-    python bench/bench_design.py --grids 100 --runs 1000
+    python bench/bench_design.py --grids 100 --runs 1000 --crossover
 """
 from __future__ import annotations
 
@@ -21,7 +23,9 @@ from threadpoolctl import threadpool_limits
 from sep_control.design import DesignSettings, run_design
 from sep_control.metrics import format_table
 from sep_control.montecarlo import simulate
-from sep_control.optimize import objective_of, optimize, rom_normal_equations, sensitivity_normal_equations
+from sep_control.optimize import (RomLinearization, SensitivityLinearization, objective_of, optimize,
+                                  sensitivity_normal_equations)
+from sep_control.tvera import identify
 from sep_control.oracle import oracle_lqg
 from sep_plant.protocol import nominal_states
 from sep_plant.scenario import reference
@@ -33,6 +37,18 @@ def timed(fn, *a, **kw):
     return out, time.perf_counter() - t0
 
 
+def linearization_times(plant, problem, U: np.ndarray, p: int = 15, q: int = 15) -> tuple[float, float]:
+    """Seconds for one Gauss-Newton linearization + LM step at U: (sensitivity, ROM)."""
+    obj = objective_of(plant, problem)
+    X = nominal_states(plant, U)
+    F = plant.field(X)
+    t0 = time.perf_counter()
+    SensitivityLinearization(sensitivity_normal_equations(plant, U, X, obj), U.shape).step(1e-3)
+    t1 = time.perf_counter()
+    RomLinearization(identify(plant, U, p, q, 20), obj, F, U).step(1e-3)
+    return t1 - t0, time.perf_counter() - t1
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--grids", type=int, nargs="+", default=[100, 400, 1600])
@@ -42,6 +58,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="BLAS threads for the main table")
     ap.add_argument("--gd-iter", type=int, default=60,
                     help="gradient-descent iterations in the GN vs GD comparison (0: skip)")
+    ap.add_argument("--no-sensitivity-design", action="store_true",
+                    help="skip the whole design with the sensitivity Jacobian (slow on large grids)")
+    ap.add_argument("--crossover", action="store_true",
+                    help="one linearization + step by each Jacobian over the horizon N (n_x = the first grid)")
     args = ap.parse_args()
 
     rows = {}
@@ -54,6 +74,10 @@ def main() -> None:
             _, t_roll = timed(nominal_states, sim, U0)
             _, t_roll = timed(nominal_states, sim, U0)     # second call: warm
             design, t_design = timed(run_design, sim, s, DesignSettings(), False, lambda m: None)
+            t_design_sens = None
+            if not args.no_sensitivity_design:
+                _, t_design_sens = timed(run_design, sim, s, DesignSettings(jacobian="sensitivity"), False,
+                                         lambda m: None)
             mc = {}
             oracle = None
             if n_x <= args.oracle_max_nx:
@@ -64,16 +88,13 @@ def main() -> None:
                 res, t = timed(simulate, sim, design, c, 1, runs, oracle=oracle, keep_estimates=0,
                                keep_trajectories=0)
                 mc[c] = (res.metrics(), t)
-            # one Gauss-Newton linearization at the optimum, each Jacobian
-            u = design.nominal.u
-            X = nominal_states(sim, u)
-            obj = objective_of(sim, s)
-            _, t_ne_sens = timed(sensitivity_normal_equations, sim, u, X, obj)
-            _, t_ne_rom = timed(rom_normal_equations, sim, u, obj, X)
+            # one Gauss-Newton linearization and step at the optimum, each Jacobian
+            t_ne_sens, t_ne_rom = linearization_times(sim, s, design.nominal.u)
         tm = design.meta["timings"]
         t_mc = mc["rom_lqg"][1]
         row = {
-            "rollout_s": t_roll, "design_s": t_design, "optimize_s": tm["optimize_s"],
+            "rollout_s": t_roll, "design_s": t_design, "design_sens_s": t_design_sens,
+            "sens/auto": t_design_sens / t_design if t_design_sens else None, "optimize_s": tm["optimize_s"],
             "identify_s": tm["identify_s"], "gains_s": tm["gains_s"], "runs": runs,
             "mc_rom_s": t_mc, "mc_open_s": mc["open_loop"][1],
             "mc_oracle_s": mc["oracle_lqg"][1] if "oracle_lqg" in mc else None,
@@ -92,13 +113,28 @@ def main() -> None:
         print(f"n_x = {n_x}: design {t_design:.2f} s, MC rom {t_mc:.2f} s ({runs} runs)", flush=True)
 
     print(f"\nTimes in seconds, BLAS threads = {args.threads}; ratios measured in this run")
-    print(format_table(rows, ["rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "runs", "mc_open_s",
-                              "mc_rom_s", "mc_oracle_s", "design/rollout", "mc_rom/rollout", "mc_per_run/rollout"]))
-    print("\nOne Gauss-Newton linearization: sensitivity Jacobian vs TV-ERA (ROM) Jacobian (design --jacobian)")
+    print(format_table(rows, ["rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "design_sens_s",
+                              "sens/auto", "runs", "mc_open_s", "mc_rom_s", "mc_oracle_s", "design/rollout",
+                              "mc_rom/rollout", "mc_per_run/rollout"]))
+    print("\nOne Gauss-Newton linearization + step: sensitivity Jacobian (dense normal equations) vs TV-ERA (ROM) "
+          "Jacobian (identification + Riccati step)")
     print(format_table(rows, ["gn_sens_s", "gn_rom_s", "sens/rom"]))
     print("\nQuality at each grid")
     print(format_table(rows, ["in_band_rom", "in_band_open", "rom/oracle_cost", "J_mean_only", "J_nominal",
                               "Jb_before", "Jb_after"]))
+
+    if args.crossover:
+        n_x = args.grids[0]
+        xrows = {}
+        for N in (30, 60, 120, 180, 250):
+            scen = reference().with_plant(n_x=n_x).replace(n_steps=N, band_window=(int(0.6 * N), N),
+                                                           lqr_k_switch=int(0.48 * N))
+            with threadpool_limits(args.threads):
+                t_s, t_r = linearization_times(scen.plant, scen.problem, scen.problem.u_start(scen.plant.n_u))
+            xrows[f"N={N}"] = {"sensitivity_s": t_s, "rom_s": t_r, "sens/rom": t_s / t_r,
+                               "auto": DesignSettings().resolved_jacobian(N)}
+        print(f"\nCrossover over the horizon N at n_x = {n_x}: one linearization + step by each Jacobian")
+        print(format_table(xrows, ["sensitivity_s", "rom_s", "sens/rom", "auto"]))
 
     if 100 in args.grids and args.gd_iter > 0:
         sim, s = reference().plant, reference().problem

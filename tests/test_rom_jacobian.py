@@ -41,3 +41,44 @@ def test_rom_gauss_newton_converges_to_the_same_optimum():
 def test_unknown_jacobian_refused():
     with pytest.raises(ValueError, match="jacobian"):
         optimize(P, S, jacobian="adjoint", show_progress=False)
+
+
+def test_rom_step_is_the_dense_gauss_newton_solve_without_the_matrix():
+    """RomLinearization solves (J'J + lam diag(J'J)) dU = -J'r by a Riccati pass on the ROM:
+    the same step as the dense solve of the same Jacobian, its diagonal and gradient too."""
+    from sep_control.optimize import RomLinearization
+    from sep_control.tvera import identify
+
+    U = np.full((S.n_steps, N_U), 0.2) + 0.02 * np.random.default_rng(2).standard_normal((S.n_steps, N_U))
+    X = nominal_rollout(P, U)
+    ne = rom_normal_equations(P, U, OBJ, X, **ROM)
+    lin = RomLinearization(identify(P, U, **ROM), OBJ, X, U)
+    for lam in (0.0, 1e-3, 1.0):
+        dense = -np.linalg.solve(ne.JtJ + lam * np.diag(np.diag(ne.JtJ)), ne.Jtr).reshape(U.shape)
+        np.testing.assert_allclose(lin.step(lam), dense, rtol=0, atol=1e-9 * np.abs(dense).max())
+    np.testing.assert_allclose(lin.D.ravel(), np.diag(ne.JtJ), rtol=1e-10)
+    np.testing.assert_allclose(lin.gradient().ravel(), 2 * ne.Jtr, rtol=0, atol=1e-10 * np.abs(ne.Jtr).max())
+
+
+def test_the_design_reuses_the_optimizers_last_identification():
+    """With the ROM Jacobian the mean-only optimizer ends identified at its optimum; the
+    belief-space refinement takes that model as a chord; the design identifies once more, at
+    the final input (or reuses the model when the input did not move)."""
+    from sep_control.design import DesignSettings, run_design
+
+    d = run_design(P, S, DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False), show_progress=False,
+                   log=lambda m: None)
+    assert d.meta["optimizer"]["experiments"] == (d.meta["optimizer"]["iterations"] + 1) * 2 * S.n_steps * N_U
+    assert d.meta["timings"]["identify_s"] < 0.05          # reused, not identified again
+    assert d.meta["validation"]["markov_rel_error"] < 1e-5       # (n_r = 16, p = q = 8)
+    assert d.meta["optimizer"]["identification_reused"]
+
+
+def test_auto_picks_the_cheaper_jacobian():
+    from sep_control.design import DesignSettings
+
+    st = DesignSettings()                                   # p = q = 15
+    assert st.jacobian == "auto"
+    assert st.resolved_jacobian(250) == "rom" and st.resolved_jacobian(80) == "sensitivity"
+    assert st.resolved_jacobian(120) == "rom" and st.resolved_jacobian(119) == "sensitivity"
+    assert DesignSettings(jacobian="sensitivity").resolved_jacobian(250) == "sensitivity"

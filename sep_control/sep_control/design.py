@@ -27,21 +27,21 @@ from sep_estimator.ltv import LTVModel
 from sep_plant.conformance import check_plant
 from sep_plant.plants import type_name_of
 from sep_plant.problem import Problem
-from sep_plant.protocol import Plant, PlantInfo, fields, outputs
+from sep_plant.protocol import Plant, PlantInfo, fields, outputs, rollout
 from sep_plant.scenario import Scenario
 
 from . import __version__
 from .lqr import design_lqg
 from .metrics import nominal_cost
 from .optimize import objective_of, optimize, run_belief
-from .tvera import Identification, identify, markov_relative_error
+from .tvera import Identification, extend_nominal, identify, markov_relative_error
 
 
 @dataclass
 class DesignSettings:
     """Knobs of the offline design (defaults: DESIGN.md)."""
     method: str = "gn"              # "gn" (Levenberg-Marquardt) or "gd" (paper's gradient descent)
-    jacobian: str = "sensitivity"   # "sensitivity" (N n_u experiments) or "rom" (TV-ERA model, large grids)
+    jacobian: str = "auto"          # "sensitivity" (N n_u experiments), "rom" (TV-ERA model), "auto": the cheaper
     belief: bool = True             # refine the mean-only optimum in belief space
     max_iter: int | None = None     # optimizer iterations (None: 10 for gn, 60 for gd)
     belief_iter: int = 2            # belief-space GN iterations after the mean-only optimum
@@ -58,8 +58,8 @@ class DesignSettings:
     def check(self) -> None:
         if self.method not in ("gn", "gd"):
             raise ValueError(f"method must be 'gn' or 'gd', got {self.method!r}")
-        if self.jacobian not in ("sensitivity", "rom"):
-            raise ValueError(f"jacobian must be 'sensitivity' or 'rom', got {self.jacobian!r}")
+        if self.jacobian not in ("sensitivity", "rom", "auto"):
+            raise ValueError(f"jacobian must be 'sensitivity', 'rom' or 'auto', got {self.jacobian!r}")
         for name in ("n_r", "p", "q", "ensemble"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -69,6 +69,17 @@ class DesignSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
+
+    def resolved_jacobian(self, n_steps: int) -> str:
+        """'auto': the Jacobian whose experiments take fewer plant steps per iteration. The
+        sensitivity one runs N n_u experiments of N/2 steps on average, N (N+1) n_u / 2
+        run-steps (and forms a dense (N n_u)^2 normal matrix from N n_f rows); the ROM one
+        2 N n_u experiments of p + q steps, 2 N n_u (p + q) run-steps, and solves the step on the
+        ROM in O(N n_r^3). The ROM one is cheaper from N + 1 > 4 (p + q) on (N >= 120 with the
+        default p = q = 15; bench/bench_design.py measures the crossover)."""
+        if self.jacobian != "auto":
+            return self.jacobian
+        return "rom" if n_steps + 1 > 4 * (self.p + self.q) else "sensitivity"
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
@@ -97,30 +108,37 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     # 1. nominal trajectory --------------------------------------------------
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse}
+    jacobian = st.resolved_jacobian(problem.n_steps)
     opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
-                   jacobian=st.jacobian, rom=rom)
-    log(f"mean-only {st.method} ({st.jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
+                   jacobian=jacobian, rom=rom)
+    log(f"mean-only {st.method} ({jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
         f"({opt.experiments} experiments, {opt.seconds:.2f} s)")
     U, mean_only_cost = opt.U, opt.cost
     belief_hist: list[float] = []
+    last = opt
     if st.belief:
         bopt = optimize(plant, problem, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
                         eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
-                        jacobian=st.jacobian, rom=rom)
+                        jacobian=jacobian, rom=rom, reuse=opt, chord=True)
         log(f"belief-space gn: J_b = {bopt.history[0]:.8g} -> {bopt.cost:.8g} "
             f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
-        U, belief_hist = bopt.U, bopt.history
+        U, belief_hist, last = bopt.U, bopt.history, bopt
     timings["optimize_s"] = time.perf_counter() - t0
-    belief = run_belief(plant, U, problem, st.ensemble, st.seed)
+    belief = last.belief if last.belief is not None else run_belief(plant, U, problem, st.ensemble, st.seed)
 
-    # 2. TV-ERA ------------------------------------------------------------
+    # 2. TV-ERA: with the ROM Jacobian the optimizer's last identification is at U already ------
     t0 = time.perf_counter()
-    ident = identify_rom(plant, U, st, show_progress)
+    reused = last.identification is not None
+    ident = last.identification if reused else identify_rom(plant, U, st, show_progress)
+    if reused and not np.array_equal(ident.U, U):
+        ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],
+                        U=U.copy())     # the same linear model; the nominal of the final input
     timings["identify_s"] = time.perf_counter() - t0
     markov_err = markov_relative_error(ident.model, ident.data.Y)
     log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
-        f"experiments, Markov relative error {markov_err:.2e}")
+        f"experiments{' (the optimizer’s last identification, reused)' if reused else ''}, Markov relative "
+        f"error {markov_err:.2e}")
 
     # 3. LQG on the ROM ----------------------------------------------------
     t0 = time.perf_counter()
@@ -137,9 +155,11 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
         "provenance": {"tool": "sep design", "version": __version__, "python": platform.python_version(),
                        "numpy": np.__version__, "created_unix": time.time(), "seed": st.seed},
         "timings": timings,
-        "optimizer": {"method": st.method, "mean_only_cost": mean_only_cost,
+        "optimizer": {"method": st.method, "jacobian": jacobian, "mean_only_cost": mean_only_cost,
                       "mean_only_history": opt.history, "belief_history": belief_hist,
-                      "experiments": opt.experiments, "nominal_cost": float(nominal_cost(F_nom, U, obj))},
+                      "iterations": opt.iterations, "experiments": opt.experiments,
+                      "belief_experiments": last.experiments if st.belief else 0,
+                      "identification_reused": reused, "nominal_cost": float(nominal_cost(F_nom, U, obj))},
         "validation": {"markov_rel_error": markov_err, "impulse_amplitude": ident.delta,
                        "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
     }

@@ -36,10 +36,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DESIGN_FILE", required=True, help="design file to write (.npz)")
     p.add_argument("--method", choices=["gn", "gd"], default=d.method,
                    help="optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent")
-    p.add_argument("--jacobian", choices=["sensitivity", "rom"], default=d.jacobian,
+    p.add_argument("--jacobian", choices=["auto", "sensitivity", "rom"], default=d.jacobian,
                    help="Gauss-Newton Jacobian: sensitivity = N n_u impulse-sensitivity experiments per "
-                        "iteration; rom = a TV-ERA model identified per iteration (same optimum, about 3x "
-                        "cheaper from n_x = 400 on)")
+                        "iteration and a dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration, "
+                        "the step solved on it by a Riccati pass (its last identification is the design's "
+                        "ROM); auto = rom when N + 1 > 4 (p + q), where it takes fewer plant steps")
     p.add_argument("--max-iter", type=int, default=None, help="optimizer iterations (default 10 gn, 60 gd)")
     p.add_argument("--step-size", type=float, default=d.step_size, help="gradient-descent step alpha")
     p.add_argument("--no-belief", action="store_true", help="skip the belief-space refinement (mean-only nominal)")

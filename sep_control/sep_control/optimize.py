@@ -130,11 +130,10 @@ def sensitivity_normal_equations(plant: Plant, U: np.ndarray, Xbar: np.ndarray, 
 def rom_normal_equations(plant: Plant, U: np.ndarray, obj: Objective, residual_field: np.ndarray,
                          p: int = 15, q: int = 15, n_r: int = 20, sv_tol: float = 1e-10,
                          impulse: float = 0.01) -> NormalEquations:
-    """J'J and J'r from a TV-ERA model of the field around U (the cheaper Jacobian).
+    """J'J and J'r of the ROM Jacobian, formed densely (for checks: the optimizer solves the
+    same Gauss-Newton step through `RomLinearization` without forming them).
 
-    The field sensitivities df_k/du_j are taken from the identified ROM, G_k A_{k-1} ... A_{j+1} B_j,
-    instead of N n_u experiments of average length N/2: the TV-ERA experiments are 2 N n_u runs
-    of p+q steps, and the normal equations cost O(N^3 n_u^2 n_r) flops whatever n_x is:
+    The field sensitivities df_k/du_j are taken from the identified ROM, G_k A_{k-1} ... A_{j+1} B_j:
         M_k = [A_{k-1} M_{k-1}, B_{k-1}]   (n_r x k n_u: the state response to every past input)
         J'J += M_k' (w_k G_k' G_k) M_k,   J'r += M_k' w_k G_k' (f_k - f*),   w_k = q_k / n_f.
     """
@@ -151,13 +150,111 @@ def rom_normal_equations(plant: Plant, U: np.ndarray, obj: Objective, residual_f
         m = n_u * k
         M[:, :m - n_u] = model.A[k - 1] @ M[:, :m - n_u]
         M[:, m - n_u:m] = model.B[k - 1]
-        Gk = model.G.matrix(k)
         Mk = M[:, :m]
-        JtJ[:m, :m] += Mk.T @ ((w[k] * (Gk.T @ Gk)) @ Mk)
-        Jtr[:m] += Mk.T @ (w[k] * (Gk.T @ res[k]))
+        JtJ[:m, :m] += Mk.T @ ((w[k] * model.G.gram(k)) @ Mk)
+        Jtr[:m] += Mk.T @ (w[k] * model.G.project(k, res[k]))
     JtJ[np.diag_indices(n)] += obj.r_u
     Jtr += obj.r_u * U.ravel()
     return NormalEquations(JtJ, Jtr, ident.data.experiments, ident.data.experiments * (p + q))
+
+
+# ------------------------------------------------------------ linearizations
+#: an identification at U' serves at U when max|U - U'| <= SAME_INPUT_RTOL max|U'|: the Markov
+#: parameters then differ by O(1e-6) relative, the accuracy the identification itself reaches
+SAME_INPUT_RTOL = 1e-6
+
+
+def same_input(U_a: np.ndarray, U_b: np.ndarray) -> bool:
+    """Whether a linearization at U_a serves at U_b (see SAME_INPUT_RTOL)."""
+    return U_a.shape == U_b.shape and float(np.max(np.abs(U_a - U_b))) <= \
+        SAME_INPUT_RTOL * max(float(np.max(np.abs(U_a))), 1e-12)
+class SensitivityLinearization:
+    """Gauss-Newton/LM steps and gradients from dense normal equations (sensitivity Jacobian)."""
+
+    def __init__(self, ne: NormalEquations, shape: tuple[int, int]):
+        self.ne, self.shape, self.experiments = ne, shape, ne.experiments
+        self.identification = None
+
+    def step(self, lam: float) -> np.ndarray:
+        """(J'J + lam diag(J'J)) dU = -J'r."""
+        H = self.ne.JtJ + lam * np.diag(np.diag(self.ne.JtJ))
+        return -np.linalg.solve(H, self.ne.Jtr).reshape(self.shape)
+
+    def gradient(self) -> np.ndarray:
+        return 2.0 * self.ne.Jtr.reshape(self.shape)
+
+
+class RomLinearization:
+    """The Gauss-Newton model of the cost on an identified ROM, solved as a linear-quadratic
+    problem (no N n_u x N n_u matrix): with the field deviation df_k = G_k a_k,
+    a_{k+1} = A_k a_k + B_k du_k, a_0 = 0, the LM step minimizes
+
+        sum_{k=1..N} w_k |G_k a_k + e_k|^2 + sum_j [ r_u |u_j + du_j|^2 + lam du_j' D_j du_j ],
+
+    e_k = f_k - f* (the nominal's field, or the belief mean), w_k = q_k / n_f, D_j the diagonal of
+    the Gauss-Newton matrix J'J (Levenberg-Marquardt scaling, as the dense solve uses). One
+    backward Riccati pass with affine terms and one forward pass: O(N n_r^3), whatever n_x is;
+    G enters only through G_k' G_k and G_k' e_k (`FieldMap.gram`, `FieldMap.project`). The step
+    equals the dense solve of the same Jacobian (tests/test_rom_jacobian.py)."""
+
+    def __init__(self, identification, obj: Objective, residual_field: np.ndarray, U: np.ndarray):
+        m = identification.model
+        self.identification, self.model, self.U = identification, m, U
+        self.experiments = identification.data.experiments
+        N = U.shape[0]
+        w = obj.q / residual_field.shape[1]
+        e = residual_field - obj.target
+        n = m.n
+        self.H = np.zeros((N + 1, n, n))
+        self.h = np.zeros((N + 1, n))
+        for k in range(1, N + 1):
+            self.H[k] = w[k] * m.G.gram(k)
+            self.h[k] = w[k] * m.G.project(k, e[k])
+        self.r_u = obj.r_u
+        # diagonal of J'J: r_u + diag(B_j' P_{j+1} B_j), P_k = H_k + A_k' P_{k+1} A_k
+        self.D = np.empty(U.shape)
+        P = self.H[N].copy()
+        for j in range(N - 1, -1, -1):
+            self.D[j] = self.r_u + np.einsum("ic,ij,jc->c", m.B[j], P, m.B[j])
+            if j > 0:
+                P = self.H[j] + m.A[j].T @ P @ m.A[j]
+
+    def step(self, lam: float) -> np.ndarray:
+        m, N = self.model, self.U.shape[0]
+        n_u = self.U.shape[1]
+        K = np.empty((N, n_u, m.n))
+        kff = np.empty((N, n_u))
+        S, s = self.H[N].copy(), self.h[N].copy()
+        for k in range(N - 1, -1, -1):
+            A, B = m.A[k], m.B[k]
+            SB = S @ B
+            Quu = B.T @ SB
+            Quu[np.diag_indices(n_u)] += self.r_u + lam * self.D[k]
+            Qux = SB.T @ A
+            qu = self.r_u * self.U[k] + B.T @ s
+            sol = np.linalg.solve(Quu, np.column_stack([Qux, qu]))
+            K[k], kff[k] = -sol[:, :-1], -sol[:, -1]
+            if k > 0:
+                S = self.H[k] + A.T @ S @ A + Qux.T @ K[k]
+                S = 0.5 * (S + S.T)
+                s = self.h[k] + A.T @ s + Qux.T @ kff[k]
+        dU = np.empty_like(self.U)
+        a = np.zeros(m.n)
+        for k in range(N):
+            dU[k] = K[k] @ a + kff[k]
+            a = m.A[k] @ a + m.B[k] @ dU[k]
+        return dU
+
+    def gradient(self) -> np.ndarray:
+        """dJ/dU = 2 J'r by the adjoint recursion p_k = h_k + A_k' p_{k+1}: 2 (B_j' p_{j+1} + r_u u_j)."""
+        m, N = self.model, self.U.shape[0]
+        g = np.empty_like(self.U)
+        p = self.h[N].copy()
+        for j in range(N - 1, -1, -1):
+            g[j] = m.B[j].T @ p + self.r_u * self.U[j]
+            if j > 0:
+                p = self.h[j] + m.A[j].T @ p
+        return 2.0 * g
 
 
 # --------------------------------------------------------------- optimizer
@@ -171,21 +268,28 @@ class OptimizationResult:
     seconds: float = 0.0
     method: str = "gn"
     objective: str = "nominal"
+    identification: object = None          # ROM path: the TV-ERA model at the final U, if identified
+    belief: EnKFResult | None = None       # belief objective: the belief at the final U (after a step)
 
 
 def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, method: str = "gn",
              objective: str = "nominal", max_iter: int | None = None, tol: float = 1e-7,
              eps: float = 1e-4, step_size: float = 1e-3, members: int = 200, seed: int = 0,
              show_progress: bool = True, jacobian: str = "sensitivity",
-             rom: dict | None = None) -> OptimizationResult:
+             rom: dict | None = None, reuse: "OptimizationResult | None" = None,
+             chord: bool = False) -> OptimizationResult:
     """Minimize the nominal (``objective='nominal'``) or belief-space (``'belief'``) cost.
 
     method ``gn`` (Levenberg-Marquardt) or ``gd`` (gradient descent with step `step_size`
     and backtracking). `jacobian` ``sensitivity`` (N n_u impulse-sensitivity experiments) or
-    ``rom`` (a TV-ERA model identified at every iteration, settings `rom` passed to
-    `rom_normal_equations`; cheaper on large grids). Stops after `max_iter` iterations or when
-    an accepted step lowers the objective by less than `tol` relative. Every step is accepted
-    on the true objective, whichever Jacobian proposed it.
+    ``rom`` (a TV-ERA model identified at every iterate, settings `rom` passed to `identify`;
+    the step is then an LQ problem on the ROM, `RomLinearization`). Stops after `max_iter`
+    iterations or when an accepted step lowers the objective by less than `tol` relative. Every
+    step is accepted on the true objective, whichever Jacobian proposed it. With the ROM
+    Jacobian the result carries the identification at the final input (`identification`), and
+    `reuse` (an earlier result) saves identifying at its final input again; `chord` keeps the
+    first identification for every iteration (a chord method: the belief-space refinement moves
+    U by ~1e-4 relative, and its Jacobian is the nominal's to first order anyway).
     """
     if method not in ("gn", "gd"):
         raise ValueError(f"method must be 'gn' or 'gd', got {method!r}")
@@ -200,31 +304,42 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     lo, hi = problem.limits(n_u)
     obj = objective_of(plant, problem)
 
+    last_belief: dict = {}
+
     def evaluate(Uc: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         Xc = nominal_states(plant, Uc)
         Fc = fields(plant, Xc)
         if objective == "nominal":
             return float(nominal_cost(Fc, Uc, obj)), Xc, Fc
         b = run_belief(plant, Uc, problem, members, seed)
+        last_belief["try"] = b
         return belief_cost(b, Uc, obj), Xc, b.mean
+
+    def linearize(Uc: np.ndarray, Xc: np.ndarray, residual: np.ndarray):
+        if jacobian == "rom":
+            known = [i for i in (getattr(lin, "identification", None) if lin is not None else None,
+                                 reuse.identification if reuse is not None else None) if i is not None]
+            near = [i for i in known if chord or same_input(i.U, Uc)]
+            if near:
+                ident = near[0]                       # identified at (virtually) this input already
+            else:
+                ident = identify(plant, Uc, **(rom or {}))
+                result.experiments += ident.data.experiments
+            return RomLinearization(ident, obj, residual, Uc)
+        ne = sensitivity_normal_equations(plant, Uc, Xc, obj, eps, residual, gram=(method == "gn"))
+        result.experiments += ne.experiments
+        return SensitivityLinearization(ne, Uc.shape)
 
     J, X, field_for_residual = evaluate(U)
     result = OptimizationResult(U, J, [J], method=method, objective=objective)
     lam, alpha = 1e-3, step_size
+    lin = None
+    lin = linearize(U, X, field_for_residual)
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
     for it in bar:
-        if jacobian == "rom":
-            ne = rom_normal_equations(plant, U, obj, field_for_residual, **(rom or {}))
-        else:
-            ne = sensitivity_normal_equations(plant, U, X, obj, eps, field_for_residual, gram=(method == "gn"))
-        result.experiments += ne.experiments
         accepted = False
         for _ in range(12):
-            if method == "gn":
-                H = ne.JtJ + lam * np.diag(np.diag(ne.JtJ))
-                dU = -np.linalg.solve(H, ne.Jtr).reshape(U.shape)
-            else:
-                dU = -alpha * 2.0 * ne.Jtr.reshape(U.shape)
+            dU = lin.step(lam) if method == "gn" else -alpha * lin.gradient()
             U_try = clip_inputs(U + dU, lo, hi)
             J_try, X_try, f_try = evaluate(U_try)
             if np.isfinite(J_try) and J_try < J:
@@ -235,12 +350,23 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
             break
         rel = (J - J_try) / max(J, 1e-300)
         U, J, X, field_for_residual = U_try, J_try, X_try, f_try
+        if "try" in last_belief:
+            last_belief["b"] = last_belief["try"]
         lam, alpha = max(lam / 3.0, 1e-9), alpha * 1.2
         result.history.append(J)
         result.iterations = it + 1
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(J=f"{J:.6g}")
-        if rel < tol:
+        stop = rel < tol or it == max_iter - 1
+        if stop and jacobian != "rom":
             break
+        lin = linearize(U, X, field_for_residual)   # ROM path at the end too: the design reuses it
+        if stop:
+            break
+    # the ROM path ends identified at the final input when the last linearization was there:
+    # the design reuses it as its TV-ERA model instead of identifying again
+    ident = getattr(lin, "identification", None)
+    result.identification = ident if ident is not None and same_input(ident.U, U) else None
+    result.belief = last_belief.get("b")
     result.U, result.cost, result.seconds = U, J, time.perf_counter() - t0
     return result

@@ -63,6 +63,7 @@ class Identification:
     data: MarkovData
     delta: float            # impulse amplitude
     X_ext: np.ndarray       # (N+1+lags, n_x) nominal states, extended past N
+    U: np.ndarray           # (N, n_u) the nominal input it was identified around
 
 
 def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
@@ -134,7 +135,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress)
-    return Identification(model, sv, data, delta, X_ext)
+    return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float))
 
 
 def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:

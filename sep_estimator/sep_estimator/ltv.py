@@ -39,6 +39,12 @@ class FieldMap(Protocol):
     def std(self, k: int, P: np.ndarray) -> np.ndarray:
         """sqrt(diag(G_k P G_k')) (n_field,)."""
 
+    def gram(self, k: int) -> np.ndarray:
+        """G_k' G_k (n, n): what a quadratic cost on the field needs, whatever n_field is."""
+
+    def project(self, k: int, v: np.ndarray) -> np.ndarray:
+        """G_k' v for field vectors v (..., n_field) -> (..., n)."""
+
 
 class DenseFieldMap:
     """G_k stored as (N+1, n_field, n)."""
@@ -60,6 +66,14 @@ class DenseFieldMap:
         """(N+1, n_field) for covariances P (N+1, n, n)."""
         return field_std(self.G, P)
 
+    def gram(self, k: int) -> np.ndarray:
+        """G_k' G_k (n, n)."""
+        return self.G[k].T @ self.G[k]
+
+    def project(self, k: int, v: np.ndarray) -> np.ndarray:
+        """G_k' v for field vectors v (..., n_field) -> (..., n)."""
+        return v @ self.G[k]
+
 
 class IdentityFieldMap:
     """G_k = I (the state is the field): the oracle's field map."""
@@ -78,6 +92,12 @@ class IdentityFieldMap:
 
     def std_all(self, P: np.ndarray) -> np.ndarray:
         return np.sqrt(np.maximum(np.einsum("kii->ki", P), 0.0))
+
+    def gram(self, k: int) -> np.ndarray:
+        return np.eye(self.n)
+
+    def project(self, k: int, v: np.ndarray) -> np.ndarray:
+        return v
 
 
 def field_std(G: np.ndarray, P: np.ndarray) -> np.ndarray:
