@@ -12,14 +12,14 @@ import pytest
 from core_helpers import flat
 from sep_estimator.design_file import (ARRAYS, VERSION, Design, DesignFileError, Nominal, arrays_of,
                                        check_matches, load_design, save_design)
-from sep_estimator.ltv import LQG, DenseFieldMap, KalmanSchedule, LTVModel
+from sep_estimator.ltv import LQG, DenseFieldMap, KalmanSchedule, LTVModel, PODFieldMap
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.problem import Objective
 from sep_plant.scenario import Scenario
 
 SCENARIO = flat(n_x=8, n_steps=5, k_band=3, lqr_k_switch=2, u_min=-2.0, u_max=math.inf, dt=0.5)
 N_STEPS, N_X, N_U, N_Y = 5, 8, 5, 5
-N_R, N_SV = 3, 4
+N_R, N_SV, N_RF = 3, 4, 4
 REPO = Path(__file__).resolve().parent.parent
 V1_FILE = REPO / "tests" / "data" / "design_v1_sep01.npz"
 
@@ -30,7 +30,8 @@ def synthetic_design(s: Scenario = SCENARIO, seed: int = 0) -> Design:
     N, nx, nu, ny = s.problem.n_steps, s.plant.n_x, s.plant.n_u, s.plant.n_y
     f = lambda *shape: rng.standard_normal(shape)
     P = f(N + 1, N_R, N_R)
-    model = LTVModel(A=f(N, N_R, N_R), B=f(N, N_R, nu), C=f(N + 1, ny, N_R), G=DenseFieldMap(f(N + 1, nx, N_R)),
+    Phi = np.linalg.qr(f(nx, N_RF))[0]                       # orthonormal field basis
+    model = LTVModel(A=f(N, N_R, N_R), B=f(N, N_R, nu), C=f(N + 1, ny, N_R), G=PODFieldMap(Phi, f(N + 1, N_RF, N_R)),
                      dims=np.minimum(np.arange(N + 1) * 2, N_R).astype(np.int64))
     P_post = P @ P.transpose(0, 2, 1)
     W, V = s.problem.noise_covariances(nu, ny)
@@ -446,7 +447,7 @@ def test_a_loaded_design_with_a_new_rom_saves_and_loads(tmp_path):
     r = N_R - 1
     m, q = d.rom, d.lqg
     model = LTVModel(m.A[:, :r, :r].copy(), m.B[:, :r].copy(), m.C[:, :, :r].copy(),
-                     DenseFieldMap(m.G.G[:, :, :r].copy()), np.minimum(m.dims, r))
+                     PODFieldMap(m.G.Phi, m.G.g[:, :, :r].copy()), np.minimum(m.dims, r))
     sched = KalmanSchedule(q.kf.L[:, :r].copy(), q.kf.P_post[:, :r, :r].copy(), q.kf.P_prior[:, :r, :r].copy())
     d2 = replace(d, lqg=LQG("rom_lqg", model, q.K[:, :, :r].copy(), sched, q.W, q.V, q.field_std))
     back = load_design(save_design(tmp_path / "b.npz", d2))
@@ -467,7 +468,7 @@ def test_version_1_file_of_sep01_is_read(tmp_path):
     assert d.scenario.plant_config["n_x"] == 12 and d.problem.window == (6, 10) and d.problem.k_switch == 4
     with np.load(V1_FILE) as z:
         np.testing.assert_array_equal(d.nominal.field, z["T_nom"])
-        np.testing.assert_array_equal(d.rom.G.G, z["G"])
+        np.testing.assert_array_equal(d.rom.G.G, z["G"])          # version 1: the dense field map
         np.testing.assert_array_equal(d.lqg.K, z["K"])
     np.testing.assert_array_equal(d.field_xyz[:, 0], d.scenario.plant.grid())
     # the cost sep 0.1 computed for its rom_lqg, runs 0-4 of seed 1: 13.946957521277634
@@ -492,3 +493,25 @@ def test_noise_input_map_round_trip(tmp_path):
     back = load_design(save_design(tmp_path / "bw.npz", d))
     np.testing.assert_array_equal(back.rom.Bw, d.rom.Bw)
     assert "Bw" in arrays_of(back)
+
+
+def test_large_trajectories_are_stored_compressed(tmp_path, monkeypatch):
+    """Field trajectories above COMPRESS_ABOVE numbers go into the file as a truncated SVD and
+    come back to TRAJECTORY_TOL; a broken compressed member is refused."""
+    import sep_estimator.design_file as df
+
+    monkeypatch.setattr(df, "COMPRESS_ABOVE", 10)
+    d = synthetic_design()
+    x = np.linspace(0, 1, N_X)
+    d.nominal.field = 150 + np.outer(np.linspace(0, 1, N_STEPS + 1), np.sin(3 * x))    # rank 1
+    path = save_design(tmp_path / "c.npz", d)
+    with np.load(path) as z:
+        assert "field_nom" not in z.files and z["field_nom__basis"].shape == (N_X, 2)   # 150 + ramp: rank 2
+    back = load_design(path)
+    np.testing.assert_allclose(back.nominal.field, d.nominal.field, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(back.lqg.field_std, d.lqg.field_std, rtol=0, atol=1e-9)
+    refused(rewrite(path, tmp_path / "half.npz", field_nom__coef=None))
+    with np.load(path) as z:
+        bad = z["field_std__basis"].copy()
+    bad[0, 0] = np.nan
+    refused(rewrite(path, tmp_path / "nan.npz", field_std__basis=bad), "field_std")

@@ -39,7 +39,7 @@ def known_system():
     steps = N + P + Q                      # the system is defined past N for the last Hankels
     A, B, C, F = ltv_system(rng, steps, N_ORDER, N_U, N_Y, N_F, radius=0.9)
     Y, Yf = exact_markov(A, B, C, F, N, P + Q, Q)
-    real, sv = tv_era(MarkovData(Y, Yf, delta=1.0, experiments=0, n_u=N_U), N, P, Q, n_r=8)
+    real, sv = tv_era(MarkovData.from_dense(Y, Yf, delta=1.0, experiments=0, n_u=N_U), N, P, Q, n_r=8)
     return A, B, C, F, Y, real, sv
 
 
@@ -107,7 +107,7 @@ def test_order_cap_truncates():
     rng = np.random.default_rng(7)
     A, B, C, F = ltv_system(rng, N + P + Q, N_ORDER, N_U, N_Y, N_F)
     Y, Yf = exact_markov(A, B, C, F, N, P + Q, Q)
-    real, _ = tv_era(MarkovData(Y, Yf, 1.0, 0, N_U), N, P, Q, n_r=3)
+    real, _ = tv_era(MarkovData.from_dense(Y, Yf, 1.0, 0, N_U), N, P, Q, n_r=3)
     assert real.dims.max() == 3 and real.A.shape == (N, 3, 3)
     # a truncated ROM is an approximation, not garbage: first Markov parameters roughly right
     err = rel(real.markov_all(1)[:, 0], Y[:, 0])
@@ -119,7 +119,7 @@ def test_needs_enough_lags():
     A, B, C, F = ltv_system(rng, N + P + Q, N_ORDER, N_U, N_Y, N_F)
     Y, Yf = exact_markov(A, B, C, F, N, P + Q - 1, Q)
     with pytest.raises(ValueError, match="lag"):
-        tv_era(MarkovData(Y, Yf, 1.0, 0, N_U), N, P, Q, n_r=8)
+        tv_era(MarkovData.from_dense(Y, Yf, 1.0, 0, N_U), N, P, Q, n_r=8)
 
 
 def test_slab_rom_matches_long_impulse_experiments():
@@ -143,7 +143,8 @@ def test_slab_rom_matches_long_impulse_experiments():
     valid = (np.arange(n_steps)[:, None] + np.arange(1, n_steps + 1)[None, :]) <= n_steps
     assert rel(Yr[valid], long.Y[valid]) < 1e-6
     # the field map reproduces the recorded field responses at lag 1 (the whole field, not 5 sensors)
-    np.testing.assert_allclose(np.einsum("jxr,jru->jxu", real.G.G[1:], real.B), data.Yf[:, 0],
+    G = np.stack([real.G.matrix(k) for k in range(1, n_steps + 1)])
+    np.testing.assert_allclose(np.einsum("jxr,jru->jxu", G, real.B), data.Yf[:, 0],
                                rtol=0, atol=1e-6 * np.abs(data.Yf[:, 0]).max())
 
 

@@ -19,7 +19,9 @@ Near k = 0 only k past inputs exist and n_k grows (0, n_u, 2 n_u, ...), A_k rect
 The nominal is extended past N (last input held) so the last Hankel matrices are complete.
 
 The field output map G_k (df_k = G_k a_k) follows from the field Markov parameters of the
-same experiments (field snapshots): G_k = Hf_k V_n S_n^{-1/2}, Hf_k[0, m] = Yf_{k, k-1-m}.
+same experiments (field snapshots): G_k = Hf_k V_n S_n^{-1/2}, Hf_k[0, m] = Yf_{k, k-1-m}. The
+field responses stream into an orthonormal basis Phi as they are simulated, so G_k = Phi g_k
+(`sep_estimator.ltv.PODFieldMap`): memory n_field r + N r n_r, never N n_field n_r.
 Only `plant.step`, `plant.observe`, `plant.field` and state snapshots are used.
 Pure numpy: no ROS import.
 """
@@ -29,10 +31,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sep_estimator.ltv import DenseFieldMap, LTVModel
+from sep_estimator.ltv import LTVModel, PODFieldMap
 from sep_plant.protocol import Plant, noise_channels, rollout
 
+from .basis import IncrementalBasis, truncate
 from .progress import progress
+
+#: relative tolerance of the field responses' basis (against the largest response) and of its
+#: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
+#: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes)
+FIELD_TOL = 1e-8
 
 
 @dataclass
@@ -40,11 +48,14 @@ class MarkovData:
     """Markov parameters from impulse experiments around a nominal of N steps.
 
     Y[j, l]  = Y_{j+l, j}  (n_y, n_ch) for lags l = 1..L (index l-1), inputs j = 0..N-1;
-    Yf[j, l] = Yf_{j+l, j} (n_field, n_ch) field Markov parameters, lags 1..Lf.
+    field Markov parameters Yf_{j+l, j} (n_field, n_ch), lags 1..Lf, kept as coefficients on an
+    orthonormal basis of the field responses: Yf[j, l] = basis @ Yc[j, l] (see `sep_control.basis`:
+    memory n_field r + N Lf r n_ch instead of N Lf n_field n_ch).
     Channels: the n_u inputs, then the noise channels (only when noise is not on the inputs).
     """
     Y: np.ndarray          # (N, L, n_y, n_ch)
-    Yf: np.ndarray         # (N, Lf, n_field, n_ch)
+    Yc: np.ndarray         # (N, Lf, r, n_ch) field responses on `basis`
+    basis: np.ndarray      # (n_field, r) orthonormal
     delta: float
     experiments: int
     n_u: int               # the first n_u channels are the inputs
@@ -52,6 +63,16 @@ class MarkovData:
     @property
     def Y_inputs(self) -> np.ndarray:
         return self.Y[..., :self.n_u]
+
+    @classmethod
+    def from_dense(cls, Y: np.ndarray, Yf: np.ndarray, delta: float, experiments: int, n_u: int) -> "MarkovData":
+        """From dense field Markov parameters Yf (N, Lf, n_field, n_ch) (the identity basis)."""
+        return cls(Y, Yf, np.eye(Yf.shape[2]), delta, experiments, n_u)
+
+    @property
+    def Yf(self) -> np.ndarray:
+        """The field Markov parameters as a dense (N, Lf, n_field, n_ch) array (small grids only)."""
+        return np.einsum("fr,jlrc->jlfc", self.basis, self.Yc)
 
 
 @dataclass
@@ -72,12 +93,16 @@ def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
 
 
 def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
-                        Xbar_ext: np.ndarray | None = None, show_progress: bool = False) -> MarkovData:
+                        Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
+                        field_tol: float = FIELD_TOL) -> MarkovData:
     """Central-difference impulse responses for every input step j < N and channel c.
 
     All 2 N n_ch experiments run as one batch in lockstep over global steps; experiment
     (j, c, +-) is active for steps j..j+lags-1 only, so the batch holds at most 2 n_ch lags
-    runs. `Xbar_ext` is the nominal over N + lags steps (computed if None).
+    runs: a ring of `lags` slots of 2 n_ch rows, start j in slot j mod lags, stepped in place
+    (no copy of the batch per step). `Xbar_ext` is the nominal over N + lags steps (computed if
+    None). Field responses go straight into an incremental orthonormal basis (`field_tol`
+    relative to the largest response); only their coefficients are kept.
     """
     N, n_u = U.shape
     U_ext = extend_nominal(U, lags)
@@ -87,43 +112,54 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     n_ch = n_u + n_w
     n_y, n_f, n_x = int(plant.n_y), int(plant.n_field), int(plant.n_x)
     Y = np.zeros((N, lags, n_y, n_ch))
-    Yf = np.zeros((N, field_lags, n_f, n_ch))
-    # per start step: [+delta e_c for every channel, -delta e_c for every channel]
-    pert = np.vstack([np.eye(n_ch), -np.eye(n_ch)]) * delta        # (2 n_ch, n_ch)
-    X = np.empty((0, n_x))
-    starts: list[int] = []
+    basis = IncrementalBasis(n_f, field_tol)
+    field_blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, coefficients)
+    rows = 2 * n_ch                                   # per slot: [+delta e_c ..., -delta e_c ...]
+    pert = np.vstack([np.eye(n_ch), -np.eye(n_ch)]) * delta
+    X = np.empty((lags * rows, n_x))
+    slot_start = np.full(lags, -1)                    # start step j held by each slot (-1: none)
     steps = progress(range(N + lags - 1), desc="TV-ERA experiments", enabled=show_progress)
     for k in steps:
-        if starts and starts[0] + lags <= k:        # oldest experiments are complete
-            starts.pop(0)
-            X = X[2 * n_ch:]
         if k < N:
-            starts.append(k)
-            X = np.vstack([X, np.repeat(Xbar_ext[k][None], 2 * n_ch, axis=0)])
-        if not starts:
-            continue
-        Uk = np.repeat(U_ext[k][None], X.shape[0], axis=0)
-        Wk = np.zeros((X.shape[0], n_w)) if n_w else None
+            s = k % lags
+            X[s * rows:(s + 1) * rows] = Xbar_ext[k]
+            slot_start[s] = k
+        used = min(k + 1, lags) * rows                # ramp-up: only the slots filled so far
+        j_slot = slot_start[:used // rows]
+        Uk = np.repeat(U_ext[k][None], used, axis=0)
+        Wk = np.zeros((used, n_w)) if n_w else None
         if k < N:
-            Uk[-2 * n_ch:] += pert[:, :n_u]
+            s = k % lags
+            Uk[s * rows:(s + 1) * rows] += pert[:, :n_u]
             if n_w:
-                Wk[-2 * n_ch:] += pert[:, n_u:]
-        X = plant.step(X, Uk, Wk)
-        # record lag k+1-j for every active experiment j
-        j = np.asarray(starts)
-        lag = k + 1 - j                                           # 1..lags
-        Yo = plant.observe(X).reshape(len(starts), 2, n_ch, n_y)
+                Wk[s * rows:(s + 1) * rows] += pert[:, n_u:]
+        X[:used] = plant.step(X[:used], Uk, Wk)
+        # record lag k+1-j for every active experiment j (slots of finished ones are ignored)
+        lag = k + 1 - j_slot
+        active = (j_slot >= 0) & (lag >= 1) & (lag <= lags)
+        if not np.any(active):
+            continue
+        j, lag = j_slot[active], lag[active]
+        sel = np.flatnonzero(np.repeat(active, rows))
+        Yo = plant.observe(X[sel]).reshape(len(j), 2, n_ch, n_y)
         Y[j, lag - 1] = ((Yo[:, 0] - Yo[:, 1]) / (2 * delta)).transpose(0, 2, 1)
         keep = lag <= field_lags
         if np.any(keep):
-            rows = np.flatnonzero(np.repeat(keep, 2 * n_ch))
-            Ff = plant.field(X[rows]).reshape(int(keep.sum()), 2, n_ch, n_f)
-            Yf[j[keep], lag[keep] - 1] = ((Ff[:, 0] - Ff[:, 1]) / (2 * delta)).transpose(0, 2, 1)
-    return MarkovData(Y, Yf, delta, 2 * N * n_ch, n_u)
+            fsel = np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows))
+            Ff = plant.field(X[fsel]).reshape(int(keep.sum()), 2, n_ch, n_f)
+            D = ((Ff[:, 0] - Ff[:, 1]) / (2 * delta)).reshape(-1, n_f)       # (keep n_ch, n_f)
+            field_blocks.append((j[keep], lag[keep], basis.add(D)))
+    r = basis.rank
+    Yc = np.zeros((N, field_lags, r, n_ch))
+    for j, lag, C in field_blocks:
+        Cr = np.zeros((C.shape[0], r))
+        Cr[:, :C.shape[1]] = C
+        Yc[j, lag - 1] = Cr.reshape(len(j), n_ch, r).transpose(0, 2, 1)
+    return MarkovData(Y, Yc, basis.phi.copy(), delta, 2 * N * n_ch, n_u)
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
-             impulse: float = 0.01, show_progress: bool = False) -> Identification:
+             impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None) -> Identification:
     """TV-ERA around the nominal input U.
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
@@ -133,8 +169,9 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     lags = p + q
     X_ext = rollout(plant, plant.initial_state(1), extend_nominal(U, lags))[0]
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
-    data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress)
-    model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress)
+    ftol = FIELD_TOL if field_tol is None else field_tol
+    data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol)
+    model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float))
 
 
@@ -150,24 +187,24 @@ def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:
 
 
 def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 1e-10,
-           show_progress: bool = False) -> tuple[LTVModel, np.ndarray]:
+           show_progress: bool = False, field_tol: float = FIELD_TOL) -> tuple[LTVModel, np.ndarray]:
     """Realize (A_k, B_k, C_k, G_k) for k = 0..N from Markov parameters (needs lags >= p+q).
 
     Returns the model (B_w split off when there are noise channels) and the Hankel singular
     values (N+1, n_sv)."""
-    Y, Yf = data.Y, data.Yf
+    Y, Yc = data.Y, data.Yc
     _, L, n_y, n_ch = Y.shape
-    n_f = Yf.shape[2]
+    r_f = Yc.shape[2]
     if L < p + q:
         raise ValueError(f"need Markov parameters up to lag p+q = {p + q}, have {L}")
-    if Yf.shape[1] < q:
-        raise ValueError(f"need field Markov parameters up to lag q = {q}, have {Yf.shape[1]}")
+    if Yc.shape[1] < q:
+        raise ValueError(f"need field Markov parameters up to lag q = {q}, have {Yc.shape[1]}")
     n_sv = min(p * n_y, q * n_ch)
     dims = np.zeros(N + 1, dtype=np.int64)
     A = np.zeros((N, n_r, n_r))
     B = np.zeros((N, n_r, n_ch))
     C = np.zeros((N + 1, n_y, n_r))
-    G = np.zeros((N + 1, n_f, n_r))
+    g = np.zeros((N + 1, r_f, n_r))                   # G_k = basis g_k
     sv = np.zeros((N + 1, n_sv))
     # O_k^+ = S^{-1/2} U',  R_k^+ = V S^{-1/2} for every k (needed one step ahead)
     O_pinv: list[np.ndarray | None] = [None] * (N + 1)
@@ -190,9 +227,10 @@ def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 
         B[k - 1, :n, :] = R[:, :n_ch]
         O_pinv[k] = Us[:, :n].T / sq[:, None]
         R_pinv[k] = Vt[:n].T / sq[None, :]
-        # field map: first block row of the field Hankel [Yf_{k,k-1-m}]_m = Yf[k-1-m, lag m+1]
-        Hf = np.concatenate([Yf[k - 1 - m, m] for m in range(q_k)], axis=1)   # (n_f, q_k n_ch)
-        G[k, :, :n] = Hf @ R_pinv[k]
+        # field map: first block row of the field Hankel [Yf_{k,k-1-m}]_m = Yf[k-1-m, lag m+1],
+        # on the field basis (coefficients only: nothing of size n_field here)
+        Hc = np.concatenate([Yc[k - 1 - m, m] for m in range(q_k)], axis=1)   # (r_f, q_k n_ch)
+        g[k, :, :n] = Hc @ R_pinv[k]
     for k in range(1, N):
         n, n_next = dims[k], dims[k + 1]
         if n == 0 or n_next == 0:
@@ -201,8 +239,11 @@ def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 
         A[k, :n_next, :n] = O_pinv[k + 1] @ Hs @ R_pinv[k]
     n_u = data.n_u
     Bw = B[:, :, n_u:].copy() if n_ch > n_u else None
-    model = LTVModel(A=A, B=B[:, :, :n_u].copy() if Bw is not None else B, C=C, G=DenseFieldMap(G),
-                     dims=dims, Bw=Bw)
+    # the basis spans every field response; the field map needs only the span of its g_k
+    Phi, coef = truncate(data.basis, g.transpose(1, 0, 2).reshape(r_f, -1), field_tol)
+    g = coef.reshape(Phi.shape[1], N + 1, n_r).transpose(1, 0, 2)
+    model = LTVModel(A=A, B=B[:, :, :n_u].copy() if Bw is not None else B, C=C,
+                     G=PODFieldMap(np.ascontiguousarray(Phi), np.ascontiguousarray(g)), dims=dims, Bw=Bw)
     return model, sv
 
 

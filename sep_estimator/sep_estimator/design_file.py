@@ -12,10 +12,17 @@ Arrays (N steps, n_r ROM order, n_field field nodes; index conventions of `sep_e
 
     u_nom (N, n_u)  y_nom (N+1, n_y)  field_nom, belief_mean, belief_std (N+1, n_field)
     target (n_field,)  field_xyz (n_field, 3)  rom_dims (N+1,) int
-    A (N, n_r, n_r)  B (N, n_r, n_u)  C (N+1, n_y, n_r)  G (N+1, n_field, n_r)
+    A (N, n_r, n_r)  B (N, n_r, n_u)  C (N+1, n_y, n_r)
+    field_basis (n_field, r_f)  field_coef (N+1, r_f, n_r)   the field map G_k = field_basis field_coef_k
+    (or G (N+1, n_field, n_r) dense, as version 1 stored it)
     Bw (N, n_r, n_w)   only for plants whose noise does not enter through the inputs
     K (N, n_u, n_r)  L (N+1, n_r, n_y)  P_post (N+1, n_r, n_r)  field_std (N+1, n_field)
     hankel_sv (N+1, n_sv)
+
+Trajectories over the field (field_nom, belief_mean, belief_std, field_std) of more than
+`COMPRESS_ABOVE` numbers are stored as a truncated SVD, `<name>__basis` (n_field, r) and
+`<name>__coef` (N+1, r), to `TRAJECTORY_TOL` relative (smooth fields: r of a few dozen, so a
+large grid's file grows as n_field r, not N n_field); they are expanded on load.
 
 Version 1 files (sep 0.1, the slab only) are read too: their scenario is the flat slab format
 and their field is the state (``T_nom``).
@@ -34,15 +41,20 @@ from sep_plant.problem import Objective
 from sep_plant.protocol import PlantInfo
 from sep_plant.scenario import Scenario, ScenarioError
 
-from .ltv import LQG, DenseFieldMap, LTVModel
+from .ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from .tvkf import schedule_from_posteriors
 
 FORMAT = "sep-design"
 VERSION = 2
 READS = (1, 2)
+#: (N+1) x n_field trajectories larger than this many numbers are stored as a truncated SVD
+COMPRESS_ABOVE = 1 << 20
+TRAJECTORY_TOL = 1e-11
+TRAJECTORIES = ("field_nom", "belief_mean", "belief_std", "field_std")
+
 #: members every version-2 file has (Bw only for plants whose noise is not on the inputs)
 ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", "field_xyz", "rom_dims", "A",
-          "B", "C", "G", "K", "L", "P_post", "field_std", "hankel_sv")
+          "B", "C", "field_basis", "field_coef", "K", "L", "P_post", "field_std", "hankel_sv")
 
 
 class DesignFileError(ValueError):
@@ -90,15 +102,21 @@ class Design:
         return int(self.nominal.u.shape[0])
 
 
-def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool) -> dict[str, tuple[int, ...]]:
+def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
+            field_rank: int | None) -> dict[str, tuple[int, ...]]:
+    """Expected member shapes; field_rank None: the dense field map G."""
     nf, nu, ny = info.n_field, info.n_u, info.n_y
     out = {
         "u_nom": (N, nu), "y_nom": (N + 1, ny), "field_nom": (N + 1, nf),
         "belief_mean": (N + 1, nf), "belief_std": (N + 1, nf), "target": (nf,), "field_xyz": (nf, 3),
         "rom_dims": (N + 1,), "A": (N, n_r, n_r), "B": (N, n_r, nu), "C": (N + 1, ny, n_r),
-        "G": (N + 1, nf, n_r), "K": (N, nu, n_r), "L": (N + 1, n_r, ny), "P_post": (N + 1, n_r, n_r),
+        "K": (N, nu, n_r), "L": (N + 1, n_r, ny), "P_post": (N + 1, n_r, n_r),
         "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
     }
+    if field_rank is None:
+        out["G"] = (N + 1, nf, n_r)
+    else:
+        out["field_basis"], out["field_coef"] = (nf, field_rank), (N + 1, field_rank, n_r)
     if with_bw:
         out["Bw"] = (N, n_r, info.noise_dim)
     return out
@@ -107,11 +125,15 @@ def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool) -> dict
 def arrays_of(d: Design) -> dict[str, np.ndarray]:
     """The file's arrays of a design, by member name."""
     m, nom = d.rom, d.nominal
-    if not isinstance(m.G, DenseFieldMap):
-        raise ValueError(f"design files store a dense field map; got {type(m.G).__name__}")
+    if isinstance(m.G, PODFieldMap):
+        field_map = {"field_basis": m.G.Phi, "field_coef": m.G.g}
+    elif isinstance(m.G, DenseFieldMap):
+        field_map = {"G": m.G.G}
+    else:
+        raise ValueError(f"design files store a POD or dense field map; got {type(m.G).__name__}")
     out = {"u_nom": nom.u, "y_nom": nom.y, "field_nom": nom.field, "belief_mean": nom.belief_mean,
            "belief_std": nom.belief_std, "target": d.objective.target, "field_xyz": d.field_xyz,
-           "rom_dims": np.asarray(m.dims, dtype=np.int64), "A": m.A, "B": m.B, "C": m.C, "G": m.G.G,
+           "rom_dims": np.asarray(m.dims, dtype=np.int64), "A": m.A, "B": m.B, "C": m.C, **field_map,
            "K": d.lqg.K, "L": d.lqg.kf.L, "P_post": d.lqg.kf.P_post, "field_std": d.lqg.field_std,
            "hankel_sv": d.hankel_sv}
     if m.Bw is not None:
@@ -123,13 +145,16 @@ def save_design(path: str | Path, d: Design) -> Path:
     """Write `d` to `path` (.npz, compressed); the file appears atomically."""
     path = Path(path)
     arrays = arrays_of(d)
-    expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays)
+    expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays))
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
     meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": d.scenario.to_dict(),
             "plant_info": d.info.to_dict(), "n_r": d.n_r}
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    for name in TRAJECTORIES:
+        if arrays[name].size > COMPRESS_ABOVE:
+            arrays.update(_compressed(name, arrays.pop(name)))
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -137,6 +162,28 @@ def save_design(path: str | Path, d: Design) -> Path:
         np.savez_compressed(fh, **arrays)
     tmp.replace(path)
     return path
+
+
+def _compressed(name: str, T: np.ndarray) -> dict[str, np.ndarray]:
+    """T (N+1, n) as `name__coef` (N+1, r) @ `name__basis` (n, r)' to TRAJECTORY_TOL relative."""
+    U, S, Vt = np.linalg.svd(T, full_matrices=False)
+    r = max(1, int(np.count_nonzero(S > TRAJECTORY_TOL * S[0]))) if S[0] > 0 else 1
+    return {f"{name}__coef": np.ascontiguousarray(U[:, :r] * S[:r]), f"{name}__basis": np.ascontiguousarray(Vt[:r].T)}
+
+
+def _expand(path: Path, raw: dict[str, np.ndarray]) -> None:
+    """Replace compressed trajectories by their (N+1, n_field) arrays (in place)."""
+    for name in TRAJECTORIES:
+        coef, basis = raw.pop(f"{name}__coef", None), raw.pop(f"{name}__basis", None)
+        if coef is None and basis is None:
+            continue
+        if coef is None or basis is None or coef.ndim != 2 or basis.ndim != 2 or coef.shape[1] != basis.shape[1] \
+                or name in raw:
+            raise DesignFileError(f"{path}: compressed {name} is incomplete or inconsistent")
+        if coef.dtype != np.float64 or basis.dtype != np.float64 or not (np.all(np.isfinite(coef))
+                                                                         and np.all(np.isfinite(basis))):
+            raise DesignFileError(f"{path}: array {name} is not finite float64")
+        raw[name] = coef @ basis.T
 
 
 def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> Design:
@@ -151,6 +198,7 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
             if "meta" not in names:
                 raise DesignFileError(f"{path}: not a sep design file (no 'meta' member)")
             raw = {name: z[name] for name in names}   # reading each member checks its CRC
+        _expand(path, raw)
     except DesignFileError:
         raise
     except Exception as exc:  # zlib, zipfile, numpy header parsing: all mean "corrupt"
@@ -182,7 +230,10 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     N = int(u.shape[0])
     if N != scenario.problem.n_steps:
         raise DesignFileError(f"{path}: nominal has {N} steps, its scenario {scenario.problem.n_steps}")
-    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw)
+    basis = raw.get("field_basis")
+    if basis is not None and basis.ndim != 2:
+        raise DesignFileError(f"{path}: field_basis must be a matrix (n_field, r_f)")
+    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw))
     missing = sorted(set(expect) - set(raw))
     if missing:
         raise DesignFileError(f"{path}: missing arrays {missing}")
@@ -202,10 +253,18 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     return design
 
 
+def _field_rank(arrays: dict) -> int | None:
+    """The POD rank r_f of a design's field map, None for a dense G (version 1)."""
+    if "G" in arrays and "field_basis" not in arrays:
+        return None
+    basis = arrays.get("field_basis")
+    return int(basis.shape[1]) if basis is not None and basis.ndim == 2 else 0
+
+
 def _assemble(scenario: Scenario, info: PlantInfo, meta: dict, a: dict[str, np.ndarray]) -> Design:
     p = scenario.problem
-    model = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=DenseFieldMap(a["G"]), dims=a["rom_dims"],
-                     Bw=a.get("Bw"))
+    G = DenseFieldMap(a["G"]) if "field_basis" not in a else PODFieldMap(a["field_basis"], a["field_coef"])
+    model = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=G, dims=a["rom_dims"], Bw=a.get("Bw"))
     W, V = p.noise_covariances(info.noise_dim, info.n_y)
     lqg = LQG("rom_lqg", model, a["K"], schedule_from_posteriors(model, a["L"], a["P_post"], W), W, V,
               a["field_std"])

@@ -75,6 +75,38 @@ class DenseFieldMap:
         return v @ self.G[k]
 
 
+class PODFieldMap:
+    """G_k = Phi g_k: one orthonormal basis Phi (n_field, r) shared by every step and per-step
+    coefficients g (N+1, r, n). Memory n_field r + N r n instead of N n_field n; G_k' G_k =
+    g_k' g_k, so a quadratic field cost costs nothing in n_field."""
+
+    def __init__(self, Phi: np.ndarray, g: np.ndarray):
+        self.Phi, self.g = Phi, g
+        self.n_field, self.n = int(Phi.shape[0]), int(g.shape[2])
+        self.rank = int(Phi.shape[1])
+
+    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
+        return (a @ self.g[k].T) @ self.Phi.T
+
+    def matrix(self, k: int) -> np.ndarray:
+        return self.Phi @ self.g[k]
+
+    def std(self, k: int, P: np.ndarray) -> np.ndarray:
+        # diag(Phi g P g' Phi') = rowsum((Phi g L)^2) with P = L L' (P is PSD; eigen-factor it)
+        w, V = np.linalg.eigh(0.5 * (P + P.T))
+        L = V * np.sqrt(np.maximum(w, 0.0))
+        return np.sqrt(np.einsum("ij,ij->i", *(2 * [self.Phi @ (self.g[k] @ L)])))
+
+    def std_all(self, P: np.ndarray) -> np.ndarray:
+        return np.stack([self.std(k, P[k]) for k in range(P.shape[0])])
+
+    def gram(self, k: int) -> np.ndarray:
+        return self.g[k].T @ self.g[k]
+
+    def project(self, k: int, v: np.ndarray) -> np.ndarray:
+        return (v @ self.Phi) @ self.g[k]
+
+
 class IdentityFieldMap:
     """G_k = I (the state is the field): the oracle's field map."""
 

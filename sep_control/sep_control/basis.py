@@ -1,0 +1,85 @@
+"""An orthonormal basis of field snapshots, built while the snapshots stream in (POD without
+storing them).
+
+Field responses of the identification experiments arrive block by block (each a few dozen
+vectors of n_f numbers). `IncrementalBasis.add(D)` returns their coefficients on the current
+orthonormal basis Phi (n_f x r) and extends Phi by the part of D it does not yet span:
+
+    C = D Phi,   E = D - C Phi'   (twice: re-orthogonalization keeps Phi orthonormal to round-off)
+    E = U S V',  new directions V_k for S_i > tol * scale,  Phi <- [Phi, V_k],  C <- [C, U_k S_k]
+
+`scale` is the largest snapshot norm seen so far, so what is dropped is below `tol` relative to
+the data. Memory: n_f r for Phi instead of every snapshot; cost per block n_f r b flops.
+`truncate(coefficients)` then compresses the basis to the span the coefficients actually use
+(an SVD of the r x m coefficient matrix, not of the n_f x m data).
+Pure numpy: no ROS import.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class IncrementalBasis:
+    """Orthonormal basis of the snapshots added so far (columns of `phi`)."""
+
+    def __init__(self, n: int, tol: float = 1e-12, max_rank: int | None = None):
+        self.n, self.tol = int(n), float(tol)
+        self.max_rank = max_rank
+        self._phi = np.zeros((self.n, 0))
+        self._cols = 0
+        self.scale = 0.0
+
+    @property
+    def rank(self) -> int:
+        return self._cols
+
+    @property
+    def phi(self) -> np.ndarray:
+        """(n, r) orthonormal columns."""
+        return self._phi[:, :self._cols]
+
+    def add(self, D: np.ndarray) -> np.ndarray:
+        """Coefficients (b, r) of the snapshots D (b, n) on the basis after adding them."""
+        D = np.atleast_2d(D)
+        if D.shape[1] != self.n:
+            raise ValueError(f"snapshots of length {D.shape[1]}, basis of length {self.n}")
+        norms = np.sqrt(np.einsum("ij,ij->i", D, D))
+        self.scale = max(self.scale, float(norms.max(initial=0.0)))
+        phi = self.phi
+        C = D @ phi
+        E = D - C @ phi.T
+        C2 = E @ phi                     # re-orthogonalize (classical Gram-Schmidt, twice)
+        E -= C2 @ phi.T
+        C += C2
+        if self.scale == 0.0:
+            return C
+        U, S, Vt = np.linalg.svd(E, full_matrices=False)
+        keep = S > self.tol * self.scale
+        if self.max_rank is not None:
+            keep &= np.arange(S.size) < max(0, self.max_rank - self._cols)
+        k = int(np.count_nonzero(keep))
+        if k == 0:
+            return C
+        self._grow(Vt[keep].T)
+        return np.hstack([C, U[:, keep] * S[keep]])
+
+    def _grow(self, V: np.ndarray) -> None:
+        need = self._cols + V.shape[1]
+        if need > self._phi.shape[1]:     # amortized growth of the column buffer
+            cap = max(need, 2 * self._phi.shape[1], 16)
+            buf = np.zeros((self.n, cap))
+            buf[:, :self._cols] = self._phi[:, :self._cols]
+            self._phi = buf
+        self._phi[:, self._cols:need] = V
+        self._cols = need
+
+
+def truncate(phi: np.ndarray, coefficients: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Compress a basis to the span its coefficients use: coefficients (r, m) on phi (n, r) ->
+    (phi' (n, r'), coefficients' (r', m)) with phi' coefficients' = phi coefficients up to
+    singular values below tol * sigma_1 (phi' orthonormal, r' <= r)."""
+    if coefficients.size == 0 or phi.shape[1] == 0:
+        return phi[:, :0], coefficients[:0]
+    U, S, _ = np.linalg.svd(coefficients, full_matrices=False)
+    r = int(np.count_nonzero(S > tol * S[0])) if S[0] > 0 else 0
+    return phi @ U[:, :r], U[:, :r].T @ coefficients

@@ -1,0 +1,93 @@
+"""The streamed field basis (sep_control.basis) and the POD field map (sep_estimator.ltv):
+snapshots in, an orthonormal basis and coefficients out, the field map G_k = Phi g_k behaving
+exactly like the dense one it replaces."""
+import numpy as np
+import pytest
+
+from sep_control.basis import IncrementalBasis, truncate
+from sep_estimator.ltv import DenseFieldMap, PODFieldMap
+
+
+def low_rank(rng, n, m, rank, decay=1.0):
+    U = np.linalg.qr(rng.standard_normal((n, rank)))[0]
+    return U @ np.diag(decay ** np.arange(rank)) @ rng.standard_normal((rank, m))
+
+
+def stream(X, block, tol=1e-12):
+    """Add the columns of X in blocks; return the basis and the (r, m) coefficients."""
+    b = IncrementalBasis(X.shape[0], tol)
+    parts = [(i, b.add(X[:, i:i + block].T)) for i in range(0, X.shape[1], block)]
+    C = np.zeros((b.rank, X.shape[1]))
+    for i, c in parts:
+        C[:c.shape[1], i:i + c.shape[0]] = c.T
+    return b, C
+
+
+def test_streamed_basis_reproduces_the_snapshots_and_finds_their_rank():
+    rng = np.random.default_rng(0)
+    X = low_rank(rng, 400, 300, 17)
+    b, C = stream(X, 23)
+    assert b.rank == 17
+    np.testing.assert_allclose(b.phi.T @ b.phi, np.eye(17), atol=1e-13)
+    np.testing.assert_allclose(b.phi @ C, X, atol=1e-12 * np.abs(X).max())
+
+
+def test_what_is_dropped_is_below_the_tolerance():
+    rng = np.random.default_rng(1)
+    X = low_rank(rng, 300, 200, 40, decay=0.5)           # singular values 1, 0.5, 0.25, ...
+    for tol in (1e-4, 1e-8):
+        b, C = stream(X, 10, tol)
+        err = np.linalg.norm(b.phi @ C - X, axis=0).max() / np.linalg.norm(X, axis=0).max()
+        assert err < 30 * tol and b.rank < 40
+    # truncation to the span the coefficients use
+    b, C = stream(X, 10, 1e-14)
+    Phi, C2 = truncate(b.phi, C, 1e-6)
+    assert Phi.shape[1] < b.rank
+    assert np.linalg.norm(Phi @ C2 - X) <= 1e-5 * np.linalg.norm(X)
+
+
+def test_pod_field_map_equals_the_dense_one():
+    rng = np.random.default_rng(2)
+    Phi = np.linalg.qr(rng.standard_normal((50, 8)))[0]
+    g = rng.standard_normal((6, 8, 4))
+    pod = PODFieldMap(Phi, g)
+    dense = DenseFieldMap(np.einsum("fr,krn->kfn", Phi, g))
+    a = rng.standard_normal((3, 4))
+    L = rng.standard_normal((6, 4, 4))
+    P = L @ L.transpose(0, 2, 1)
+    v = rng.standard_normal((2, 50))
+    for k in range(6):
+        np.testing.assert_allclose(pod.apply(k, a), dense.apply(k, a), atol=1e-12)
+        np.testing.assert_allclose(pod.matrix(k), dense.matrix(k), atol=1e-12)
+        np.testing.assert_allclose(pod.std(k, P[k]), dense.std(k, P[k]), rtol=1e-10)
+        np.testing.assert_allclose(pod.gram(k), dense.gram(k), atol=1e-12)
+        np.testing.assert_allclose(pod.project(k, v), dense.project(k, v), atol=1e-12)
+    np.testing.assert_allclose(pod.std_all(P), dense.std_all(P), rtol=1e-10)
+
+
+def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_grid():
+    """The slab's field map lives in a basis of ~60 directions at 400 and at 1600 nodes (memory
+    n_field r_f + N r_f n_r), and equals the field map of a near-exact basis (tolerance 1e-13) to
+    the basis' tolerance."""
+    from core_helpers import flat
+    from sep_control import tvera
+
+    ranks = []
+    for n_x in (400, 1600):
+        s = flat(n_x=n_x, n_steps=40, k_band=24, lqr_k_switch=19)
+        U = np.full((40, 5), 0.2)
+        ident = tvera.identify(s.plant, U, 6, 6, 16)
+        G = ident.model.G
+        assert isinstance(G, PODFieldMap)
+        ranks.append(G.rank)
+    assert max(ranks) < 100 and ranks[1] <= ranks[0] + 10
+    fine = tvera.identify(s.plant, U, 6, 6, 16, field_tol=1e-13)
+    assert fine.model.G.rank > 2 * G.rank
+    for k in (1, 10, 40):
+        Gf = fine.model.G.matrix(k)
+        assert np.abs(G.matrix(k) - Gf).max() <= 1e-6 * np.abs(Gf).max()
+
+
+def test_basis_rejects_wrong_length():
+    with pytest.raises(ValueError, match="length"):
+        IncrementalBasis(5).add(np.zeros((2, 4)))
