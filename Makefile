@@ -5,10 +5,13 @@
 #   make build   colcon build of ros_ws/ (the ros2-run layout under ros_ws/install)
 #   make test    build, then pytest over tests/ and every <pkg>/test/ that exists
 #   make demo    build, then run the `demo` executable from the install space
-#   make bench   run every bench/*.py with the venv python
+#   make bench   run every bench/*.py with the venv python (bench_scale.py as --quick)
+#   make bench-scale  bench/bench_scale.py: the scaling table across plants and grids (long;
+#                BENCH_SCALE_ARGS=--quick for the small rows)
 #   make clean   remove build/test/demo outputs (keeps .venv; `make distclean` removes it too)
 #
-# Variables: VERBOSE=1 shows colcon's full output; PYTEST_ARGS, DEMO_ARGS are passed through.
+# Variables: VERBOSE=1 shows colcon's full output; PYTEST_ARGS, DEMO_ARGS, BENCH_SCALE_ARGS are
+# passed through.
 
 SHELL := /bin/bash
 .DEFAULT_GOAL := build
@@ -29,7 +32,7 @@ BASE_PYTHON ?= $(shell for p in python3.11 python3; do \
 
 # Test folders that exist (ament_python keeps per-package tests in <pkg>/test/).
 TEST_DIRS := $(foreach d,tests $(addsuffix /test,$(PACKAGES)),$(if $(wildcard $(ROOT)/$(d)),$(d)))
-BENCHES := $(sort $(wildcard $(ROOT)/bench/*.py))
+BENCHES := $(sort $(filter-out %/bench_scale.py,$(wildcard $(ROOT)/bench/*.py)))
 # Package source roots, so that bench scripts import the pure modules without installing.
 empty :=
 space := $(empty) $(empty)
@@ -40,7 +43,7 @@ SRC_PYTHONPATH := $(subst $(space),:,$(addprefix $(ROOT)/,$(PACKAGES)))
 COLCON_BUILD := PYTHONDONTWRITEBYTECODE= $(COLCON) --log-base $(WS)/log build \
 	--base-paths $(WS)/src --build-base $(WS)/build --install-base $(WS)/install
 
-.PHONY: all venv build test demo bench clean distclean
+.PHONY: all venv build test demo bench bench-scale clean distclean
 
 all: build
 
@@ -85,7 +88,13 @@ bench: venv
 	cd "$(ROOT)" && for b in $(BENCHES); do \
 	  echo "== $${b#$(ROOT)/}"; \
 	  PYTHONPATH="$(SRC_PYTHONPATH)$${PYTHONPATH:+:$$PYTHONPATH}" "$(PY)" "$$b" || exit 1; \
-	done
+	done; \
+	echo "== bench/bench_scale.py --quick"; \
+	PYTHONPATH="$(SRC_PYTHONPATH)$${PYTHONPATH:+:$$PYTHONPATH}" "$(PY)" bench/bench_scale.py --quick
+
+bench-scale: venv
+	cd "$(ROOT)" && OPENBLAS_NUM_THREADS=1 PYTHONPATH="$(SRC_PYTHONPATH)$${PYTHONPATH:+:$$PYTHONPATH}" \
+	  "$(PY)" bench/bench_scale.py $(BENCH_SCALE_ARGS)
 
 clean:
 	rm -rf "$(WS)/build" "$(WS)/install" "$(WS)/log" "$(ROOT)/out" "$(ROOT)/.pytest_cache"

@@ -26,6 +26,23 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
                              "oversubscribe the cores (see bench/); raise it on a big grid")
 
 
+def add_memory_budget(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--memory-budget", metavar="SIZE", default=None,
+                        help="memory for one batch of runs (experiments, Monte Carlo), e.g. 2G or 512M; "
+                             "larger batches are split (default: a quarter of the free memory)")
+
+
+def memory_budget_or_exit(text: str | None) -> int | None:
+    if text is None:
+        return None
+    from .budget import parse_budget
+
+    try:
+        return parse_budget(text)
+    except ValueError as exc:
+        fail(str(exc))
+
+
 def blas_threads(n: int):
     """Context manager limiting BLAS threads (threadpoolctl)."""
     from threadpoolctl import threadpool_limits

@@ -31,6 +31,7 @@ from sep_plant.protocol import Plant, PlantInfo, fields, outputs, rollout
 from sep_plant.scenario import Scenario
 
 from . import __version__
+from .budget import runs_per_batch
 from .lqr import design_lqg
 from .metrics import nominal_cost
 from .optimize import objective_of, optimize, run_belief
@@ -54,6 +55,7 @@ class DesignSettings:
     sv_tol: float = 1e-10           # relative singular-value cutoff
     impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
     seed: int = 0                   # EnKF random numbers
+    memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
 
     def check(self) -> None:
         if self.method not in ("gn", "gd"):
@@ -81,6 +83,15 @@ class DesignSettings:
             return self.jacobian
         return "rom" if n_steps + 1 > 4 * (self.p + self.q) else "sensitivity"
 
+    def resolved_jacobian_for(self, plant: Plant, n_steps: int) -> str:
+        """`resolved_jacobian`, and the ROM one also when the sensitivity experiments (N n_u runs
+        in one batch) would not fit the memory budget."""
+        jac = self.resolved_jacobian(n_steps)
+        if self.jacobian == "auto" and jac == "sensitivity" and \
+                n_steps * int(plant.n_u) > runs_per_batch(int(plant.n_x), int(plant.n_field), self.memory_budget):
+            return "rom"
+        return jac
+
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
         """The settings recorded in a design file's metadata (unknown keys ignored)."""
@@ -107,8 +118,9 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
 
     # 1. nominal trajectory --------------------------------------------------
     t0 = time.perf_counter()
-    rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse}
-    jacobian = st.resolved_jacobian(problem.n_steps)
+    rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
+           "memory_budget": st.memory_budget}
+    jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
                    jacobian=jacobian, rom=rom)
@@ -170,7 +182,8 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
 
 def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False) -> Identification:
     """`tvera.identify` with the design's settings."""
-    return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress)
+    return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress,
+                    memory_budget=st.memory_budget)
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:

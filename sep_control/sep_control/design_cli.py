@@ -8,7 +8,8 @@ import time
 
 from sep_estimator.design_file import save_design
 
-from .cli_common import Formatter, add_threads, blas_threads, fail, plant_or_exit, scenario_or_exit
+from .cli_common import (Formatter, add_memory_budget, add_threads, blas_threads, fail, memory_budget_or_exit,
+                         plant_or_exit, scenario_or_exit)
 from .design import DesignSettings, run_design
 
 DESCRIPTION = """\
@@ -57,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_threads(p)
+    add_memory_budget(p)
     return p
 
 
@@ -67,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                               max_iter=args.max_iter,
                               belief_iter=args.belief_iter, fd_eps=args.fd_eps, step_size=args.step_size,
                               ensemble=args.ensemble, n_r=args.n_r, p=args.p, q=args.q, sv_tol=args.sv_tol,
-                              impulse=args.impulse, seed=args.seed)
+                              impulse=args.impulse, seed=args.seed,
+                              memory_budget=memory_budget_or_exit(args.memory_budget))
     try:
         settings.check()
     except ValueError as exc:

@@ -9,7 +9,8 @@ from pathlib import Path
 from sep_estimator.ltv import sensed_nodes
 
 from . import figures
-from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail, plant_or_exit
+from .cli_common import (Formatter, add_memory_budget, add_threads, blas_threads, design_or_exit, fail,
+                         memory_budget_or_exit, plant_or_exit)
 from .design import DesignSettings, identify_rom, with_rom
 from .metrics import CONTROLLERS, format_table, write_json
 from .montecarlo import simulate
@@ -49,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sweep-runs", type=int, default=200, help="Monte Carlo runs per sweep point")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_threads(p)
+    add_memory_budget(p)
     return p
 
 
@@ -56,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.runs < 1:
         fail(f"--runs must be >= 1, got {args.runs}")
+    budget = memory_budget_or_exit(args.memory_budget)
     design = design_or_exit(args.design)
     plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
     controllers = list(args.controllers)
@@ -74,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in progress(controllers, desc="Monte Carlo", enabled=not args.quiet):
             t0 = time.perf_counter()
             res = simulate(plant, design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1,
-                           keep_trajectories=1)
+                           keep_trajectories=1, memory_budget=budget)
             rows[name] = res.metrics()
             rows[name]["seconds"] = time.perf_counter() - t0
             results[name] = res

@@ -25,6 +25,7 @@ from sep_estimator.tvkf import KalmanFilter
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import Plant, clip_inputs
 
+from .budget import runs_per_batch
 from .lqr import command
 from .metrics import MetricsAccumulator
 from .oracle import oracle_lqg
@@ -51,43 +52,69 @@ CONTROLLER_NAMES = ("open_loop", "rom_lqg", "oracle_lqg")
 
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
              oracle: LQG | None = None, keep_estimates: int | None = None,
-             keep_trajectories: int | None = None) -> MonteCarloResult:
+             keep_trajectories: int | None = None, memory_budget: int | None = None) -> MonteCarloResult:
     """Run `controller` ('open_loop', 'rom_lqg' or 'oracle_lqg') on `plant` for the given runs.
 
     Metrics are accumulated step by step over all runs; the full field trajectories (and
     estimates) are kept for the first `keep_trajectories` (`keep_estimates`) runs, all by
-    default. Keep few on large grids: M N n_field numbers add up.
+    default. Keep few on large grids: M N n_field numbers add up. The runs go in batches that
+    fit `memory_budget` bytes (`sep_control.budget`; default a quarter of the free memory):
+    each run's noise is its own (seed, run) stream, so the batching changes no result.
     """
     if controller not in CONTROLLER_NAMES:
         raise ValueError(f"unknown controller {controller!r}: use {', '.join(CONTROLLER_NAMES)}")
     problem, info, nom = design.problem, design.info, design.nominal
-    idx = range(runs) if isinstance(runs, int) else list(runs)
-    w, v = noise_sequences(problem, info, seed, idx)
-    M, N = w.shape[0], problem.n_steps
+    idx = list(range(runs) if isinstance(runs, int) else runs)
+    M, N = len(idx), problem.n_steps
     lqg = (oracle if oracle is not None else oracle_lqg(design, plant)) if controller == "oracle_lqg" \
         else design.lqg
-    feedback = controller != "open_loop"
-    lo, hi = problem.limits(info.n_u)
-    kf = KalmanFilter(lqg, batch=M)
-    G = lqg.model.G
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
     n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
     acc = MetricsAccumulator(design.objective, nom.field, M)
+    out = _Outputs(F=np.empty((n_traj, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
+                   Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((n_keep, N + 1, info.n_field)))
+    batch = runs_per_batch(info.n_x, info.n_field, memory_budget)
+    covered = 0
+    for a in range(0, M, batch):
+        rows = slice(a, min(M, a + batch))
+        covered += _run_batch(plant, design, lqg, controller != "open_loop", seed, idx[rows], rows, acc, out)
+    coverage = covered / (M * N * info.n_field)
+    summary = acc.result({"coverage_2sigma": coverage})
+    return MonteCarloResult(controller, out.F, out.U, out.Y, out.F_hat, lqg.field_std.copy(), acc.mean_traj,
+                            coverage, summary)
 
-    F = np.empty((n_traj, N + 1, info.n_field))
-    U = np.empty((M, N, info.n_u))
-    Y = np.empty((M, N + 1, info.n_y))
-    F_hat = np.empty((n_keep, N + 1, info.n_field))
+
+@dataclass
+class _Outputs:
+    F: np.ndarray
+    U: np.ndarray
+    Y: np.ndarray
+    F_hat: np.ndarray
+
+
+def _run_batch(plant: Plant, design: Design, lqg: LQG, feedback: bool, seed: int, run_ids: list[int],
+               rows: slice, acc: MetricsAccumulator, out: _Outputs) -> int:
+    """Simulate the runs `run_ids` (rows `rows` of the outputs); returns the covered node-steps."""
+    problem, info, nom = design.problem, design.info, design.nominal
+    w, v = noise_sequences(problem, info, seed, run_ids)
+    M, N = len(run_ids), problem.n_steps
+    lo, hi = problem.limits(info.n_u)
+    kf = KalmanFilter(lqg, batch=M)
+    G = lqg.model.G
+    a0 = rows.start
+    keep_f = max(0, min(M, out.F.shape[0] - a0))           # kept trajectories in this batch
+    keep_e = max(0, min(M, out.F_hat.shape[0] - a0))
     covered = 0
     x = plant.initial_state(M)
     for k in range(N + 1):
         f = plant.field(x)
-        F[:, k] = f[:n_traj]
-        acc.add_field(k, f)
-        Y[:, k] = plant.observe(x) + v[:, k]
-        a = kf.update(k, Y[:, k] - nom.y[k])
+        out.F[a0:a0 + keep_f, k] = f[:keep_f]
+        acc.add_field(k, f, rows)
+        y = plant.observe(x) + v[:, k]
+        out.Y[rows, k] = y
+        a = kf.update(k, y - nom.y[k])
         est = nom.field[k] + G.apply(k, a)
-        F_hat[:, k] = est[:n_keep]
+        out.F_hat[a0:a0 + keep_e, k] = est[:keep_e]
         if k > 0:
             covered += int(np.count_nonzero(np.abs(est - f) <= 2.0 * lqg.field_std[k]))
         if k == N:
@@ -96,10 +123,8 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
             u = command(nom.u[k], lqg.K[k], a, lo, hi)
         else:
             u = clip_inputs(np.broadcast_to(nom.u[k], (M, info.n_u)), lo, hi)
-        U[:, k] = u
-        acc.add_input(k, u)
+        out.U[rows, k] = u
+        acc.add_input(k, u, rows)
         x = plant.step(x, u, w[:, k])
         kf.predict(k, u - nom.u[k])
-    coverage = covered / (M * N * info.n_field)
-    summary = acc.result({"coverage_2sigma": coverage})
-    return MonteCarloResult(controller, F, U, Y, F_hat, lqg.field_std.copy(), acc.mean_traj, coverage, summary)
+    return covered

@@ -315,15 +315,18 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
         last_belief["try"] = b
         return belief_cost(b, Uc, obj), Xc, b.mean
 
+    # the newest identification (one: each holds the nominal states and the field basis), or the
+    # one handed over by an earlier stage
+    identified = [reuse.identification] if reuse is not None and reuse.identification is not None else []
+
     def linearize(Uc: np.ndarray, Xc: np.ndarray, residual: np.ndarray):
         if jacobian == "rom":
-            known = [i for i in (getattr(lin, "identification", None) if lin is not None else None,
-                                 reuse.identification if reuse is not None else None) if i is not None]
-            near = [i for i in known if chord or same_input(i.U, Uc)]
+            near = [i for i in identified if chord or same_input(i.U, Uc)]
             if near:
                 ident = near[0]                       # identified at (virtually) this input already
             else:
                 ident = identify(plant, Uc, **(rom or {}))
+                identified[:] = [ident]
                 result.experiments += ident.data.experiments
             return RomLinearization(ident, obj, residual, Uc)
         ne = sensitivity_normal_equations(plant, Uc, Xc, obj, eps, residual, gram=(method == "gn"))
@@ -333,7 +336,6 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     J, X, field_for_residual = evaluate(U)
     result = OptimizationResult(U, J, [J], method=method, objective=objective)
     lam, alpha = 1e-3, step_size
-    lin = None
     lin = linearize(U, X, field_for_residual)
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
     for it in bar:

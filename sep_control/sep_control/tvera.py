@@ -35,6 +35,7 @@ from sep_estimator.ltv import LTVModel, PODFieldMap
 from sep_plant.protocol import Plant, noise_channels, rollout
 
 from .basis import IncrementalBasis, truncate
+from .budget import runs_per_batch
 from .progress import progress
 
 #: relative tolerance of the field responses' basis (against the largest response) and of its
@@ -94,15 +95,16 @@ def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
 
 def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
                         Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
-                        field_tol: float = FIELD_TOL) -> MarkovData:
+                        field_tol: float = FIELD_TOL, memory_budget: int | None = None) -> MarkovData:
     """Central-difference impulse responses for every input step j < N and channel c.
 
-    All 2 N n_ch experiments run as one batch in lockstep over global steps; experiment
-    (j, c, +-) is active for steps j..j+lags-1 only, so the batch holds at most 2 n_ch lags
-    runs: a ring of `lags` slots of 2 n_ch rows, start j in slot j mod lags, stepped in place
-    (no copy of the batch per step). `Xbar_ext` is the nominal over N + lags steps (computed if
-    None). Field responses go straight into an incremental orthonormal basis (`field_tol`
-    relative to the largest response); only their coefficients are kept.
+    The 2 N n_ch experiments run as a batch in lockstep over global steps; experiment (j, c, +-)
+    is active for steps j..j+lags-1 only, so a pass holds at most 2 n_ch lags runs: a ring of
+    `lags` slots, start j in slot j mod lags, stepped in place (no copy of the batch per step).
+    When that batch exceeds `memory_budget` (`sep_control.budget`), the channels are split into
+    groups, one pass each. `Xbar_ext` is the nominal over N + lags steps (computed if None).
+    Field responses go straight into an incremental orthonormal basis (`field_tol` relative to
+    the largest response); only their coefficients are kept.
     """
     N, n_u = U.shape
     U_ext = extend_nominal(U, lags)
@@ -110,16 +112,40 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
         Xbar_ext = rollout(plant, plant.initial_state(1), U_ext)[0]
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
     n_ch = n_u + n_w
-    n_y, n_f, n_x = int(plant.n_y), int(plant.n_field), int(plant.n_x)
+    n_y, n_f = int(plant.n_y), int(plant.n_field)
+    per_pass = max(1, runs_per_batch(int(plant.n_x), n_f, memory_budget) // (2 * lags))
+    groups = [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
     Y = np.zeros((N, lags, n_y, n_ch))
     basis = IncrementalBasis(n_f, field_tol)
-    field_blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, coefficients)
-    rows = 2 * n_ch                                   # per slot: [+delta e_c ..., -delta e_c ...]
-    pert = np.vstack([np.eye(n_ch), -np.eye(n_ch)]) * delta
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
+    bar = progress(None, "TV-ERA experiments", show_progress, total=len(groups) * (N + lags - 1))
+    for chs in groups:
+        _impulse_pass(plant, U_ext, Xbar_ext, N, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar)
+    if hasattr(bar, "close"):
+        bar.close()
+    r = basis.rank
+    Yc = np.zeros((N, field_lags, r, n_ch))
+    for j, lag, chs, C in blocks:
+        Cr = np.zeros((C.shape[0], r))
+        Cr[:, :C.shape[1]] = C
+        Yc[j[:, None], lag[:, None] - 1, :, chs[None, :]] = Cr.reshape(len(j), len(chs), r)
+    return MarkovData(Y, Yc, basis.phi.copy(), delta, 2 * N * n_ch, n_u)
+
+
+def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
+                  delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
+                  blocks: list, bar) -> None:
+    """One lockstep pass over the channels `chs` (see `impulse_experiments`)."""
+    n_y, n_f, n_x = int(plant.n_y), int(plant.n_field), int(plant.n_x)
+    m = len(chs)
+    rows = 2 * m                                      # per slot: [+delta e_c ..., -delta e_c ...]
+    E = np.eye(n_u + n_w)[chs]
+    pert = np.vstack([E, -E]) * delta
     X = np.empty((lags * rows, n_x))
     slot_start = np.full(lags, -1)                    # start step j held by each slot (-1: none)
-    steps = progress(range(N + lags - 1), desc="TV-ERA experiments", enabled=show_progress)
-    for k in steps:
+    for k in range(N + lags - 1):
+        if hasattr(bar, "update"):
+            bar.update(1)
         if k < N:
             s = k % lags
             X[s * rows:(s + 1) * rows] = Xbar_ext[k]
@@ -141,25 +167,19 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
             continue
         j, lag = j_slot[active], lag[active]
         sel = np.flatnonzero(np.repeat(active, rows))
-        Yo = plant.observe(X[sel]).reshape(len(j), 2, n_ch, n_y)
-        Y[j, lag - 1] = ((Yo[:, 0] - Yo[:, 1]) / (2 * delta)).transpose(0, 2, 1)
+        Yo = plant.observe(X[sel]).reshape(len(j), 2, m, n_y)
+        Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = (Yo[:, 0] - Yo[:, 1]) / (2 * delta)
         keep = lag <= field_lags
         if np.any(keep):
             fsel = np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows))
-            Ff = plant.field(X[fsel]).reshape(int(keep.sum()), 2, n_ch, n_f)
-            D = ((Ff[:, 0] - Ff[:, 1]) / (2 * delta)).reshape(-1, n_f)       # (keep n_ch, n_f)
-            field_blocks.append((j[keep], lag[keep], basis.add(D)))
-    r = basis.rank
-    Yc = np.zeros((N, field_lags, r, n_ch))
-    for j, lag, C in field_blocks:
-        Cr = np.zeros((C.shape[0], r))
-        Cr[:, :C.shape[1]] = C
-        Yc[j, lag - 1] = Cr.reshape(len(j), n_ch, r).transpose(0, 2, 1)
-    return MarkovData(Y, Yc, basis.phi.copy(), delta, 2 * N * n_ch, n_u)
+            Ff = plant.field(X[fsel]).reshape(int(keep.sum()), 2, m, n_f)
+            D = ((Ff[:, 0] - Ff[:, 1]) / (2 * delta)).reshape(-1, n_f)       # (keep m, n_f)
+            blocks.append((j[keep], lag[keep], chs, basis.add(D)))
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
-             impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None) -> Identification:
+             impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
+             memory_budget: int | None = None) -> Identification:
     """TV-ERA around the nominal input U.
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
@@ -170,7 +190,8 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     X_ext = rollout(plant, plant.initial_state(1), extend_nominal(U, lags))[0]
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     ftol = FIELD_TOL if field_tol is None else field_tol
-    data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol)
+    data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
+                               memory_budget=memory_budget)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float))
 

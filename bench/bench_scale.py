@@ -1,0 +1,133 @@
+"""How the design scales with the grid: one table across plants and grids (no assertions).
+
+Rows: slab n_x = 100, 1600, 10^4 (the reference problem); plate 64^2, 128^2, 256^2 (the problem
+of sep_plant/scenarios/plate.yaml); block 24^3, 32^3 (block.yaml). Each row runs in its own
+process (so its peak resident memory is its own) and measures, in one run:
+
+* n_x, one noise-free rollout of the horizon [s];
+* the design with the default settings: total, optimize, identify, gains [s]; the time spent
+  inside the plant's own `step` during it, and design / plant-step time (the design's overhead
+  over the floor its experiments set); the ROM order and the field map's rank r_f;
+* the peak resident memory of the row's process, the design file's size;
+* a Monte Carlo of ROM-LQG: seconds per 100 runs, in-band share (`--runs`, default 100);
+* ratios to one rollout.
+
+    OPENBLAS_NUM_THREADS=1 python bench/bench_scale.py --quick     # the small rows (~2 min)
+    OPENBLAS_NUM_THREADS=1 python bench/bench_scale.py             # every row (long: hours)
+    python bench/bench_scale.py --rows slab:1600 plate:128          # chosen rows
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+ROWS = {                       # name -> (scenario file or None for the reference, plant key changes)
+    "slab:100": (None, {"n_x": 100}),
+    "slab:1600": (None, {"n_x": 1600}),
+    "slab:10000": (None, {"n_x": 10_000}),
+    "plate:64": ("plate.yaml", {"nodes": [64, 64]}),
+    "plate:128": ("plate.yaml", {"nodes": [128, 128]}),
+    "plate:256": ("plate.yaml", {"nodes": [256, 256]}),
+    "block:24": ("block.yaml", {"nodes": [24, 24, 24]}),
+    "block:32": ("block.yaml", {"nodes": [32, 32, 32]}),
+}
+QUICK = ("slab:100", "slab:1600", "plate:64")
+COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "plant_step_s",
+           "design/plant_steps", "n_r", "r_f", "peak_rss_mb", "file_mb", "mc_s_per_100", "in_band",
+           "design/rollout", "mc100/rollout"]
+
+
+def run_row(name: str, runs: int) -> dict:
+    """Measure one row (in this process)."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from sep_control.design import DesignSettings, run_design
+    from sep_control.montecarlo import simulate
+    from sep_estimator.design_file import save_design
+    from sep_plant.protocol import nominal_states
+    from sep_plant.scenario import load_scenario
+
+    file, changes = ROWS[name]
+    scen = load_scenario(REPO / "sep_plant" / "scenarios" / file if file else None).with_plant(**changes)
+    plant, problem = scen.plant, scen.problem
+    spent = [0.0]
+    step = plant.step
+
+    def timed_step(*a, **kw):              # the plant's own work, measured from outside
+        t0 = time.perf_counter()
+        out = step(*a, **kw)
+        spent[0] += time.perf_counter() - t0
+        return out
+
+    with threadpool_limits(1):
+        U0 = problem.u_start(plant.n_u)
+        nominal_states(plant, U0)
+        t0 = time.perf_counter()
+        nominal_states(plant, U0)
+        rollout = time.perf_counter() - t0
+        plant.step = timed_step
+        t0 = time.perf_counter()
+        design = run_design(plant, problem, DesignSettings(), show_progress=False, log=lambda m: None)
+        t_design = time.perf_counter() - t0
+        plant_s = spent[0]
+        del plant.step
+        with tempfile.TemporaryDirectory() as tmp:
+            path = save_design(Path(tmp) / "d.npz", design)
+            file_mb = path.stat().st_size / 1e6
+        t0 = time.perf_counter()
+        mc = simulate(plant, design, "rom_lqg", 1, runs, keep_estimates=0, keep_trajectories=0)
+        t_mc = (time.perf_counter() - t0) * 100.0 / runs
+    tm = design.meta["timings"]
+    G = design.rom.G
+    return {"n_x": plant.n_x, "rollout_s": rollout, "design_s": t_design, "optimize_s": tm["optimize_s"],
+            "identify_s": tm["identify_s"], "gains_s": tm["gains_s"], "plant_step_s": plant_s,
+            "design/plant_steps": t_design / plant_s, "n_r": int(design.rom.dims.max()),
+            "r_f": int(getattr(G, "rank", G.n)), "file_mb": file_mb, "mc_s_per_100": t_mc,
+            "in_band": mc.summary["in_band"], "design/rollout": t_design / rollout, "mc100/rollout": t_mc / rollout,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help=f"only the small rows {', '.join(QUICK)}")
+    ap.add_argument("--rows", nargs="+", choices=list(ROWS), help="rows to run (default: all)")
+    ap.add_argument("--runs", type=int, default=100, help="Monte Carlo runs of ROM-LQG per row")
+    ap.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
+    ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
+    args = ap.parse_args()
+    if args.row:
+        print(json.dumps(run_row(args.row, args.runs)))
+        return 0
+    names = args.rows or (list(QUICK) if args.quick else list(ROWS))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator",
+                                                                                "sep_control")))
+    rows = {}
+    for name in names:
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs)], env=env,
+                              capture_output=True, text=True)
+        if proc.returncode != 0:
+            print(f"{name}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
+            continue
+        rows[name] = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(f"{name}: {time.perf_counter() - t0:.0f} s", flush=True)
+    from sep_control.metrics import format_table
+
+    print("\nOne run per row, one BLAS thread, this machine; ratios measured in the same run")
+    print(format_table(rows, COLUMNS))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
