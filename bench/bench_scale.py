@@ -5,9 +5,10 @@ of sep_plant/scenarios/plate.yaml); block 24^3, 32^3 (block.yaml). Each row runs
 process (so its peak resident memory is its own) and measures, in one run:
 
 * n_x, one noise-free rollout of the horizon [s];
-* the design with the default settings: total, optimize, identify, gains [s]; the time spent
-  inside the plant's own `step` during it, and design / plant-step time (the design's overhead
-  over the floor its experiments set); the ROM order and the field map's rank r_f;
+* the design with the scenario's settings (the defaults and its `design:` section): total,
+  optimize, identify, gains [s]; the time spent inside the plant's own `step` during it, and
+  design / plant-step time (the design's overhead over the floor its experiments set); the ROM
+  order and the field map's rank r_f;
 * the peak resident memory of the row's process, the design file's size;
 * a Monte Carlo of ROM-LQG: seconds per 100 runs, in-band share (`--runs`, default 100);
 * ratios to one rollout.
@@ -76,7 +77,8 @@ def run_row(name: str, runs: int) -> dict:
         rollout = time.perf_counter() - t0
         plant.step = timed_step
         t0 = time.perf_counter()
-        design = run_design(plant, problem, DesignSettings(), show_progress=False, log=lambda m: None)
+        design = run_design(plant, problem, DesignSettings.for_scenario(scen), show_progress=False,
+                            log=lambda m: None)
         t_design = time.perf_counter() - t0
         plant_s = spent[0]
         del plant.step

@@ -160,3 +160,19 @@ def test_evaluate_bad_runs(tiny, capsys):
     _, design, _ = tiny
     code, err = exit_code_and_stderr(capsys, evaluate_cli.main, ["--design", str(design), "--runs", "0"])
     assert code not in (0, None) and "--runs" in err
+
+
+def test_scenario_design_section_sets_defaults_and_flags_override(tmp_path, capsys):
+    """A scenario's `design:` section gives the design tool its defaults; options override them;
+    an unknown setting is named."""
+    scen = tmp_path / "s.yaml"
+    scen.write_text(TINY_YAML + "design:\n  n_r: 6\n  belief: false\n  p: 5\n  q: 5\n  ensemble: 20\n")
+    out = tmp_path / "d.npz"
+    assert design_cli.main(["--scenario", str(scen), "--out", str(out), "--quiet"]) == 0
+    st = load_design(out).meta["settings"]
+    assert (st["n_r"], st["belief"], st["p"]) == (6, False, 5)
+    assert design_cli.main(["--scenario", str(scen), "--out", str(out), "--quiet", "--n-r", "8"]) == 0
+    assert load_design(out).meta["settings"]["n_r"] == 8
+    scen.write_text(TINY_YAML + "design:\n  n_rr: 6\n")
+    code, err = exit_code_and_stderr(capsys, design_cli.main, ["--scenario", str(scen), "--out", str(out)])
+    assert code == 2 and "n_rr" in err

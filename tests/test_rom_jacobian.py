@@ -80,5 +80,5 @@ def test_auto_picks_the_cheaper_jacobian():
     st = DesignSettings()                                   # p = q = 15
     assert st.jacobian == "auto"
     assert st.resolved_jacobian(250) == "rom" and st.resolved_jacobian(80) == "sensitivity"
-    assert st.resolved_jacobian(120) == "rom" and st.resolved_jacobian(119) == "sensitivity"
+    assert st.resolved_jacobian(150) == "rom" and st.resolved_jacobian(149) == "sensitivity"
     assert DesignSettings(jacobian="sensitivity").resolved_jacobian(250) == "sensitivity"

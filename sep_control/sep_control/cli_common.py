@@ -29,7 +29,7 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
 def add_memory_budget(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--memory-budget", metavar="SIZE", default=None,
                         help="memory for one batch of runs (experiments, Monte Carlo), e.g. 2G or 512M; "
-                             "larger batches are split (default: a quarter of the free memory)")
+                             "larger batches are split; None: a quarter of the free memory")
 
 
 def memory_budget_or_exit(text: str | None) -> int | None:

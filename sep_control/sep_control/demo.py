@@ -125,12 +125,13 @@ def get_design(args, scenario, out: Path):
             return d, path
         except DesignFileError as exc:
             log(f'existing design file not usable ({exc}); redesigning')
-    from sep_control.design import run_design
+    from sep_control.design import DesignSettings, run_design
     plant = scenario.plant
     log(f'designing for {args.scenario or "the reference scenario"} (plant {scenario.plant_type}, '
         f'n_x={plant.n_x}, N={scenario.problem.n_steps}) ...')
     t0 = time.perf_counter()
-    d = run_design(plant, scenario.problem, show_progress=sys.stderr.isatty(), log=lambda m: log('  ' + m))
+    d = run_design(plant, scenario.problem, DesignSettings.for_scenario(scenario), show_progress=sys.stderr.isatty(),
+                   log=lambda m: log('  ' + m))
     save_design(path, d)
     log(f'design written to {path} in {time.perf_counter() - t0:.1f} s')
     return d, path

@@ -38,6 +38,14 @@ from .optimize import objective_of, optimize, run_belief
 from .tvera import Identification, extend_nominal, identify, markov_relative_error
 
 
+#: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
+ROM_FROM = 5
+
+#: Levenberg-Marquardt trials per belief-space iteration: each is an EnKF run, and a belief step
+#: the first few trials do not accept means the mean-only optimum is already the belief optimum
+BELIEF_TRIALS = 4
+
+
 @dataclass
 class DesignSettings:
     """Knobs of the offline design (defaults: DESIGN.md)."""
@@ -55,6 +63,7 @@ class DesignSettings:
     sv_tol: float = 1e-10           # relative singular-value cutoff
     impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
     seed: int = 0                   # EnKF random numbers
+    tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
 
     def check(self) -> None:
@@ -67,7 +76,7 @@ class DesignSettings:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.ensemble % 2 or self.ensemble < 4:
             raise ValueError(f"ensemble must be even and >= 4 (antithetic pairs), got {self.ensemble}")
-        for name in ("fd_eps", "impulse", "sv_tol", "step_size"):
+        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
@@ -77,11 +86,13 @@ class DesignSettings:
         sensitivity one runs N n_u experiments of N/2 steps on average, N (N+1) n_u / 2
         run-steps (and forms a dense (N n_u)^2 normal matrix from N n_f rows); the ROM one
         2 N n_u experiments of p + q steps, 2 N n_u (p + q) run-steps, and solves the step on the
-        ROM in O(N n_r^3). The ROM one is cheaper from N + 1 > 4 (p + q) on (N >= 120 with the
-        default p = q = 15; bench/bench_design.py measures the crossover)."""
+        ROM in O(N n_r^3). In plant steps the ROM one is cheaper from N + 1 > 4 (p + q); its own
+        work (POD updates, Hankel SVDs) moves the measured time crossover to N ~ 145 (slab at
+        n_x = 100 and 1600, Allen-Cahn at 2500: bench/bench_design.py --crossover), hence the
+        ROM one from N + 1 > ROM_FROM (p + q) (N >= 150 with the default p = q = 15)."""
         if self.jacobian != "auto":
             return self.jacobian
-        return "rom" if n_steps + 1 > 4 * (self.p + self.q) else "sensitivity"
+        return "rom" if n_steps + 1 > ROM_FROM * (self.p + self.q) else "sensitivity"
 
     def resolved_jacobian_for(self, plant: Plant, n_steps: int) -> str:
         """`resolved_jacobian`, and the ROM one also when the sensitivity experiments (N n_u runs
@@ -91,6 +102,18 @@ class DesignSettings:
                 n_steps * int(plant.n_u) > runs_per_batch(int(plant.n_x), int(plant.n_field), self.memory_budget):
             return "rom"
         return jac
+
+    @classmethod
+    def for_scenario(cls, scenario: Scenario, **overrides: Any) -> "DesignSettings":
+        """The defaults, then the scenario's `design:` section, then `overrides` (ValueError naming
+        an unknown key)."""
+        known = cls.__dataclass_fields__
+        unknown = sorted(k for k in scenario.design if k not in known)
+        if unknown:
+            raise ValueError(f"scenario design section: unknown setting(s) {unknown}; known: {sorted(known)}")
+        st = cls(**{**dict(scenario.design), **overrides})
+        st.check()
+        return st
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
@@ -121,7 +144,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
            "memory_budget": st.memory_budget}
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
-    opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter,
+    opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
                    jacobian=jacobian, rom=rom)
     log(f"mean-only {st.method} ({jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
@@ -130,9 +153,12 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     belief_hist: list[float] = []
     last = opt
     if st.belief:
+        # the belief refinement moves U by ~1e-4 relative and its Jacobian is the nominal's to first
+        # order: a chord on one ROM identified at the mean-only optimum (the optimizer's own, when it
+        # used the ROM Jacobian), whichever Jacobian the mean-only stage used
         bopt = optimize(plant, problem, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
-                        eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
-                        jacobian=jacobian, rom=rom, reuse=opt, chord=True)
+                        tol=st.tol, eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
+                        jacobian="rom", rom=rom, reuse=opt, chord=True, max_trials=BELIEF_TRIALS)
         log(f"belief-space gn: J_b = {bopt.history[0]:.8g} -> {bopt.cost:.8g} "
             f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
         U, belief_hist, last = bopt.U, bopt.history, bopt

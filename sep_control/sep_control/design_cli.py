@@ -28,33 +28,44 @@ Examples: design --out out/design.npz
 """
 
 
+#: command-line options of DesignSettings keys: (flags, settings key, type/action, help)
+SETTINGS_OPTIONS = (
+    ("--method", "method", dict(choices=["gn", "gd"]),
+     "optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent"),
+    ("--jacobian", "jacobian", dict(choices=["auto", "sensitivity", "rom"]),
+     "Gauss-Newton Jacobian: sensitivity = N n_u impulse-sensitivity experiments per iteration and a "
+     "dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration, the step solved on it by a "
+     "Riccati pass (its last identification is the design's ROM); auto = rom when N + 1 > 5 (p + q), "
+     "where it is measured faster, or when the sensitivity batch would not fit the memory budget"),
+    ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
+    ("--tol", "tol", dict(type=float), "stop when an accepted step lowers the cost by less than this, relative"),
+    ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha"),
+    ("--belief-iter", "belief_iter", dict(type=int), "belief-space GN iterations"),
+    ("--ensemble", "ensemble", dict(type=int), "EnKF members (even)"),
+    ("--n-r", "n_r", dict(type=int), "ROM order cap n_r"),
+    ("--p", "p", dict(type=int), "Hankel block rows (future outputs)"),
+    ("--q", "q", dict(type=int), "Hankel block columns (past inputs)"),
+    ("--sv-tol", "sv_tol", dict(type=float), "relative Hankel singular-value cutoff"),
+    ("--impulse", "impulse", dict(type=float), "impulse amplitude relative to the RMS nominal input"),
+    ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude"),
+    ("--seed", "seed", dict(type=int), "EnKF random seed"),
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="design", description=DESCRIPTION, formatter_class=Formatter)
     d = DesignSettings()
     p.add_argument("--scenario", metavar="FILE",
-                   help="scenario YAML: a `plant:` section (type and keys) and the problem keys that differ "
-                        "from the defaults (sep 0.1's flat slab files work too)")
+                   help="scenario YAML: a `plant:` section (type and keys), the problem keys that differ "
+                        "from the defaults (sep 0.1's flat slab files work too) and optionally a `design:` "
+                        "section with this scenario's defaults for the options below")
     p.add_argument("--out", metavar="DESIGN_FILE", required=True, help="design file to write (.npz)")
-    p.add_argument("--method", choices=["gn", "gd"], default=d.method,
-                   help="optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent")
-    p.add_argument("--jacobian", choices=["auto", "sensitivity", "rom"], default=d.jacobian,
-                   help="Gauss-Newton Jacobian: sensitivity = N n_u impulse-sensitivity experiments per "
-                        "iteration and a dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration, "
-                        "the step solved on it by a Riccati pass (its last identification is the design's "
-                        "ROM); auto = rom when N + 1 > 4 (p + q), where it takes fewer plant steps")
-    p.add_argument("--max-iter", type=int, default=None, help="optimizer iterations (default 10 gn, 60 gd)")
-    p.add_argument("--step-size", type=float, default=d.step_size, help="gradient-descent step alpha")
-    p.add_argument("--no-belief", action="store_true", help="skip the belief-space refinement (mean-only nominal)")
-    p.add_argument("--belief-iter", type=int, default=d.belief_iter, help="belief-space GN iterations")
-    p.add_argument("--ensemble", type=int, default=d.ensemble, help="EnKF members (even)")
-    p.add_argument("--n-r", type=int, default=d.n_r, help="ROM order cap n_r")
-    p.add_argument("--p", type=int, default=d.p, help="Hankel block rows (future outputs)")
-    p.add_argument("--q", type=int, default=d.q, help="Hankel block columns (past inputs)")
-    p.add_argument("--sv-tol", type=float, default=d.sv_tol, help="relative Hankel singular-value cutoff")
-    p.add_argument("--impulse", type=float, default=d.impulse,
-                   help="impulse amplitude relative to the RMS nominal input")
-    p.add_argument("--fd-eps", type=float, default=d.fd_eps, help="sensitivity experiment amplitude")
-    p.add_argument("--seed", type=int, default=d.seed, help="EnKF random seed")
+    for flag, key, kind, text in SETTINGS_OPTIONS:
+        default = getattr(d, key)
+        p.add_argument(flag, dest=key, default=argparse.SUPPRESS,
+                       help=f"{text} (default: the scenario's design section, else {default})", **kind)
+    p.add_argument("--no-belief", dest="belief", action="store_false", default=argparse.SUPPRESS,
+                   help="skip the belief-space refinement (mean-only nominal)")
     p.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_threads(p)
@@ -65,15 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     scenario = scenario_or_exit(args.scenario)
-    settings = DesignSettings(method=args.method, jacobian=args.jacobian, belief=not args.no_belief,
-                              max_iter=args.max_iter,
-                              belief_iter=args.belief_iter, fd_eps=args.fd_eps, step_size=args.step_size,
-                              ensemble=args.ensemble, n_r=args.n_r, p=args.p, q=args.q, sv_tol=args.sv_tol,
-                              impulse=args.impulse, seed=args.seed,
-                              memory_budget=memory_budget_or_exit(args.memory_budget))
+    given = {key: getattr(args, key) for key in [k for _, k, _, _ in SETTINGS_OPTIONS] + ["belief"]
+             if hasattr(args, key)}
     try:
-        settings.check()
-    except ValueError as exc:
+        settings = DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),
+                                               **given)
+    except (ValueError, TypeError) as exc:
         fail(str(exc))
     log = (lambda msg: print(msg, file=sys.stderr)) if not args.quiet else (lambda msg: None)
     plant = plant_or_exit(scenario, args.scenario or "reference scenario")

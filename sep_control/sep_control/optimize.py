@@ -277,14 +277,15 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
              eps: float = 1e-4, step_size: float = 1e-3, members: int = 200, seed: int = 0,
              show_progress: bool = True, jacobian: str = "sensitivity",
              rom: dict | None = None, reuse: "OptimizationResult | None" = None,
-             chord: bool = False) -> OptimizationResult:
+             chord: bool = False, max_trials: int = 12) -> OptimizationResult:
     """Minimize the nominal (``objective='nominal'``) or belief-space (``'belief'``) cost.
 
     method ``gn`` (Levenberg-Marquardt) or ``gd`` (gradient descent with step `step_size`
     and backtracking). `jacobian` ``sensitivity`` (N n_u impulse-sensitivity experiments) or
     ``rom`` (a TV-ERA model identified at every iterate, settings `rom` passed to `identify`;
     the step is then an LQ problem on the ROM, `RomLinearization`). Stops after `max_iter`
-    iterations or when an accepted step lowers the objective by less than `tol` relative. Every
+    iterations or when an accepted step lowers the objective by less than `tol` relative (for the
+    belief objective, an ensemble estimate, such a step is not taken). Every
     step is accepted on the true objective, whichever Jacobian proposed it. With the ROM
     Jacobian the result carries the identification at the final input (`identification`), and
     `reuse` (an earlier result) saves identifying at its final input again; `chord` keeps the
@@ -340,7 +341,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
     for it in bar:
         accepted = False
-        for _ in range(12):
+        for _ in range(max_trials):
             dU = lin.step(lam) if method == "gn" else -alpha * lin.gradient()
             U_try = clip_inputs(U + dU, lo, hi)
             J_try, X_try, f_try = evaluate(U_try)
@@ -351,6 +352,10 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
         if not accepted:
             break
         rel = (J - J_try) / max(J, 1e-300)
+        if objective == "belief" and rel < tol:
+            # the belief cost is an ensemble estimate: a decrease below tol is no real improvement,
+            # and staying at U keeps the identification made there usable as the design's ROM
+            break
         U, J, X, field_for_residual = U_try, J_try, X_try, f_try
         if "try" in last_belief:
             last_belief["b"] = last_belief["try"]

@@ -1,7 +1,8 @@
 """Scenario: one plant (its type and its own keys) and one control problem, from YAML.
 
 A scenario file has a ``plant:`` section (``type:`` and the plant's own keys) and the problem
-keys (`sep_plant.problem.Problem`) beside it::
+keys (`sep_plant.problem.Problem`) beside it, and optionally a ``design:`` section with the
+scenario's defaults for the design tool (e.g. ``n_r: 40``; command-line options override them)::
 
     plant:
       type: slab              # built-in, a `sep.plants` entry point, or "package.module:ClassName"
@@ -61,6 +62,9 @@ class Scenario:
     plant_type: str = "slab"
     plant_config: Mapping[str, Any] = field(default_factory=dict)
     problem: Problem = field(default_factory=Problem)
+    #: the scenario's own defaults for the design tool (`design:` section: DesignSettings keys,
+    #: e.g. n_r, belief); checked by the design tool, not part of the plant or the problem
+    design: Mapping[str, Any] = field(default_factory=dict)
 
     # -------------------------------------------------------------- the plant
     @functools.cached_property
@@ -82,23 +86,28 @@ class Scenario:
 
     def canonical(self) -> "Scenario":
         """The same scenario with the plant's complete configuration (builds the plant)."""
-        return Scenario(self.plant_type, _plain_config(self.plant.config()), self.problem.resolved())
+        return Scenario(self.plant_type, _plain_config(self.plant.config()), self.problem.resolved(),
+                        dict(self.design))
 
     # ------------------------------------------------------------ variations
     def replace(self, **problem_changes: Any) -> "Scenario":
         """A scenario with some problem keys changed (same plant)."""
-        return Scenario(self.plant_type, dict(self.plant_config), self.problem.replace(**problem_changes))
+        return Scenario(self.plant_type, dict(self.plant_config), self.problem.replace(**problem_changes),
+                        dict(self.design))
 
     def with_plant(self, plant_type: str | None = None, **config_changes: Any) -> "Scenario":
         """A canonical scenario with some plant keys changed (or another plant type)."""
         cfg = {} if plant_type not in (None, self.plant_type) else dict(self.plant_config)
         cfg.update(config_changes)
-        return Scenario(plant_type or self.plant_type, cfg, self.problem).canonical()
+        return Scenario(plant_type or self.plant_type, cfg, self.problem, dict(self.design)).canonical()
 
     # ------------------------------------------------------- (de)serialize
     def to_dict(self) -> dict[str, Any]:
-        return {"format": FORMAT, "version": FORMAT_VERSION,
-                "plant": {"type": self.plant_type, **dict(self.plant_config)}, **self.problem.to_dict()}
+        out = {"format": FORMAT, "version": FORMAT_VERSION,
+               "plant": {"type": self.plant_type, **dict(self.plant_config)}, **self.problem.to_dict()}
+        if self.design:
+            out["design"] = dict(self.design)
+        return out
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), sort_keys=True, default=_plain)
@@ -116,10 +125,12 @@ class Scenario:
         if not isinstance(data, Mapping):
             raise ScenarioError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
         data = dict(data)
-        if "plant" in data:
-            scen = _parse_current(data, source)
-        else:
-            scen = _parse_legacy(data, source)
+        design = data.pop("design", None) or {}
+        if not isinstance(design, Mapping) or not all(isinstance(k, str) for k in design):
+            raise ScenarioError(f"{source}: `design:` must be a mapping of design settings (e.g. n_r: 40), "
+                                f"got {design!r}")
+        scen = _parse_current(data, source) if "plant" in data else _parse_legacy(data, source)
+        scen = Scenario(scen.plant_type, scen.plant_config, scen.problem, _plain_config(design))
         if canonical:
             try:
                 return scen.canonical()
