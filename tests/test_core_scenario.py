@@ -265,3 +265,23 @@ def test_unknown_keys_of_mixed_types_are_named(tmp_path):
     with pytest.raises(ScenarioError) as exc:
         load_scenario(p)
     assert "foo" in str(exc.value) and "1" in str(exc.value)
+
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "sep_plant" / "scenarios").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_scenarios_load_and_their_plants_conform(path):
+    """Every scenario file we ship loads, builds a plant that passes the protocol checks at its
+    full size, resolves its problem on that plant (target, window), survives a JSON round trip
+    (as in a design file), and its `design:` section gives valid design settings."""
+    from sep_control.design import DesignSettings
+    from sep_plant.conformance import check_plant
+
+    scen = load_scenario(path)
+    plant, problem = scen.plant, scen.problem
+    check_plant(plant, problem.u_start(plant.n_u)[0], batch=2, steps=2)
+    obj = Objective.of(problem, plant.field_coordinates())
+    assert obj.target.shape == (plant.n_field,) and np.isfinite(obj.target).all()
+    assert 0 <= obj.window[0] < obj.window[1] == problem.n_steps
+    assert Scenario.from_json(scen.to_json(), canonical=True) == scen.canonical()
+    st = DesignSettings.for_scenario(scen)
+    assert st.n_r == scen.design.get("n_r", DesignSettings().n_r)
