@@ -15,9 +15,10 @@ from .design import DesignSettings, run_design
 DESCRIPTION = """\
 Design a data-driven LQG for a plant (the heat slab by default; any plant of the plant
 protocol through --scenario) from the black-box simulator only:
-  1. optimize the open-loop nominal (Gauss-Newton/LM from batched impulse-sensitivity
-     experiments; then refine it in belief space with an EnKF belief),
-  2. identify the reduced-order LTV model with TV-ERA (plus the full-field output map),
+  1. optimize the open-loop nominal (Gauss-Newton/LM, its Jacobian from a TV-ERA model or from
+     impulse sensitivities, both from batched experiments; then refine it in belief space with
+     an EnKF belief),
+  2. identify the reduced-order LTV model with TV-ERA (and the field map on a POD basis),
   3. design the time-varying LQR and Kalman filter on the ROM,
 and write everything to one design file (.npz, read without pickles).
 

@@ -71,7 +71,7 @@ noise w_std = 0.15 m/s^2, sensor noise v_std = 0.02 m/s. The spin-up is strongly
 the advection speed goes from 0 to 0.5 m/s, so the linearization changes from pure diffusion
 to transport over the horizon. Afterwards the level random-walks (std ~0.02 m/s after 10 s)
 and the open loop leaves the band in more than half the runs, while sep's ROM-LQG (three
-sensors) keeps nearly all of them inside (1000 runs: 44.5 % and 99.8 % in band).
+sensors) keeps nearly all of them inside (1000 runs: 44.9 % and 99.8 % in band).
 
 This module imports numpy and scipy only: a plant is anything with the attributes and methods
 of sep's plant protocol (sep_plant.protocol); nothing is subclassed or imported from sep.
