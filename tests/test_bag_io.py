@@ -2,7 +2,9 @@
 sep 0.1 slab bags and a 2-D grid plant; the one stamp tolerance; bad bags."""
 from __future__ import annotations
 
+import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -240,3 +242,76 @@ def test_undecodable_message_is_skipped_and_noted(tmp_path, ep):
     assert any("undecodable" in n for n in e.notes)
     assert np.isnan(e.u_cmd[20]).all()
     assert np.isfinite(e.u_cmd).sum() == (ep.scenario.problem.n_steps - 1) * ep.info.n_u
+
+
+DATA = Path(__file__).resolve().parent / "data"
+SEP01_BAG = DATA / "bag_sep01"            # recorded by sep 0.1's demo (commit 488f89e), see data/README.txt
+
+
+def test_real_sep01_bag_read_and_analysed():
+    """A REAL bag written by sep 0.1's demo (plant + lqg + record, slab n_x 20, N 40, seed 7 run 2):
+    read with today's API with and without sep 0.1's design file (format v1); the recorded
+    field/inputs/measurements are the old plant's trajectory file exactly, and today's metrics are
+    those sep 0.1's own `analyze` and `demo` wrote for this bag."""
+    from sep_control import metrics as M
+    from sep_control.analyze import analyze
+    from sep_estimator.design_file import load_design
+    from sep_plant.scenario import load_scenario
+
+    traj = np.load(DATA / "bag_sep01_trajectory.npz")
+    old_scenario = json.loads(bytes(traj["scenario"]).decode())
+    assert '"plant"' not in bytes(traj["scenario"]).decode() and old_scenario["k_band"] == 24
+    assert (int(traj["seed"]), int(traj["run"])) == (7, 2)
+    old_analyze = json.loads((DATA / "bag_sep01_analyze_metrics.json").read_text())[0]
+    old_demo = json.loads((DATA / "bag_sep01_demo_metrics.json").read_text())
+    scen_file = load_scenario(DATA / "bag_sep01_scenario.yaml")
+
+    # -- bag_io, scenario from the bag's flat sep 0.1 payload
+    e = read_episode(SEP01_BAG)
+    s = e.scenario
+    assert e.scenario_source == "bag" and s.plant_type == "slab" and s == scen_file
+    assert s.plant_config["n_x"] == 20 and s.problem.window == (24, 40) and s.problem.k_switch == 19
+    assert e.n_steps == 40 and e.dt == 0.25 and (e.info.n_x, e.info.n_u, e.info.n_y, e.info.n_field) == (20, 5, 5, 20)
+    assert e.field_name == "temperature" and e.info.grid_shape is None
+    assert e.complete and not e.missing and not e.notes and not e.ignored_topics and e.images == {}
+    assert {k: e.counts[k] for k in ("/clock", "measurements", "heat_command", "heat_applied", "state_estimate",
+                                      "field_estimate", "field", "scenario")} == \
+        {"/clock": 41, "measurements": 41, "heat_command": 40, "heat_applied": 40, "state_estimate": 41,
+         "field_estimate": 41, "field": 41, "scenario": 1}
+    np.testing.assert_array_equal(e.F, traj["T"])           # the old plant's true field, bit for bit
+    np.testing.assert_array_equal(e.u, traj["U"])
+    np.testing.assert_array_equal(e.u_cmd, traj["U"])
+    np.testing.assert_array_equal(e.y, traj["Y"])
+    np.testing.assert_array_equal(e.xyz[:, 0], s.plant.grid())
+    assert np.isfinite(e.F_hat).all() and np.isfinite(e.F_std).all() and (e.F_std[1:] > 0).all()
+    assert e.diag_totals == {"deadline_misses": 0, "rejected_messages": 0}
+
+    # -- sep 0.1's design file (v1) for the same plant: no mismatch, the same episode
+    design = load_design(DATA / "bag_sep01_design.npz")
+    assert design.meta["upgraded_from_version"] == 1 and not design.scenario.plant_mismatches(s)
+    e2 = read_episode(SEP01_BAG, scenario=design.scenario, info=design.info)
+    assert e2.scenario_source == "bag" and e2.scenario == s
+    np.testing.assert_array_equal(e2.F, e.F)
+
+    # -- analyze: today's metrics = those sep 0.1 computed (its analyze of the bag, its demo's
+    # trajectory metrics); mean_dev_62_5 (step min(250, N) = 40) is today's mean_dev_end, while
+    # today's mean_dev_start is at the band window's first step (24), not at t = 37.5 s
+    same = ("cost_mean", "cost_std", "in_band", "rms", "n_runs", "coverage_2sigma", "deadline_misses",
+            "rejected_messages", "latency_p50_s", "latency_p99_s", "field_nees", "field_rmse", "latency_max_s",
+            "latency_estimate_p50_s", "latency_estimate_p99_s", "episode_wall_s", "episode_sim_s",
+            "steps_recorded", "complete")
+    for dsg in (None, DATA / "bag_sep01_design.npz"):
+        rep = analyze(SEP01_BAG, dsg)
+        m = rep.metrics
+        assert not rep.mismatch and not rep.notes, rep.notes
+        for k in same:
+            assert m[k] == pytest.approx(old_analyze[k], rel=1e-12, abs=0), (dsg, k)
+        for k in ("cost_mean", "in_band", "rms", "coverage_2sigma"):
+            assert m[k] == pytest.approx(old_demo[k], rel=1e-12, abs=0), (dsg, k)
+        assert m["in_band"] == 1.0 and m["steps_recorded"] == 41 and m["complete"] is True
+        if dsg is None:
+            assert m["mean_dev_start"] is None and m["mean_dev_end"] is None
+        else:
+            assert m["mean_dev_end"] == pytest.approx(old_analyze["mean_dev_62_5"], rel=1e-12)
+            assert m["mean_dev_end"] == pytest.approx(old_demo["mean_dev_62_5"], rel=1e-12)
+            assert m["mean_dev_start"] == M.mean_deviation(traj["T"][None], design.nominal.field, 24)
