@@ -1,6 +1,7 @@
 """The main job's executable on a small scenario: design, plant + lqg (+ record) over topics,
 metrics printed and written as JSON with the DESIGN.md §3 keys."""
 import json
+import os
 
 import pytest
 
@@ -35,3 +36,59 @@ def test_demo_small(launcher, small_case, tmp_path, extra):
                             '--no-record', name='demo_again')
         assert p2.wait(180) == 0, p2.output()
         assert 'reusing design file' in p2.output()
+
+
+# A coarse sep_plant/scenarios/plate.yaml (same plant defaults: 3 x 3 lamps, 5 sensors, held edge
+# x_max = 150 F, target 150 +- 3 F), 10 x 8 nodes, N = 40 at dt = 0.5 (20 s, window 15..20 s), with
+# fast design settings in its `design:` section (the demo designs with DesignSettings.for_scenario).
+# Offline (seed 1, runs 0..19) ROM-LQG keeps every run in band; design ~4 s.
+PLATE_DEMO_YAML = """\
+plant:
+  type: plate
+  nodes: [10, 8]
+  boundary_temperatures: {x_max: 150.0}
+  t_init: 100.0
+  dt: 0.5
+n_steps: 40
+target: 150.0
+band: 3.0
+band_window: [30, 40]
+w_std: 0.135
+v_std: 0.1
+u_init: 0.05
+design: {p: 8, q: 8, n_r: 16, ensemble: 20, belief_iter: 1}
+"""
+
+
+def test_demo_grid_plant_scenario_file(launcher, tmp_path):
+    """`demo --scenario FILE` with a 2-D grid plant: design -> plant + lqg over topics -> bag ->
+    report with the grid plants' heat maps and the rendered field_image frame."""
+    scen = tmp_path / 'plate.yaml'
+    scen.write_text(PLATE_DEMO_YAML)
+    out, js = tmp_path / 'demo', tmp_path / 'm.json'
+    p = launcher.start('demo', '--out', str(out), '--scenario', str(scen), '--seed', '1',
+                       '--domain-id', os.environ['ROS_DOMAIN_ID'], '--json', str(js))
+    assert p.wait(240) == 0, p.output()
+    text = p.output()
+    assert 'plant plate' in text and 'rom_lqg (topics)' in text, text
+    m = json.loads(js.read_text())
+    for k in ('mean_dev_start', 'mean_dev_end', 'in_band'):
+        assert k in m and m[k] is not None, (k, m)
+    assert m['n_runs'] == 1 and m['in_band'] == 1.0 and m['mean_dev_end'] < 3.0, m
+    assert m['deadline_misses'] == 0 and m['rejected_messages'] == 0, m['rejected_by_node']
+    assert (out / 'design.npz').is_file()
+    bag = out / 'bag'
+    assert (bag / 'metadata.yaml').is_file(), text
+    import yaml
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    counts = {t['topic_metadata']['name']: t['message_count'] for t in meta['topics_with_message_count']}
+    # the recorder subscribed to the grid plant's images: every step's true and estimated frame
+    assert counts.get('/slab/field_image') == 41 and counts.get('/slab/field_estimate_image') == 41, counts
+    report = out / 'report' / 'report.md'
+    assert report.is_file() and f'report: {report}' in text, text
+    md = report.read_text()
+    assert 'grid 10 x 8' in md, md
+    for png in ('field.png', 'estimation.png', 'inputs.png', 'field_image.png'):
+        assert f']({png})' in md, (png, md)
+        assert (report.parent / png).stat().st_size > 0, png
+    assert 'field_image at k = ' in md and '32FC1' in md

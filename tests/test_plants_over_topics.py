@@ -96,3 +96,79 @@ def test_grid_plant_lockstep_over_topics_with_images(launcher, probe, plate_case
             assert (m.height, m.width, m.encoding) == (12, 10, "32FC1")
             img = np.frombuffer(bytes(m.data), dtype="<f4").reshape(12, 10)
             np.testing.assert_array_equal(img, ref[k].reshape(12, 10).astype(np.float32))
+
+
+# Runs a node's main() with sep_plant.contract.field_image (the 32FC1 image builder both the plant
+# and the estimator call) wrapped by a counter, written as JSON at exit: no node exposes a count of
+# the images it built, so the test counts them from outside the library.
+COUNTING_MAIN = """\
+import atexit, importlib, json, sys
+from sep_plant import contract
+out, module = sys.argv.pop(1), sys.argv.pop(1)
+calls = [0]
+build = contract.field_image
+def counted(*a, **kw):
+    calls[0] += 1
+    return build(*a, **kw)
+contract.field_image = counted
+atexit.register(lambda: open(out, 'w').write(json.dumps({'field_image_calls': calls[0]})))
+sys.exit(importlib.import_module(module).main())
+"""
+
+
+def _counted_episode(launcher, case, tmp_path, image_topic, tag):
+    """plant + lqg in lockstep, both counting their image builds, watched by a probe that
+    subscribes to both field clouds and only `image_topic` (None: no image topic) and is closed
+    afterwards (a viewer left over would count for the next episode). Returns ({node: calls},
+    number of steps with a received frame on image_topic)."""
+    import sys
+
+    from node_harness import NodeProcess, Probe
+
+    def start(name, module, params):
+        argv = [sys.executable, "-c", COUNTING_MAIN, str(tmp_path / f"{name}.count.json"), module, "--ros-args"]
+        for k, v in params.items():
+            argv += ["-p", f"{k}:={v}"]
+        proc = NodeProcess(name, argv, launcher.install.env, tmp_path / f"{name}.log")
+        launcher.procs.append(proc)          # stopped and dumped by the launcher fixture
+        return proc
+
+    pr = Probe(name=f"viewer_{tag}")
+    try:
+        pr.subscribe(c.FIELD, c.FIELD_ESTIMATE, *([image_topic] if image_topic else []))
+        lqg = start(f"lqg_{tag}", "sep_control.lqg_node",
+                    {"design_file": case.design_file, "wait_for_scenario_s": 20.0})
+        pr.wait_matched(subs=(c.FIELD_ESTIMATE,))
+        plant = start(f"plant_{tag}", "sep_plant.plant_node", {
+            "scenario_file": case.scenario_file, "seed": 1, "run": 0, "mode": "lockstep",
+            "wait_for_subscribers": 1, "wait_for_field_subscribers": 1, "command_timeout_s": 20.0})
+        assert plant.wait(120) == 0, plant.output()
+        assert lqg.wait(30) == 0, lqg.output()
+        n = case.n_steps + 1
+        for t in (c.FIELD, c.FIELD_ESTIMATE):       # the clouds were built and published every step
+            pr.wait_for(lambda t=t: len(pr.by_step(t, case.dt)) == n, 10, f"all {t}")
+        calls = {node: json.loads((tmp_path / f"{node}_{tag}.count.json").read_text())["field_image_calls"]
+                 for node in ("plant", "lqg")}
+        frames = 0
+        if image_topic:
+            built = calls["plant" if image_topic == c.FIELD_IMAGE else "lqg"]
+            pr.wait_for(lambda: len(pr.received(image_topic)) >= built, 10, f"{built} {image_topic} frames")
+            frames = len(pr.by_step(image_topic, case.dt))
+        return calls, frames
+    finally:
+        pr.close()
+
+
+def test_grid_images_are_built_only_while_subscribed(launcher, plate_case, tmp_path):
+    case = plate_case
+    n = case.n_steps + 1
+    # nobody subscribes to an image: neither node builds one, though both publish their clouds
+    calls, _ = _counted_episode(launcher, case, tmp_path, None, "none")
+    assert calls == {"plant": 0, "lqg": 0}
+    # a viewer of one image topic: its node builds one frame a step, the other node none
+    for topic, builder, idle in ((c.FIELD_IMAGE, "plant", "lqg"), (c.FIELD_ESTIMATE_IMAGE, "lqg", "plant")):
+        calls, got = _counted_episode(launcher, case, tmp_path, topic, builder)
+        assert calls[idle] == 0, calls
+        # every frame built was received; the subscription is matched by step 0 in practice
+        # (the plant waits for the viewer's cloud subscription), so all N + 1 frames
+        assert calls[builder] == got == n, (calls, got)
