@@ -45,7 +45,9 @@ def linearization_times(plant, problem, U: np.ndarray, p: int = 15, q: int = 15)
     t0 = time.perf_counter()
     SensitivityLinearization(sensitivity_normal_equations(plant, U, X, obj), U.shape).step(1e-3)
     t1 = time.perf_counter()
-    RomLinearization(identify(plant, U, p, q, 20), obj, F, U).step(1e-3)
+    st = DesignSettings()                                  # the design's impulses (scheme, amplitude)
+    RomLinearization(identify(plant, U, p, q, 20, impulse=st.impulse, scheme=st.impulse_scheme), obj, F,
+                     U).step(1e-3)
     return t1 - t0, time.perf_counter() - t1
 
 
@@ -60,6 +62,8 @@ def main() -> None:
                     help="gradient-descent iterations in the GN vs GD comparison (0: skip)")
     ap.add_argument("--no-sensitivity-design", action="store_true",
                     help="skip the whole design with the sensitivity Jacobian (slow on large grids)")
+    ap.add_argument("--crossover-n", type=int, nargs="+", default=[30, 60, 90, 120, 180, 250],
+                    help="horizons N of the crossover table")
     ap.add_argument("--crossover", action="store_true",
                     help="one linearization + step by each Jacobian over the horizon N (n_x = the first grid)")
     args = ap.parse_args()
@@ -126,7 +130,7 @@ def main() -> None:
     if args.crossover:
         n_x = args.grids[0]
         xrows = {}
-        for N in (30, 60, 120, 180, 250):
+        for N in args.crossover_n:
             scen = reference().with_plant(n_x=n_x).replace(n_steps=N, band_window=(int(0.6 * N), N),
                                                            lqr_k_switch=int(0.48 * N))
             with threadpool_limits(args.threads):

@@ -65,10 +65,13 @@ def test_the_design_reuses_the_optimizers_last_identification():
     belief-space refinement takes that model as a chord; the design identifies once more, at
     the final input (or reuses the model when the input did not move)."""
     from sep_control.design import DesignSettings, run_design
+    from sep_control.tvera import SCHEMES
 
-    d = run_design(P, S, DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False), show_progress=False,
-                   log=lambda m: None)
-    assert d.meta["optimizer"]["experiments"] == (d.meta["optimizer"]["iterations"] + 1) * 2 * S.n_steps * N_U
+    st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False)
+    d = run_design(P, S, st, show_progress=False, log=lambda m: None)
+    runs_per_impulse = SCHEMES[st.impulse_scheme]          # central (default): 2, forward: 1
+    assert d.meta["optimizer"]["experiments"] == \
+        (d.meta["optimizer"]["iterations"] + 1) * runs_per_impulse * S.n_steps * N_U
     assert d.meta["timings"]["identify_s"] < 0.05          # reused, not identified again
     assert d.meta["validation"]["markov_rel_error"] < 1e-5       # (n_r = 16, p = q = 8)
     assert d.meta["optimizer"]["identification_reused"]

@@ -3,7 +3,7 @@
 1. open-loop nominal: mean-only Gauss-Newton/LM (or gradient descent), then the
    belief-space problem warm-started from it (EnKF belief along nominal observations);
 2. TV-ERA reduced-order model from central-difference impulse experiments around the
-   nominal, with the field output map;
+   nominal (forward differences on request), with the field output map;
 3. time-varying LQR (weights on the outputs) and Kalman filter on the ROM.
 
     design = run_design(plant, problem, DesignSettings())
@@ -35,7 +35,7 @@ from .budget import runs_per_batch
 from .lqr import design_lqg
 from .metrics import nominal_cost
 from .optimize import objective_of, optimize, run_belief
-from .tvera import Identification, extend_nominal, identify, markov_relative_error
+from .tvera import SCHEMES, Identification, extend_nominal, identify, markov_relative_error
 
 
 #: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
@@ -62,6 +62,7 @@ class DesignSettings:
     q: int = 15                     # Hankel block columns (past inputs)
     sv_tol: float = 1e-10           # relative singular-value cutoff
     impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
+    impulse_scheme: str = "central"  # TV-ERA impulses: "central" (+- pairs) or "forward" (one run each)
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
@@ -69,6 +70,8 @@ class DesignSettings:
     def check(self) -> None:
         if self.method not in ("gn", "gd"):
             raise ValueError(f"method must be 'gn' or 'gd', got {self.method!r}")
+        if self.impulse_scheme not in SCHEMES:
+            raise ValueError(f"impulse_scheme must be one of {', '.join(SCHEMES)}, got {self.impulse_scheme!r}")
         if self.jacobian not in ("sensitivity", "rom", "auto"):
             raise ValueError(f"jacobian must be 'sensitivity', 'rom' or 'auto', got {self.jacobian!r}")
         for name in ("n_r", "p", "q", "ensemble"):
@@ -84,12 +87,14 @@ class DesignSettings:
     def resolved_jacobian(self, n_steps: int) -> str:
         """'auto': the Jacobian whose experiments take fewer plant steps per iteration. The
         sensitivity one runs N n_u experiments of N/2 steps on average, N (N+1) n_u / 2
-        run-steps (and forms a dense (N n_u)^2 normal matrix from N n_f rows); the ROM one
-        2 N n_u experiments of p + q steps, 2 N n_u (p + q) run-steps, and solves the step on the
-        ROM in O(N n_r^3). In plant steps the ROM one is cheaper from N + 1 > 4 (p + q); its own
-        work (POD updates, Hankel SVDs) moves the measured time crossover to N ~ 145 (slab at
-        n_x = 100 and 1600, Allen-Cahn at 2500: bench/bench_design.py --crossover), hence the
-        ROM one from N + 1 > ROM_FROM (p + q) (N >= 150 with the default p = q = 15)."""
+        run-steps (and forms a dense (N n_u)^2 normal matrix from N n_f rows, O(N^3) work); the
+        ROM one 2 N n_u experiments of p + q steps, 2 N n_u (p + q) run-steps, and solves the step
+        on the ROM in O(N n_r^3). In plant steps the ROM one is cheaper from N + 1 > 4 (p + q);
+        its own work (POD updates, Hankel SVDs) moves the measured time crossover to N ~ 145
+        (slab at n_x = 100 and 1600, Allen-Cahn at 2500: bench/bench_design.py --crossover),
+        hence the ROM one from N + 1 > ROM_FROM (p + q) (N >= 150 with the default p = q = 15).
+        Forward impulses (`impulse_scheme`) halve the ROM one's experiments and move the
+        crossover lower (measured N ~ 110 at n_x = 1600); the rule stays the central one's."""
         if self.jacobian != "auto":
             return self.jacobian
         return "rom" if n_steps + 1 > ROM_FROM * (self.p + self.q) else "sensitivity"
@@ -142,7 +147,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     # 1. nominal trajectory --------------------------------------------------
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
-           "memory_budget": st.memory_budget}
+           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme}
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
@@ -209,7 +214,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
 def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False) -> Identification:
     """`tvera.identify` with the design's settings."""
     return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress,
-                    memory_budget=st.memory_budget)
+                    memory_budget=st.memory_budget, scheme=st.impulse_scheme)
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:

@@ -3,8 +3,10 @@
 Markov parameters of the perturbation system around the nominal,
     Y_{k,j} = C_k A_{k-1} ... A_{j+1} B_j        (response at step k to an input impulse at j < k),
 come from impulse-response experiments on the black box (`impulse_experiments`): channel c at
-step j perturbed by +-delta (central differences: no O(delta) bias), outputs h(x) and field
-f(x) recorded for lags 1..p+q. The channels are the n_u inputs and, for a plant whose process
+step j perturbed by +-delta (scheme "central": no O(delta) bias, two runs per impulse) or by
++delta against the nominal run (scheme "forward": one run per impulse, half the plant steps, a
+bias of O(delta) that a smaller delta keeps below the identification's other errors), outputs
+h(x) and field f(x) recorded for lags 1..p+q. The channels are the n_u inputs and, for a plant whose process
 noise does not enter through the inputs, its n_w noise channels too (then B_w,k is identified
 the same way as B_k).
 
@@ -42,6 +44,11 @@ from .progress import progress
 #: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
 #: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes)
 FIELD_TOL = 1e-8
+#: impulse schemes: experiments per impulse (a forward pass also steps one unperturbed copy of the
+#: nominal per start step, beside its impulses, so that both sides of every difference come from
+#: the same batched solve: a nominal from a separate rollout differs in round-off, which the
+#: division by delta would lift into spurious field directions)
+SCHEMES = {"central": 2, "forward": 1}
 
 
 @dataclass
@@ -95,10 +102,14 @@ def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
 
 def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
                         Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
-                        field_tol: float = FIELD_TOL, memory_budget: int | None = None) -> MarkovData:
-    """Central-difference impulse responses for every input step j < N and channel c.
+                        field_tol: float = FIELD_TOL, memory_budget: int | None = None,
+                        scheme: str = "central") -> MarkovData:
+    """Impulse responses for every input step j < N and channel c.
 
-    The 2 N n_ch experiments run as a batch in lockstep over global steps; experiment (j, c, +-)
+    scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
+    (y(+delta) - ybar) / delta, N n_ch experiments plus one unperturbed copy of the nominal per
+    start step j, stepped in the same batch (N (n_ch + 1) runs).
+    The experiments run as a batch in lockstep over global steps; experiment (j, c, +-)
     is active for steps j..j+lags-1 only, so a pass holds at most 2 n_ch lags runs: a ring of
     `lags` slots, start j in slot j mod lags, stepped in place (no copy of the batch per step).
     When that batch exceeds `memory_budget` (`sep_control.budget`), the channels are split into
@@ -106,6 +117,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     Field responses go straight into an incremental orthonormal basis (`field_tol` relative to
     the largest response); only their coefficients are kept.
     """
+    if scheme not in SCHEMES:
+        raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
     N, n_u = U.shape
     U_ext = extend_nominal(U, lags)
     if Xbar_ext is None:
@@ -113,14 +126,16 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
     n_ch = n_u + n_w
     n_y, n_f = int(plant.n_y), int(plant.n_field)
-    per_pass = max(1, runs_per_batch(int(plant.n_x), n_f, memory_budget) // (2 * lags))
+    slot_runs = runs_per_batch(int(plant.n_x), n_f, memory_budget) // lags     # runs per start step
+    per_pass = max(1, (slot_runs - (scheme == "forward")) // SCHEMES[scheme])     # channels per pass
     groups = [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
     Y = np.zeros((N, lags, n_y, n_ch))
     basis = IncrementalBasis(n_f, field_tol)
     blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
     bar = progress(None, "TV-ERA experiments", show_progress, total=len(groups) * (N + lags - 1))
     for chs in groups:
-        _impulse_pass(plant, U_ext, Xbar_ext, N, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar)
+        _impulse_pass(plant, U_ext, Xbar_ext, N, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
+                      scheme)
     if hasattr(bar, "close"):
         bar.close()
     r = basis.rank
@@ -129,18 +144,20 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
         Cr = np.zeros((C.shape[0], r))
         Cr[:, :C.shape[1]] = C
         Yc[j[:, None], lag[:, None] - 1, :, chs[None, :]] = Cr.reshape(len(j), len(chs), r)
-    return MarkovData(Y, Yc, basis.phi.copy(), delta, 2 * N * n_ch, n_u)
+    return MarkovData(Y, Yc, basis.phi.copy(), delta, SCHEMES[scheme] * N * n_ch, n_u)
 
 
 def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
                   delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
-                  blocks: list, bar) -> None:
+                  blocks: list, bar, scheme: str = "central") -> None:
     """One lockstep pass over the channels `chs` (see `impulse_experiments`)."""
     n_y, n_f, n_x = int(plant.n_y), int(plant.n_field), int(plant.n_x)
     m = len(chs)
-    rows = 2 * m                                      # per slot: [+delta e_c ..., -delta e_c ...]
+    sides = SCHEMES[scheme]
+    # per slot: [+delta e_c ..., -delta e_c ...] (central) or [+delta e_c ..., 0] (forward)
     E = np.eye(n_u + n_w)[chs]
-    pert = np.vstack([E, -E]) * delta
+    pert = (np.vstack([E, -E]) if sides == 2 else np.vstack([E, np.zeros((1, E.shape[1]))])) * delta
+    rows = pert.shape[0]
     X = np.empty((lags * rows, n_x))
     slot_start = np.full(lags, -1)                    # start step j held by each slot (-1: none)
     for k in range(N + lags - 1):
@@ -167,23 +184,32 @@ def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int,
             continue
         j, lag = j_slot[active], lag[active]
         sel = np.flatnonzero(np.repeat(active, rows))
-        Yo = plant.observe(X[sel]).reshape(len(j), 2, m, n_y)
-        Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = (Yo[:, 0] - Yo[:, 1]) / (2 * delta)
+        Yo = plant.observe(X[sel]).reshape(len(j), rows, n_y)
+        Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = _difference(Yo, m, sides, delta)
         keep = lag <= field_lags
         if np.any(keep):
             fsel = np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows))
-            Ff = plant.field(X[fsel]).reshape(int(keep.sum()), 2, m, n_f)
-            D = ((Ff[:, 0] - Ff[:, 1]) / (2 * delta)).reshape(-1, n_f)       # (keep m, n_f)
+            Ff = plant.field(X[fsel]).reshape(int(keep.sum()), rows, n_f)
+            D = _difference(Ff, m, sides, delta).reshape(-1, n_f)             # (keep m, n_f)
             blocks.append((j[keep], lag[keep], chs, basis.add(D)))
+
+
+def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
+    """(experiments, m, n) impulse responses from the runs V (experiments, rows, n) of one slot:
+    central (V[:m] - V[m:2m]) / 2 delta, forward (V[:m] - V[m]) / delta."""
+    if sides == 2:
+        return (V[:, :m] - V[:, m:]) / (2 * delta)
+    return (V[:, :m] - V[:, m:m + 1]) / delta
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
-             memory_budget: int | None = None) -> Identification:
+             memory_budget: int | None = None, scheme: str = "central") -> Identification:
     """TV-ERA around the nominal input U.
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
-    k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input.
+    k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input;
+    `scheme` "central" or "forward" (see `impulse_experiments`).
     """
     N = U.shape[0]
     lags = p + q
@@ -191,7 +217,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     ftol = FIELD_TOL if field_tol is None else field_tol
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
-                               memory_budget=memory_budget)
+                               memory_budget=memory_budget, scheme=scheme)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float))
 
