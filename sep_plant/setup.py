@@ -23,14 +23,14 @@ if _scenarios:
 
 setup(
     name=package_name,
-    version='0.1.0',
+    version='0.2.0',
     packages=find_packages(exclude=['test']),
     data_files=data_files,
     install_requires=['setuptools'],
     zip_safe=True,
     maintainer='sep team',
     maintainer_email='sep@example.com',
-    description='Black-box nonlinear heat-slab simulator and its ROS 2 plant node (sep).',
+    description='The plant protocol, built-in black-box plants (1-D slab, 2-D plate, 3-D block, Allen-Cahn), scenarios, the topic contract and the ROS 2 plant node (sep).',
     license='Apache-2.0',
     python_requires='>=3.10',
     extras_require={'test': ['pytest']},

@@ -1,1 +1,1 @@
-"""sep_estimator: part of sep (data-driven LQG control of a heat slab)."""
+"""sep_estimator: part of sep (separation-based, data-driven LQG for large partially observed systems): models, filters, design file."""

@@ -1,1 +1,1 @@
-"""sep_plant: part of sep (data-driven LQG control of a heat slab)."""
+"""sep_plant: part of sep (separation-based, data-driven LQG for large partially observed systems): plant protocol, plants, scenarios, topic contract."""
