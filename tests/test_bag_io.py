@@ -258,7 +258,7 @@ def test_real_sep01_bag_read_and_analysed():
     from sep_estimator.design_file import load_design
     from sep_plant.scenario import load_scenario
 
-    traj = np.load(DATA / "bag_sep01_trajectory.npz")
+    traj = np.load(DATA / "bag_sep01_trajectory.npz", allow_pickle=False)
     old_scenario = json.loads(bytes(traj["scenario"]).decode())
     assert '"plant"' not in bytes(traj["scenario"]).decode() and old_scenario["k_band"] == 24
     assert (int(traj["seed"]), int(traj["run"])) == (7, 2)

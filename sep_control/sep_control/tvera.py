@@ -3,12 +3,12 @@
 Markov parameters of the perturbation system around the nominal,
     Y_{k,j} = C_k A_{k-1} ... A_{j+1} B_j        (response at step k to an input impulse at j < k),
 come from impulse-response experiments on the black box (`impulse_experiments`): channel c at
-step j perturbed by +-delta (scheme "central": no O(delta) bias, two runs per impulse) or by
-+delta against the nominal run (scheme "forward": one run per impulse, half the plant steps, a
-bias of O(delta) that a smaller delta keeps below the identification's other errors), outputs
-h(x) and field f(x) recorded for lags 1..p+q. The channels are the n_u inputs and, for a plant whose process
-noise does not enter through the inputs, its n_w noise channels too (then B_w,k is identified
-the same way as B_k).
+step j perturbed by +-delta (scheme "central", the default: no O(delta) bias, two runs per
+impulse) or by +delta against an unperturbed copy of the nominal in the same batch (scheme
+"forward": one run per impulse, a bias of O(delta); a small delta lifts the plant's round-off
+into the field basis), outputs h(x) and field f(x) recorded for lags 1..p+q. The channels are
+the n_u inputs and, for a plant whose process noise does not enter through the inputs, its n_w
+noise channels too (then B_w,k is identified the same way as B_k).
 
 At each step k the generalized Hankel matrix of p future outputs and q_k = min(q, k) past
 inputs factors as H_k = O_k R_k:
@@ -109,9 +109,10 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
     (y(+delta) - ybar) / delta, N n_ch experiments plus one unperturbed copy of the nominal per
     start step j, stepped in the same batch (N (n_ch + 1) runs).
-    The experiments run as a batch in lockstep over global steps; experiment (j, c, +-)
-    is active for steps j..j+lags-1 only, so a pass holds at most 2 n_ch lags runs: a ring of
-    `lags` slots, start j in slot j mod lags, stepped in place (no copy of the batch per step).
+    The experiments run as a batch in lockstep over global steps; experiment (j, c, +-) is active
+    for steps j..j+lags-1 only, so a pass holds at most 2 n_ch lags runs ((n_ch + 1) lags
+    forward): a ring of `lags` slots, start j in slot j mod lags, stepped in place (no copy of
+    the batch per step).
     When that batch exceeds `memory_budget` (`sep_control.budget`), the channels are split into
     groups, one pass each. `Xbar_ext` is the nominal over N + lags steps (computed if None).
     Field responses go straight into an incremental orthonormal basis (`field_tol` relative to

@@ -76,7 +76,7 @@ def _array(out: list[str], what: str, value: Any, shape: tuple[int, ...]) -> np.
         out.append(f"{what} returned shape {value.shape}, expected {shape}")
         raise _Abort
     if value.dtype.kind not in "fiu":
-        out.append(f"{what} returned dtype {value.dtype}, expected real numbers (float64; integers are converted)")
+        out.append(f"{what} returned dtype {value.dtype}, expected real numbers (float64, or integers)")
         raise _Abort
     if not np.all(np.isfinite(value)):
         bad = int(np.count_nonzero(~np.isfinite(value)))
