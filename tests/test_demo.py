@@ -16,7 +16,7 @@ pytestmark = pytest.mark.ros
 def test_demo_small(launcher, small_case, tmp_path, extra):
     out = tmp_path / 'demo'
     p = launcher.start('demo', '--out', str(out), '--scenario', str(small_case.scenario_file),
-                       '--seed', '3', '--json', str(tmp_path / 'm.json'), *extra)
+                       '--seed', '3', '--json', str(tmp_path / 'm.json'), '--timeout', '120', *extra)
     assert p.wait(180) == 0, p.output()
     text = p.output()
     m = json.loads((tmp_path / 'm.json').read_text())
@@ -33,7 +33,7 @@ def test_demo_small(launcher, small_case, tmp_path, extra):
     # a second run reuses the design file
     if extra:
         p2 = launcher.start('demo', '--out', str(out), '--scenario', str(small_case.scenario_file),
-                            '--no-record', name='demo_again')
+                            '--no-record', '--timeout', '120', name='demo_again')
         assert p2.wait(180) == 0, p2.output()
         assert 'reusing design file' in p2.output()
 

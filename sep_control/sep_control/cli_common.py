@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from typing import NoReturn
 
@@ -30,6 +31,31 @@ def add_memory_budget(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--memory-budget", metavar="SIZE", default=None,
                         help="memory for one batch of runs (experiments, Monte Carlo), e.g. 2G or 512M; "
                              "larger batches are split; None: a quarter of the free memory")
+
+
+def add_dask(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dask", metavar="WHERE", default=None,
+                        help="run the experiment and Monte Carlo batches on Dask: local (a LocalCluster, one "
+                             "worker process per core, one thread each), local:N (N workers) or "
+                             "tcp://HOST:PORT (a running scheduler; see README). Same results as in-process")
+
+
+@contextlib.contextmanager
+def engine_or_exit(text: str | None, log=None):
+    """The engine of a --dask value (exit 2 when the value is bad or the scheduler unreachable);
+    a task that fails on it exits 1 with the task's name and the worker's error."""
+    from .engine import EngineError, TaskError, open_engine
+
+    try:
+        engine = open_engine(text, log=log)
+    except EngineError as exc:
+        fail(str(exc))
+    try:
+        yield engine
+    except TaskError as exc:
+        fail(str(exc), code=1)
+    finally:
+        engine.close()
 
 
 def memory_budget_or_exit(text: str | None) -> int | None:

@@ -81,6 +81,11 @@ class Children:
         for name in reversed(list(self.procs)):
             self.stop(name, grace=3.0)
 
+    def tails(self, n: int = 15) -> str:
+        """The last lines of every child's log (what a failure report needs)."""
+        return '\n'.join(f'--- {name} ({"running" if p.poll() is None else f"exit {p.returncode}"}), '
+                         f'{self.logs[name]}:\n{self.tail(name, n)}' for name, p in self.procs.items())
+
     def tail(self, name: str, n: int = 15) -> str:
         try:
             return '\n'.join(self.logs[name].read_text(errors='replace').splitlines()[-n:])
@@ -215,8 +220,12 @@ def main(argv: list[str] | None = None) -> int:
         kids.start('plant', plant_args)
         prc = kids.wait('plant', args.timeout)
         wall = time.perf_counter() - t0
+        if prc is None:
+            log(f'the plant has not finished after --timeout {args.timeout:g} s; stopping the nodes. '
+                f'Their logs end:\n{kids.tails()}')
+            return EXIT_FAIL
         if prc != 0:
-            log(f'plant failed (exit {prc}):\n{kids.tail("plant")}')
+            log(f'plant failed (exit {prc}):\n{kids.tails()}')
             return EXIT_FAIL
         for name in (['estimator', 'lqr'] if args.three else ['lqg']):
             if kids.wait(name, 30) != 0:
@@ -242,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
             log(f'report: {report}')
         rc = EXIT_OK
     except KeyboardInterrupt:
-        log('interrupted; stopping the nodes')
+        log(f'interrupted; stopping the nodes. Their logs end:\n{kids.tails(5)}')
         rc = 130
     finally:
         kids.stop_all()

@@ -66,6 +66,7 @@ class DesignSettings:
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
+    chunks: int = 4                 # impulse experiments in this many chunks of start steps (tasks)
 
     def check(self) -> None:
         if self.method not in ("gn", "gd"):
@@ -74,7 +75,7 @@ class DesignSettings:
             raise ValueError(f"impulse_scheme must be one of {', '.join(SCHEMES)}, got {self.impulse_scheme!r}")
         if self.jacobian not in ("sensitivity", "rom", "auto"):
             raise ValueError(f"jacobian must be 'sensitivity', 'rom' or 'auto', got {self.jacobian!r}")
-        for name in ("n_r", "p", "q", "ensemble"):
+        for name in ("n_r", "p", "q", "ensemble", "chunks"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.ensemble % 2 or self.ensemble < 4:
@@ -122,8 +123,10 @@ class DesignSettings:
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
-        """The settings recorded in a design file's metadata (unknown keys ignored)."""
-        return cls(**{k: v for k, v in meta.get("settings", {}).items() if k in cls.__dataclass_fields__})
+        """The settings recorded in a design file's metadata (unknown keys ignored; files older
+        than the chunked experiments ran them as one chunk)."""
+        recorded = {"chunks": 1, **meta.get("settings", {})}
+        return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
 
 
 def scenario_of(plant: Plant, problem: Problem) -> Scenario:
@@ -132,8 +135,11 @@ def scenario_of(plant: Plant, problem: Problem) -> Scenario:
 
 
 def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None = None,
-               show_progress: bool = True, log=print) -> Design:
-    """Run the whole offline design for `plant` and `problem` and return the `Design`."""
+               show_progress: bool = True, log=print, engine=None) -> Design:
+    """Run the whole offline design for `plant` and `problem` and return the `Design`.
+
+    `engine` (`sep_control.engine`; in-process by default) runs the impulse experiments; the
+    result does not depend on it (the chunk plan is `settings.chunks`)."""
     st = settings or DesignSettings()
     st.check()
     check_plant(plant, problem.channels("u_init", int(plant.n_u)))
@@ -147,7 +153,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     # 1. nominal trajectory --------------------------------------------------
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
-           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme}
+           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme, "chunks": st.chunks, "engine": engine}
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
@@ -173,7 +179,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     # 2. TV-ERA: with the ROM Jacobian the optimizer's last identification is at U already ------
     t0 = time.perf_counter()
     reused = last.identification is not None
-    ident = last.identification if reused else identify_rom(plant, U, st, show_progress)
+    ident = last.identification if reused else identify_rom(plant, U, st, show_progress, engine)
     if reused and not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],
                         U=U.copy())     # the same linear model; the nominal of the final input
@@ -211,10 +217,11 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
                   ident.hankel_sv, meta)
 
 
-def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False) -> Identification:
+def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False,
+                 engine=None) -> Identification:
     """`tvera.identify` with the design's settings."""
     return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress,
-                    memory_budget=st.memory_budget, scheme=st.impulse_scheme)
+                    memory_budget=st.memory_budget, scheme=st.impulse_scheme, chunks=st.chunks, engine=engine)
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:

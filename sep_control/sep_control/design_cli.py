@@ -8,8 +8,8 @@ import time
 
 from sep_estimator.design_file import save_design
 
-from .cli_common import (Formatter, add_memory_budget, add_threads, blas_threads, fail, memory_budget_or_exit,
-                         plant_or_exit, scenario_or_exit)
+from .cli_common import (Formatter, add_dask, add_memory_budget, add_threads, blas_threads, engine_or_exit, fail,
+                         memory_budget_or_exit, plant_or_exit, scenario_or_exit)
 from .design import DesignSettings, run_design
 
 DESCRIPTION = """\
@@ -53,6 +53,10 @@ SETTINGS_OPTIONS = (
      "impulse against an unperturbed copy in the same batch (about half the plant steps, a bias "
      "of O(amplitude): 4e-6 relative in the reference's Markov parameters at --impulse 0.01; a "
      "smaller amplitude trades the bias for round-off in the field map, see README)"),
+    ("--chunks", "chunks", dict(type=int),
+     "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
+     "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "
+     "tolerance) but never on --dask; use at least twice the cluster's workers"),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude"),
     ("--seed", "seed", dict(type=int), "EnKF random seed"),
 )
@@ -76,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_threads(p)
     add_memory_budget(p)
+    add_dask(p)
     return p
 
 
@@ -95,8 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
         f"{plant.n_y} outputs")
     t0 = time.perf_counter()
-    with blas_threads(args.threads):
-        design = run_design(plant, scenario.problem, settings, show_progress=not args.quiet, log=log)
+    with blas_threads(args.threads), engine_or_exit(args.dask, log=lambda m: print(m, file=sys.stderr)) as engine:
+        design = run_design(plant, scenario.problem, settings, show_progress=not args.quiet, log=log, engine=engine)
     path = save_design(args.out, design)
     summary = design_summary(design)
     summary["wall_s"] = time.perf_counter() - t0

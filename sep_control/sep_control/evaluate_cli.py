@@ -9,11 +9,11 @@ from pathlib import Path
 from sep_estimator.ltv import sensed_nodes
 
 from . import figures
-from .cli_common import (Formatter, add_memory_budget, add_threads, blas_threads, design_or_exit, fail,
-                         memory_budget_or_exit, plant_or_exit)
+from .cli_common import (Formatter, add_dask, add_memory_budget, add_threads, blas_threads, design_or_exit,
+                         engine_or_exit, fail, memory_budget_or_exit, plant_or_exit)
 from .design import DesignSettings, identify_rom, with_rom
 from .metrics import CONTROLLERS, format_table, write_json
-from .montecarlo import simulate
+from .montecarlo import portable, simulate
 from .oracle import oracle_lqg
 from .progress import progress
 from .tvera import markov_relative_error, tv_era
@@ -51,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_threads(p)
     add_memory_budget(p)
+    add_dask(p)
     return p
 
 
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         controllers.remove("oracle_lqg")
     rows: dict[str, dict] = {}
     results = {}
-    with blas_threads(args.threads):
+    with blas_threads(args.threads), engine_or_exit(args.dask, log=print) as engine:
         oracle, oracle_s = None, 0.0
         if "oracle_lqg" in controllers or (args.sweep and oracle_fits):
             t0 = time.perf_counter()
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in progress(controllers, desc="Monte Carlo", enabled=not args.quiet):
             t0 = time.perf_counter()
             res = simulate(plant, design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1,
-                           keep_trajectories=1, memory_budget=budget)
+                           keep_trajectories=1, memory_budget=budget, engine=engine)
             rows[name] = res.metrics()
             rows[name]["seconds"] = time.perf_counter() - t0
             results[name] = res
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         if "rom_lqg" in rows and "oracle_lqg" in rows:
             ratio = rows["rom_lqg"]["cost_mean"] / rows["oracle_lqg"]["cost_mean"]
             print(f"ROM-LQG / oracle mean cost: {ratio:.5f}  (oracle design {oracle_s:.2f} s)")
-        sweep_rows = rom_sweep(plant, design, oracle, args) if args.sweep else None
+        sweep_rows = rom_sweep(plant, design, oracle, args, engine) if args.sweep else None
     if args.json:
         write_json(args.json, rows)
         print(f"metrics written to {args.json}")
@@ -97,24 +98,28 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def rom_sweep(plant, design, oracle, args) -> list[dict]:
-    """Re-identify the ROM at each order cap; Markov error and closed-loop cost vs the oracle."""
+def rom_sweep(plant, design, oracle, args, engine=None) -> list[dict]:
+    """Re-identify the ROM at each order cap; Markov error and closed-loop cost vs the oracle.
+    The impulse experiments run once (at the largest order) on `engine`; each sweep point
+    (realization at n_r and its Monte Carlo) is one task."""
+    from .engine import InProcess, plant_spec
+
+    engine = engine or InProcess()
     settings = DesignSettings.from_meta(design.meta)
     settings.n_r = max(args.sweep_orders)
-    ident = identify_rom(plant, design.nominal.u, settings)
+    ident = identify_rom(plant, design.nominal.u, settings, engine=engine)
     oracle_cost = None
     if oracle is not None:
         oracle_cost = simulate(plant, design, "oracle_lqg", args.seed, args.sweep_runs, oracle=oracle,
-                               keep_estimates=0, keep_trajectories=0).metrics()["cost_mean"]
-    rows = []
-    for n_r in progress(args.sweep_orders, desc="ROM sweep", enabled=not args.quiet):
-        model, _ = tv_era(ident.data, design.n_steps, settings.p, settings.q, n_r, settings.sv_tol)
-        d = with_rom(design, model)
-        m = simulate(plant, d, "rom_lqg", args.seed, args.sweep_runs, keep_estimates=0,
-                     keep_trajectories=0).metrics()
-        rows.append({"n_r": n_r, "n_r_used": int(model.dims.max()),
-                     "markov_rel_error": markov_relative_error(model, ident.data.Y),
-                     "cost_mean": m["cost_mean"], "cost_oracle": oracle_cost, "in_band": m["in_band"]})
+                               keep_estimates=0, keep_trajectories=0, engine=engine).metrics()["cost_mean"]
+    here = type(engine) is InProcess
+    shared = dict(plant=plant if here else plant_spec(plant), data=ident.data,
+                  design=design if here else portable(design), p=settings.p, q=settings.q, sv_tol=settings.sv_tol, seed=args.seed,
+                  runs=args.sweep_runs)
+    points = engine.map(sweep_point, list(args.sweep_orders), shared,
+                        [f"plant {design.scenario.plant_type}: ROM sweep point n_r = {n}" for n in args.sweep_orders],
+                        "ROM sweep", show_progress=not args.quiet)
+    rows = [{**pt, "cost_oracle": oracle_cost} for pt in points]
     print(f"\nROM-order sweep ({args.sweep_runs} runs each, relative singular-value cutoff {settings.sv_tol:g}):")
     table = {f"n_r={r['n_r']}": {"n_r_used": r["n_r_used"], "markov_rel_error": r["markov_rel_error"],
                                  "cost_mean": r["cost_mean"],
@@ -122,6 +127,19 @@ def rom_sweep(plant, design, oracle, args) -> list[dict]:
                                  "in_band": r["in_band"]} for r in rows}
     print(format_table(table, ["n_r_used", "markov_rel_error", "cost_mean", "cost/oracle", "in_band"]))
     return rows
+
+
+def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, seed: int, runs: int) -> dict:
+    """One sweep point: TV-ERA at order cap n_r from the shared Markov data, then `runs` runs."""
+    from .engine import worker_plant
+
+    if isinstance(plant, tuple):
+        plant = worker_plant(plant)
+    model, _ = tv_era(data, design.n_steps, p, q, n_r, sv_tol)
+    m = simulate(plant, with_rom(design, model), "rom_lqg", seed, runs, keep_estimates=0,
+                 keep_trajectories=0).metrics()
+    return {"n_r": n_r, "n_r_used": int(model.dims.max()), "markov_rel_error": markov_relative_error(model, data.Y),
+            "cost_mean": m["cost_mean"], "in_band": m["in_band"]}
 
 
 def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:

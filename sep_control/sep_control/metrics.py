@@ -104,6 +104,17 @@ class MetricsAccumulator:
     def add_input(self, k: int, u_k: np.ndarray, rows: slice = slice(None)) -> None:
         self.cost[rows] += self.obj.r_u * np.sum(u_k**2, axis=-1)
 
+    def state(self) -> dict[str, np.ndarray]:
+        """The per-run sums and the summed field (to merge a chunk's accumulator into another)."""
+        return {"cost": self.cost, "band_ok": self.band_ok, "sq_sum": self.sq_sum, "sum_traj": self.sum_traj}
+
+    def merge(self, part: Mapping[str, np.ndarray], rows: slice) -> None:
+        """Add a chunk's `state()` for the runs `rows` (chunks merged in order: the same sums)."""
+        self.cost[rows] += part["cost"]
+        self.band_ok[rows] &= part["band_ok"]
+        self.sq_sum[rows] += part["sq_sum"]
+        self.sum_traj += part["sum_traj"]
+
     @property
     def mean_traj(self) -> np.ndarray:
         """(N+1, n_field) mean field over the runs."""

@@ -52,17 +52,24 @@ CONTROLLER_NAMES = ("open_loop", "rom_lqg", "oracle_lqg")
 
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
              oracle: LQG | None = None, keep_estimates: int | None = None,
-             keep_trajectories: int | None = None, memory_budget: int | None = None) -> MonteCarloResult:
+             keep_trajectories: int | None = None, memory_budget: int | None = None,
+             engine=None, show_progress: bool = False) -> MonteCarloResult:
     """Run `controller` ('open_loop', 'rom_lqg' or 'oracle_lqg') on `plant` for the given runs.
 
     Metrics are accumulated step by step over all runs; the full field trajectories (and
     estimates) are kept for the first `keep_trajectories` (`keep_estimates`) runs, all by
-    default. Keep few on large grids: M N n_field numbers add up. The runs go in batches that
-    fit `memory_budget` bytes (`sep_control.budget`; default a quarter of the free memory):
-    each run's noise is its own (seed, run) stream, so the batching changes no result.
+    default. Keep few on large grids: M N n_field numbers add up. The runs go in chunks that
+    fit `memory_budget` bytes (`sep_control.budget`; default a quarter of the free memory), one
+    task each on `engine` (`sep_control.engine`; in this process by default; on a cluster also
+    at least two chunks per worker). Each run's noise is its own (seed, run) stream and every
+    per-run quantity is computed row by row, so the chunking changes no result; the chunks'
+    partial sums (the mean field) are added in chunk order.
     """
+    from .engine import InProcess, plant_spec
+
     if controller not in CONTROLLER_NAMES:
         raise ValueError(f"unknown controller {controller!r}: use {', '.join(CONTROLLER_NAMES)}")
+    engine = engine or InProcess()
     problem, info, nom = design.problem, design.info, design.nominal
     idx = list(range(runs) if isinstance(runs, int) else runs)
     M, N = len(idx), problem.n_steps
@@ -70,18 +77,64 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
         else design.lqg
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
     n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
+    in_process = type(engine) is InProcess
+    budget = memory_budget if (memory_budget is not None or in_process) else _worker_budget(engine)
+    batch = runs_per_batch(info.n_x, info.n_field, budget)
+    if not in_process:
+        batch = min(batch, max(1, -(-M // (2 * engine.workers))))
+    chunks = [(a, idx[a:a + batch], max(0, min(batch, n_traj - a)), max(0, min(batch, n_keep - a)))
+              for a in range(0, M, batch)]
+    shared = dict(plant=plant if in_process else plant_spec(plant), design=design if in_process else portable(design), lqg=lqg,
+                  feedback=controller != "open_loop", seed=seed)
+    labels = [f"plant {type(plant).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
+              for c in chunks]
+    parts = engine.map(_mc_chunk, chunks, shared, labels, f"Monte Carlo {controller}",
+                       show_progress=show_progress and len(chunks) > 1)
     acc = MetricsAccumulator(design.objective, nom.field, M)
-    out = _Outputs(F=np.empty((n_traj, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
-                   Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((n_keep, N + 1, info.n_field)))
-    batch = runs_per_batch(info.n_x, info.n_field, memory_budget)
+    F = np.empty((n_traj, N + 1, info.n_field))
+    F_hat = np.empty((n_keep, N + 1, info.n_field))
+    U = np.empty((M, N, info.n_u))
+    Y = np.empty((M, N + 1, info.n_y))
     covered = 0
-    for a in range(0, M, batch):
-        rows = slice(a, min(M, a + batch))
-        covered += _run_batch(plant, design, lqg, controller != "open_loop", seed, idx[rows], rows, acc, out)
+    for (a, ids, nf, ne), part in zip(chunks, parts):
+        rows = slice(a, a + len(ids))
+        acc.merge(part["acc"], rows)
+        U[rows], Y[rows] = part["U"], part["Y"]
+        F[a:a + nf], F_hat[a:a + ne] = part["F"], part["F_hat"]
+        covered += part["covered"]
     coverage = covered / (M * N * info.n_field)
     summary = acc.result({"coverage_2sigma": coverage})
-    return MonteCarloResult(controller, out.F, out.U, out.Y, out.F_hat, lqg.field_std.copy(), acc.mean_traj,
-                            coverage, summary)
+    return MonteCarloResult(controller, F, U, Y, F_hat, lqg.field_std.copy(), acc.mean_traj, coverage, summary)
+
+
+def _worker_budget(engine) -> int | None:
+    """A quarter of the smallest worker memory limit (None: the local default)."""
+    limit = engine.memory_limit()
+    return None if limit is None else max(limit // 4, 1 << 26)
+
+
+def portable(design: Design) -> Design:
+    """The design without its scenario's cached plant object (workers rebuild the plant)."""
+    from dataclasses import replace
+
+    sc = design.scenario
+    return replace(design, scenario=type(sc)(sc.plant_type, sc.plant_config, sc.problem, sc.design))
+
+
+def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, feedback: bool, seed: int) -> dict:
+    """Simulate one chunk (first row a, run ids, trajectories and estimates to keep)."""
+    from .engine import worker_plant
+
+    a, run_ids, keep_f, keep_e = chunk
+    if isinstance(plant, tuple):
+        plant = worker_plant(plant)
+    problem, info, nom = design.problem, design.info, design.nominal
+    M, N = len(run_ids), problem.n_steps
+    acc = MetricsAccumulator(design.objective, nom.field, M)
+    out = _Outputs(F=np.empty((keep_f, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
+                   Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((keep_e, N + 1, info.n_field)))
+    covered = _run_batch(plant, design, lqg, feedback, seed, list(run_ids), slice(0, M), acc, out)
+    return {"acc": acc.state(), "U": out.U, "Y": out.Y, "F": out.F, "F_hat": out.F_hat, "covered": covered}
 
 
 @dataclass

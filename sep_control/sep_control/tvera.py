@@ -100,26 +100,44 @@ def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
     return np.vstack([U, np.repeat(U[-1:], extra, axis=0)])
 
 
+def experiment_chunks(N: int, chunks: int) -> list[tuple[int, int]]:
+    """The start-step ranges [j0, j1) of the experiment chunks: `chunks` near-equal ranges of
+    0..N-1 (fewer when N is smaller). The chunk plan is part of the method's inputs: it fixes
+    which experiments share a pass and a field basis, so it never depends on the engine."""
+    if chunks < 1:
+        raise ValueError(f"experiment chunks must be >= 1, got {chunks}")
+    edges = np.linspace(0, N, min(chunks, max(N, 1)) + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
 def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
                         Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
-                        scheme: str = "central") -> MarkovData:
+                        scheme: str = "central", chunks: int = 1, engine=None) -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
     (y(+delta) - ybar) / delta, N n_ch experiments plus one unperturbed copy of the nominal per
     start step j, stepped in the same batch (N (n_ch + 1) runs).
-    The experiments run as a batch in lockstep over global steps; experiment (j, c, +-) is active
-    for steps j..j+lags-1 only, so a pass holds at most 2 n_ch lags runs ((n_ch + 1) lags
-    forward): a ring of `lags` slots, start j in slot j mod lags, stepped in place (no copy of
-    the batch per step).
-    When that batch exceeds `memory_budget` (`sep_control.budget`), the channels are split into
-    groups, one pass each. `Xbar_ext` is the nominal over N + lags steps (computed if None).
-    Field responses go straight into an incremental orthonormal basis (`field_tol` relative to
-    the largest response); only their coefficients are kept.
+    The start steps are split into `chunks` ranges (`experiment_chunks`); each chunk is one task
+    for the `engine` (`sep_control.engine`; in-process by default), started from its own nominal
+    snapshots Xbar_ext[j0:j1]. In a chunk the experiments run as a batch in lockstep over global
+    steps; experiment (j, c, +-) is active for steps j..j+lags-1 only, so a pass holds at most
+    2 n_ch lags runs ((n_ch + 1) lags forward): a ring of `lags` slots, start j in slot j mod
+    lags, stepped in place (no copy of the batch per step). When that batch exceeds
+    `memory_budget` (`sep_control.budget`), the channels are split into groups, one pass each.
+    `Xbar_ext` is the nominal over N + lags steps (computed if None).
+    Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
+    relative to the chunk's largest response); only their coefficients are kept. The chunks'
+    bases are then merged in chunk order into one basis Phi (each chunk basis phi_c enters as
+    orthonormal snapshots, phi_c = Phi T_c + O(field_tol), and its coefficients become C_c T_c),
+    so the result depends on the chunk plan, never on which worker finished first.
     """
+    from .engine import InProcess, plant_spec
+
     if scheme not in SCHEMES:
         raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
+    engine = engine or InProcess()
     N, n_u = U.shape
     U_ext = extend_nominal(U, lags)
     if Xbar_ext is None:
@@ -130,28 +148,70 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     slot_runs = runs_per_batch(int(plant.n_x), n_f, memory_budget) // lags     # runs per start step
     per_pass = max(1, (slot_runs - (scheme == "forward")) // SCHEMES[scheme])     # channels per pass
     groups = [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
+    plan = experiment_chunks(N, chunks)
+    in_process = isinstance(engine, InProcess) and type(engine) is InProcess
+    shared = dict(plant=plant if in_process else plant_spec(plant), U_ext=U_ext, lags=lags,
+                  field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
+                  field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
+                  n_chunks=len(plan))
+    tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
+    labels = [f"plant {type(plant).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
+              f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
+    parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
+                       show_progress=show_progress and not in_process)
     Y = np.zeros((N, lags, n_y, n_ch))
     basis = IncrementalBasis(n_f, field_tol)
+    coefs: list[tuple[int, int, np.ndarray]] = []
+    for (j0, j1), (Yp, phi, Yc_local) in zip(plan, parts):
+        Y[j0:j1] = Yp
+        T = basis.add(phi.T) if phi.shape[1] else np.zeros((0, basis.rank))   # (r_c, r now)
+        coefs.append((j0, j1, np.einsum("jlsc,sr->jlrc", Yc_local, T)))
+    r = basis.rank
+    Yc = np.zeros((N, field_lags, r, n_ch))
+    for j0, j1, C in coefs:
+        Yc[j0:j1, :, :C.shape[2]] = C
+    return MarkovData(Y, Yc, basis.phi.copy(), delta, SCHEMES[scheme] * N * n_ch, n_u)
+
+
+def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
+                   groups: list[np.ndarray], n_u: int, n_w: int, scheme: str, field_tol: float,
+                   bar_desc: str | None = None, n_chunks: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One experiment chunk (start steps j0..j1-1, every channel group): returns its output
+    Markov parameters Y (j1-j0, lags, n_y, n_ch), its field basis phi (n_f, r_c) and the field
+    coefficients Yc (j1-j0, field_lags, r_c, n_ch) on it. `plant` is the plant or its
+    `engine.plant_spec` (rebuilt once per worker process)."""
+    from .engine import worker_plant
+
+    i, j0, j1, Xbar = task
+    if isinstance(plant, tuple):
+        plant = worker_plant(plant)
+    n_y, n_f = int(plant.n_y), int(plant.n_field)
+    n_ch = n_u + n_w
+    n = j1 - j0
+    Y = np.zeros((n, lags, n_y, n_ch))
+    basis = IncrementalBasis(n_f, field_tol)
     blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
-    bar = progress(None, "TV-ERA experiments", show_progress, total=len(groups) * (N + lags - 1))
+    desc = None if bar_desc is None else (bar_desc if n_chunks == 1 else f"{bar_desc} {i + 1}/{n_chunks}")
+    bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
     for chs in groups:
-        _impulse_pass(plant, U_ext, Xbar_ext, N, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
+        _impulse_pass(plant, U_ext[j0:], Xbar, n, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
                       scheme)
     if hasattr(bar, "close"):
         bar.close()
     r = basis.rank
-    Yc = np.zeros((N, field_lags, r, n_ch))
+    Yc = np.zeros((n, field_lags, r, n_ch))
     for j, lag, chs, C in blocks:
         Cr = np.zeros((C.shape[0], r))
         Cr[:, :C.shape[1]] = C
         Yc[j[:, None], lag[:, None] - 1, :, chs[None, :]] = Cr.reshape(len(j), len(chs), r)
-    return MarkovData(Y, Yc, basis.phi.copy(), delta, SCHEMES[scheme] * N * n_ch, n_u)
+    return Y, basis.phi.copy(), Yc
 
 
 def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
                   delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
                   blocks: list, bar, scheme: str = "central") -> None:
-    """One lockstep pass over the channels `chs` (see `impulse_experiments`)."""
+    """One lockstep pass over the channels `chs` (see `impulse_experiments`); steps and start
+    steps are counted from the chunk's first start step (U_ext and Xbar_ext begin there)."""
     n_y, n_f, n_x = int(plant.n_y), int(plant.n_field), int(plant.n_x)
     m = len(chs)
     sides = SCHEMES[scheme]
@@ -177,7 +237,12 @@ def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int,
             Uk[s * rows:(s + 1) * rows] += pert[:, :n_u]
             if n_w:
                 Wk[s * rows:(s + 1) * rows] += pert[:, n_u:]
-        X[:used] = plant.step(X[:used], Uk, Wk)
+        if k < N:
+            X[:used] = plant.step(X[:used], Uk, Wk)
+        else:   # ramp-down: step only the slots still in an experiment (one or two ring ranges)
+            for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < lags))):
+                r0, r1 = a * rows, b * rows
+                X[r0:r1] = plant.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
         # record lag k+1-j for every active experiment j (slots of finished ones are ignored)
         lag = k + 1 - j_slot
         active = (j_slot >= 0) & (lag >= 1) & (lag <= lags)
@@ -195,6 +260,14 @@ def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int,
             blocks.append((j[keep], lag[keep], chs, basis.add(D)))
 
 
+def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:
+    """Sorted indices -> the [a, b) ranges of consecutive ones."""
+    if idx.size == 0:
+        return []
+    cut = np.flatnonzero(np.diff(idx) > 1) + 1
+    return [(int(g[0]), int(g[-1]) + 1) for g in np.split(idx, cut)]
+
+
 def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
     """(experiments, m, n) impulse responses from the runs V (experiments, rows, n) of one slot:
     central (V[:m] - V[m:2m]) / 2 delta, forward (V[:m] - V[m]) / delta."""
@@ -205,12 +278,14 @@ def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
-             memory_budget: int | None = None, scheme: str = "central") -> Identification:
+             memory_budget: int | None = None, scheme: str = "central", chunks: int = 1,
+             engine=None) -> Identification:
     """TV-ERA around the nominal input U.
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
     k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input;
-    `scheme` "central" or "forward" (see `impulse_experiments`).
+    `scheme` "central" or "forward"; the experiments run in `chunks` chunks on `engine` (see
+    `impulse_experiments`).
     """
     N = U.shape[0]
     lags = p + q
@@ -218,7 +293,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     ftol = FIELD_TOL if field_tol is None else field_tol
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
-                               memory_budget=memory_budget, scheme=scheme)
+                               memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float))
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from sep_plant.protocol import Plant, fields, nominal_states, outputs
 
-from .cli_common import Formatter, add_threads, blas_threads, design_or_exit, fail, plant_or_exit
+from .cli_common import Formatter, add_dask, add_threads, blas_threads, design_or_exit, engine_or_exit, fail, plant_or_exit
 from .tvera import impulse_experiments
 
 DESCRIPTION = """\
@@ -35,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="PATH")
     add_threads(p)
+    add_dask(p)
     return p
 
 
@@ -44,8 +45,8 @@ def main(argv: list[str] | None = None) -> int:
         fail("--lags must be >= 1 and --amplitude > 0")
     design = design_or_exit(args.design)
     plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
-    with blas_threads(args.threads):
-        out = validate(plant, design, args.lags, args.amplitude, args.seed)
+    with blas_threads(args.threads), engine_or_exit(args.dask, log=print) as engine:
+        out = validate(plant, design, args.lags, args.amplitude, args.seed, engine)
     for key, val in out.items():
         print(f"{key:28s} {val:.3e}" if isinstance(val, float) else f"{key:28s} {val}")
     if args.json:
@@ -54,7 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def validate(plant: Plant, design, lags: int = 60, amplitude: float = 0.01, seed: int = 0) -> dict:
+def validate(plant: Plant, design, lags: int = 60, amplitude: float = 0.01, seed: int = 0, engine=None) -> dict:
+    """Markov and prediction errors of the design's ROM. The long impulse experiments run in
+    chunks on `engine` (their output Markov parameters do not depend on the chunks)."""
     U = design.nominal.u
     N = design.n_steps
     rom = design.rom
@@ -62,7 +65,8 @@ def validate(plant: Plant, design, lags: int = 60, amplitude: float = 0.01, seed
     delta = float(design.meta.get("validation", {}).get("impulse_amplitude", 0.01 * rms_u))
 
     # Markov parameters (input channels) vs long impulse experiments
-    data = impulse_experiments(plant, U, lags, 1, delta)
+    chunks = 4 if engine is None else max(4, 2 * engine.workers)
+    data = impulse_experiments(plant, U, lags, 1, delta, chunks=chunks, engine=engine)
     Yr = rom.markov_all(lags)
     Ye = data.Y_inputs
     valid = (np.arange(N)[:, None] + np.arange(1, lags + 1)[None, :]) <= N

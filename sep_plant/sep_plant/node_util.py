@@ -184,15 +184,54 @@ def steady() -> float:
     return time.perf_counter()
 
 
+#: seconds rclpy.init, or the teardown after the episode (destroying the node's DDS entities,
+#: rclpy.shutdown), may take before the watchdog gives up (`_Watchdog`)
+STARTUP_WATCHDOG_S = 60.0
+TEARDOWN_WATCHDOG_S = 15.0
+
+
+class _Watchdog:
+    """Bounds a phase that only the middleware can block (DDS participant creation or
+    destruction): if `disarm()` is not called within `seconds`, every thread's Python stack goes
+    to stderr (the node's log) with `what`, and the process exits with `code` at once.  A node
+    whose episode is over and whose outputs are written must exit, not hang in a DDS teardown."""
+
+    def __init__(self, seconds: float, what: str, code: Callable[[], int]):
+        import threading
+
+        self._what, self._code = what, code
+        self._timer = threading.Timer(seconds, self._fire)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def _fire(self) -> None:
+        import faulthandler
+        import os
+
+        print(f'watchdog: {self._what}; thread stacks follow, exiting', file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        sys.stderr.flush()
+        os._exit(self._code())
+
+    def disarm(self) -> None:
+        self._timer.cancel()
+
+
 def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str) -> int:
     """rclpy.init, build the node with `make`, call its ``run()`` (returns an exit code), and
     always destroy it and shut rclpy down.  Start errors and episode errors are logged as one
-    clear line; Ctrl-C / SIGTERM exit EXIT_INTERRUPTED after the node's ``interrupted()``."""
+    clear line; Ctrl-C / SIGTERM exit EXIT_INTERRUPTED after the node's ``interrupted()``.
+    rclpy.init and the final teardown are bounded by watchdogs (STARTUP_WATCHDOG_S,
+    TEARDOWN_WATCHDOG_S): a middleware that blocks there ends the process with its stacks in
+    the log, EXIT_TIMEOUT at start-up, the episode's own exit code at teardown."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.logging import get_logger
 
+    start = _Watchdog(STARTUP_WATCHDOG_S, f'{logger_name}: the ROS middleware did not start within '
+                      f'{STARTUP_WATCHDOG_S:g} s', lambda: EXIT_TIMEOUT)
     rclpy.init(args=args)
+    start.disarm()
     node = None
     rc = EXIT_FAILURE
     try:
@@ -213,6 +252,8 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
             get_logger(logger_name).warning('interrupted')
         rc = EXIT_INTERRUPTED
     finally:
+        stop = _Watchdog(TEARDOWN_WATCHDOG_S, f'{logger_name}: the ROS middleware did not shut down within '
+                         f'{TEARDOWN_WATCHDOG_S:g} s (exit code {rc} kept)', lambda: rc)
         if node is not None:
             try:
                 node.destroy_node()
@@ -220,6 +261,7 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
                 pass
         if rclpy.ok():
             rclpy.shutdown()
+        stop.disarm()
     return rc
 
 

@@ -1,0 +1,139 @@
+"""Experiment batches on a Dask LocalCluster: the same answers as in-process, and the faults.
+
+One LocalCluster of two worker processes serves the module (it takes a few seconds to start);
+the worker-loss test kills one of its workers, so it runs last.
+"""
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from core_helpers import flat
+from dask_plants import KillsWorkerOnce, RaisesOnWorker
+from sep_control import design_cli, tvera
+from sep_control.design import DesignSettings, run_design
+from sep_control.engine import EngineError, InProcess, TaskError, open_engine, parse_dask
+from sep_control.montecarlo import simulate
+
+SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
+FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    eng = open_engine("local:2")
+    assert eng.workers == 2
+    yield eng
+    eng.close()
+
+
+@pytest.fixture(scope="module")
+def small_design():
+    sc = flat(**SMALL)
+    return sc, run_design(sc.plant, sc.problem, DesignSettings.for_scenario(sc, **FAST), show_progress=False,
+                          log=lambda m: None)
+
+
+def close(a, b, rel=1e-12):
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    assert a.shape == b.shape
+    scale = max(float(np.abs(b).max(initial=0.0)), 1e-300)
+    assert float(np.abs(a - b).max(initial=0.0)) <= rel * scale
+
+
+def test_design_on_a_cluster_equals_in_process(cluster, small_design):
+    sc, here = small_design
+    there = run_design(sc.plant, sc.problem, DesignSettings.for_scenario(sc, **FAST), show_progress=False,
+                       log=lambda m: None, engine=cluster)
+    close(there.nominal.u, here.nominal.u)
+    close(there.lqg.K, here.lqg.K)
+    close(there.lqg.field_std, here.lqg.field_std)
+    close(there.rom.A, here.rom.A)
+    close(there.rom.C, here.rom.C)
+    for k in (1, 20, 40):
+        close(there.rom.G.matrix(k), here.rom.G.matrix(k))
+    close(there.hankel_sv, here.hankel_sv)
+
+
+def test_design_cli_dask_local2_writes_the_same_arrays(tmp_path, capsys):
+    """The acceptance command: `design --dask local:2 --out a.npz` == `design --out b.npz`."""
+    scen = tmp_path / "small.yaml"
+    scen.write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))
+    fast = ["--p", "5", "--q", "5", "--n-r", "10", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
+    assert design_cli.main(["--scenario", str(scen), "--out", str(tmp_path / "a.npz"), "--dask", "local:2"] + fast) == 0
+    assert "dashboard" in capsys.readouterr().err
+    assert design_cli.main(["--scenario", str(scen), "--out", str(tmp_path / "b.npz")] + fast) == 0
+    a, b = np.load(tmp_path / "a.npz", allow_pickle=False), np.load(tmp_path / "b.npz", allow_pickle=False)
+    assert sorted(a.files) == sorted(b.files)
+    floats = [k for k in a.files if a[k].dtype.kind == "f"]
+    assert len(floats) >= 10
+    for k in floats:
+        close(a[k], b[k])
+
+
+def test_monte_carlo_on_a_cluster_equals_in_process(cluster, small_design):
+    sc, d = small_design
+    for controller in ("open_loop", "rom_lqg"):
+        here = simulate(sc.plant, d, controller, 3, 50, keep_estimates=2, keep_trajectories=3)
+        there = simulate(sc.plant, d, controller, 3, 50, keep_estimates=2, keep_trajectories=3, engine=cluster)
+        # per run the same numbers up to the round-off of batch-size-dependent BLAS blocking
+        close(there.U, here.U)
+        close(there.F, here.F)
+        close(there.F_mean, here.F_mean)
+        for key, val in here.summary.items():
+            assert there.summary[key] == pytest.approx(val, rel=1e-12, abs=1e-12), key
+
+
+def test_plant_error_on_a_worker_names_the_plant_and_the_experiments(cluster):
+    plant = RaisesOnWorker(n_x=8)
+    U = np.full((30, 2), 0.2)
+    t0 = time.perf_counter()
+    with pytest.raises(TaskError) as exc:
+        tvera.impulse_experiments(plant, U, 6, 3, 1e-3, chunks=4, engine=cluster)
+    msg = str(exc.value)
+    assert "RaisesOnWorker" in msg and "TV-ERA impulse experiments, chunk" in msg and "start steps" in msg
+    assert "solver diverged" in msg
+    assert time.perf_counter() - t0 < 120      # failed, not hung
+    # the cluster is still usable afterwards
+    assert cluster.map(abs, [-1, -2]) == [1, 2]
+
+
+def test_unreachable_scheduler_exits_2(capsys, tmp_path):
+    with socket.socket() as s:          # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.perf_counter()
+    with pytest.raises(SystemExit) as exc:
+        design_cli.main(["--out", str(tmp_path / "x.npz"), "--dask", f"tcp://127.0.0.1:{port}", "--quiet"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in err and "dask scheduler" in err
+    assert time.perf_counter() - t0 < 60
+    assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("bad", ["banana", "local:0", "tcp://nohost", "local:two"])
+def test_bad_dask_values_are_refused(bad, capsys, tmp_path):
+    with pytest.raises(EngineError):
+        parse_dask(bad)
+    with pytest.raises(SystemExit) as exc:
+        design_cli.main(["--out", str(tmp_path / "x.npz"), "--dask", bad, "--quiet"])
+    assert exc.value.code == 2 and "--dask must be" in capsys.readouterr().err or bad == "local:0"
+
+
+def test_in_process_engine_names_the_failing_task():
+    with pytest.raises(TaskError, match="chunk b: ZeroDivisionError"):
+        InProcess().map(lambda x: 1 / x, [1, 0], labels=["chunk a", "chunk b"])
+
+
+def test_worker_killed_mid_batch_is_rerun_with_the_same_result(cluster, tmp_path):
+    """Last in the module: it costs the cluster a worker (the nanny starts a new one)."""
+    marker = tmp_path / "killed"
+    plant = KillsWorkerOnce(n_x=8, marker=str(marker))
+    U = np.full((30, 2), 0.2)
+    here = tvera.impulse_experiments(plant, U, 6, 3, 1e-3, chunks=6)
+    there = tvera.impulse_experiments(plant, U, 6, 3, 1e-3, chunks=6, engine=cluster)
+    assert marker.is_file(), "no worker was killed: the test tested nothing"
+    close(there.Y, here.Y)
+    close(there.Yf, here.Yf)
