@@ -48,6 +48,8 @@ def _env() -> dict:
 
 def pct(a) -> dict:
     a = np.asarray(a, dtype=float)
+    if a.size == 0:
+        return {'p50': None, 'p99': None, 'mean': None, 'n': 0}
     return {'p50': float(np.percentile(a, 50)), 'p99': float(np.percentile(a, 99)),
             'mean': float(a.mean()), 'n': int(a.size)}
 
@@ -192,6 +194,42 @@ def compute_per_step(design, repeats: int = 20) -> dict:
     return {'core': pct(core), 'node': pct(node)}
 
 
+def compute_mpc(design, plant, runs: int = 10, horizon: int = 20) -> dict:
+    """Per-step time of the feedback law alone on closed-loop estimates (plant + KF, one run at a
+    time, the online path): the clipped LQR law vs the ROM-MPC's `command` (its steps without an
+    active limit and those that solve a QP separately)."""
+    from sep_control.lqr import command
+    from sep_control.mpc import RomMPC
+    from sep_estimator.estimator_core import EstimatorCore
+    from sep_plant.noise import noise_sequences
+
+    info, nom, K, problem = design.info, design.nominal, design.lqg.K, design.problem
+    N = design.n_steps
+    lo, hi = problem.limits(info.n_u)
+    mpc = RomMPC(design.lqg, problem, nom.u, horizon=horizon)
+    t_lqr, t_free, t_qp = [], [], []
+    for run in range(runs):
+        w, v = noise_sequences(problem, info, 1, [run])
+        est = EstimatorCore(design.lqg, nom.u, nom.y, nom.field)
+        x = plant.initial_state(1)
+        warm = None
+        for k in range(N):
+            a, _ = est.measurement(k, plant.observe(x)[0] + v[0, k])
+            t0 = time.perf_counter()
+            command(nom.u[k], K[k], a, lo, hi)
+            t_lqr.append(time.perf_counter() - t0)
+            qp = mpc.stats.qp + mpc.stats.fallbacks
+            t0 = time.perf_counter()
+            u, z = mpc.command(k, a, warm)
+            (t_qp if mpc.stats.qp + mpc.stats.fallbacks > qp else t_free).append(time.perf_counter() - t0)
+            warm = mpc.shift(z)
+            est.applied(k, u)
+            x = plant.step(x, u[None], w[:, k])
+    return {'lqr': pct(t_lqr), 'mpc_free': pct(t_free), 'mpc_qp': pct(t_qp), 'mpc_all': pct(t_free + t_qp),
+            'qp_share': len(t_qp) / max(1, len(t_free) + len(t_qp)), 'fallbacks': mpc.stats.fallbacks,
+            'horizon': mpc.H, 'n_r': design.n_r, 'limits': [float(lo.min()), float(hi.max())]}
+
+
 def compute_threads(design) -> dict:
     from threadpoolctl import threadpool_info, threadpool_limits
     default = compute_per_step(design)
@@ -214,6 +252,8 @@ def main(argv=None) -> int:
     ap.add_argument('--pings', type=int, default=500, help='ping-pong round trips')
     ap.add_argument('--no-realtime', action='store_true', help='skip the 6.25 s real-time episode')
     ap.add_argument('--json', type=Path, help='write the results as JSON')
+    ap.add_argument('--mpc-limits', type=float, nargs=2, default=[0.0, 0.6], metavar=('U_MIN', 'U_MAX'),
+                    help='input limits of the design the MPC compute row uses (designed here, ~8 s)')
     ap.add_argument('--pong', choices=('events', 'single'), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.pong:
@@ -247,6 +287,12 @@ def main(argv=None) -> int:
                                                             tmp, 'events')
     res['ping_pong_events_after'] = ping_pong(args.pings, env, 'events')
     res['compute'] = compute_threads(design)
+    from sep_control.design import run_design
+    lim = scenario.replace(u_min=args.mpc_limits[0], u_max=args.mpc_limits[1])
+    limited = run_design(lim.plant, lim.problem, show_progress=False, log=lambda m: None)
+    from threadpoolctl import threadpool_limits
+    with threadpool_limits(limits=1):
+        res['compute_mpc'] = compute_mpc(limited, lim.plant)
 
     print('\nmeasurement -> command round trip (wall clock, this machine); ratios against the bare')
     print('ping-pong with the same executor and the same pacing')
@@ -276,6 +322,15 @@ def main(argv=None) -> int:
         r = cp[key[0]][key[1]]
         print(f"{label:52s} {fmt(r['mean']):>11s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}")
     print(f"  thread pools: {', '.join(cp['pools'])}")
+    mp = res['compute_mpc']
+    print(f"\nfeedback law per step on closed-loop estimates (design with u in [{mp['limits'][0]:g}, "
+          f"{mp['limits'][1]:g}], n_r = {mp['n_r']}, MPC horizon {mp['horizon']}, BLAS 1 thread; "
+          f"{100 * mp['qp_share']:.0f} % of the MPC's steps solve a QP, {mp['fallbacks']} fallbacks)")
+    print(f"{'':52s} {'mean':>11s} {'p50':>11s} {'p99':>11s}")
+    for label, key in (('LQR law, clipped', 'lqr'), ('MPC, every step', 'mpc_all'),
+                       ('MPC, steps with no active limit (no QP)', 'mpc_free'), ('MPC, steps solving the QP (OSQP)', 'mpc_qp')):
+        r = mp[key]
+        print(f"{label:52s} {fmt(r['mean']):>11s} {fmt(r['p50']):>11s} {fmt(r['p99']):>11s}")
     ratio = res['loop_lockstep_events']['p50'] / res['ping_pong_events']['p50']
     print(f"\ntarget round trip <= 1.5x ping-pong: lockstep p50 ratio {ratio:.2f} -> "
           f"{'met' if ratio <= 1.5 else 'NOT met'}; target compute < 50 us: "

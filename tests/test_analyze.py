@@ -260,3 +260,20 @@ def test_render_image_frame_is_the_published_image(grid, tmp_path):
     assert render_image_frame(bags[1], path=tmp_path / "last.png").is_file()   # a bag path: the window's end
     with pytest.raises(BagError, match="no field_image image at step 999"):
         render_image_frame(rep.episode, T.FIELD_IMAGE, 999, tmp_path / "x.png")
+
+
+def test_the_controller_is_named_from_the_lqr_diagnostics(setup, tmp_path):
+    """Bags name their controller (the LQR node reports it on /diagnostics): rom_mpc with its QP
+    and fallback counts; a bag without it (sep < 0.3) leaves it None."""
+    from bag_synth import diagnostics, episode_messages, write_messages
+
+    d, eps, bags, dpath = setup
+    assert analyze(bags[0], dpath).metrics["controller"] is None
+    msgs = episode_messages(eps[0])
+    t_last = max(t for _, t, _ in msgs)
+    N = eps[0].scenario.problem.n_steps
+    ns = N * T.dt_ns(eps[0].info.dt)
+    msgs.append((T.DIAGNOSTICS, t_last + 1, bytes(diagnostics(ns, {"controller": "mpc", "mpc_qp_steps": 12,
+                                                                    "mpc_fallbacks": 1}, N, name="/slab/lqr"))))
+    m = analyze(write_messages(tmp_path / "mpc_bag", msgs), dpath).metrics
+    assert m["controller"] == "rom_mpc" and m["mpc_qp_steps"] == 12 and m["mpc_fallbacks"] == 1

@@ -274,7 +274,9 @@ def test_corrupt_or_missing_design_refused(launcher, other_files, tmp_path, case
     ('plant', {'command_timeout_s': 'soon'}, 'bad parameter command_timeout_s'),
     ('plant', {'scenario_file': '/nonexistent/scenario.yaml'}, 'scenario file not found'),
     ('lqr', {'estimate_timeout_s': -1.0}, 'bad parameter estimate_timeout_s'),
-], ids=['mode', 'rtf', 'seed', 'type', 'scenario_file', 'estimate_timeout'])
+    ('lqg', {'controller': 'pid'}, "parameter controller must be 'lqr' or 'mpc', got 'pid'"),
+    ('lqr', {'controller': 'mpc', 'mpc_horizon': 0}, 'bad parameter mpc_horizon'),
+], ids=['mode', 'rtf', 'seed', 'type', 'scenario_file', 'estimate_timeout', 'controller', 'mpc_horizon'])
 def test_bad_parameter_refused(launcher, small_case, exe, params, expect):
     if exe != 'plant':
         params = {'design_file': small_case.design_file, **params}

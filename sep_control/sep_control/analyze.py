@@ -27,6 +27,9 @@ Definitions (everything computed from the bag alone, plus the design for nominal
   (real-time factor = sim / wall).
 * deadline_misses, rejected_messages: the last /diagnostics values, summed over the status
   entries (nodes) that report them.
+* controller: rom_lqg or rom_mpc, from the LQR node's /diagnostics (None in bags of sep < 0.3,
+  whose LQR did not report it: those ran the LQR); for rom_mpc also mpc_qp_steps and
+  mpc_fallbacks (QPs solved, steps that fell back to the clipped LQR).
 
 Pure: no rclpy, no matplotlib (figures are in `sep_control.report`).
 """
@@ -249,6 +252,11 @@ def episode_metrics(ep: Episode, obj: Objective | None, F_nom: np.ndarray | None
     if tt is not None and tt.recv_ns.size > 1:
         out["episode_wall_s"] = float((tt.recv_ns[-1] - tt.recv_ns[0]) * 1e-9)
         out["episode_sim_s"] = float((tt.stamp_ns[-1] - tt.stamp_ns[0]) * 1e-9)
+    ctl = [d.get("controller") for d in ep.diagnostics.values() if d.get("controller")]
+    out["controller"] = {"mpc": "rom_mpc", "lqr": "rom_lqg"}.get(ctl[0], ctl[0]) if ctl else None
+    if out["controller"] == "rom_mpc":
+        for key in ("mpc_qp_steps", "mpc_fallbacks"):
+            out[key] = ep.diag_totals.get(key)
     out["deadline_misses"] = ep.diag_totals.get("deadline_misses")
     out["rejected_messages"] = ep.diag_totals.get("rejected_messages")
     meas = ep.step_recv_ns.get(T.MEASUREMENTS)

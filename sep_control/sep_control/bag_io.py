@@ -582,8 +582,8 @@ def field_arrays(clouds: dict[int, tuple[str, np.ndarray]], rows: int, n_field: 
 
 
 def read_diagnostics(msgs: _Messages, notes: list[str]) -> tuple[dict[str, dict[str, str]], dict[str, int]]:
-    """Last key/values per diagnostic status name, and deadline_misses / rejected_messages
-    summed over the statuses (nodes) that report them."""
+    """Last key/values per diagnostic status name, and deadline_misses / rejected_messages (and
+    the MPC's mpc_qp_steps / mpc_fallbacks) summed over the statuses (nodes) that report them."""
     diags: dict[str, dict[str, str]] = {}
     for i in msgs.of(T.DIAGNOSTICS).tolist():
         msg = msgs.decode(i, T.DIAGNOSTIC_ARRAY)
@@ -594,7 +594,7 @@ def read_diagnostics(msgs: _Messages, notes: list[str]) -> tuple[dict[str, dict[
             for kv in st.values:
                 d[kv.key] = kv.value
     totals: dict[str, int] = {}
-    for key in ("deadline_misses", "rejected_messages"):
+    for key in ("deadline_misses", "rejected_messages", "mpc_qp_steps", "mpc_fallbacks"):
         vals = []
         for d in diags.values():
             if key in d:

@@ -44,3 +44,10 @@ def parse_budget(text: str) -> int:
     if not value >= MIN_BUDGET:
         raise ValueError(f"memory budget must be at least {MIN_BUDGET >> 20} MB, got {text!r}")
     return int(value)
+
+
+def worker_budget(engine) -> int | None:
+    """A quarter of the smallest worker memory limit of a cluster engine (`sep_control.engine`),
+    at least 64 MB; None when the engine reports no limit (in-process, unlimited workers)."""
+    limit = engine.memory_limit()
+    return None if limit is None else max(limit // 4, 1 << 26)

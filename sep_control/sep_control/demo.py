@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--scenario', metavar='FILE', help='scenario YAML (default: the reference scenario)')
     p.add_argument('--design', metavar='FILE', help='design file to use/write (default DIR/design.npz)')
     p.add_argument('--redesign', action='store_true', help='run the design even if a matching design file exists')
+    p.add_argument('--controller', choices=('lqr', 'mpc'), default='lqr',
+                   help='feedback law: lqr (TV-LQR, commands clipped to the limits) or mpc (box-constrained '
+                        'MPC on the ROM)')
     p.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep',
                    help='plant mode (default lockstep: as fast as the controller answers)')
     p.add_argument('--rtf', type=float, default=10.0, help='realtime: real-time factor (default 10)')
@@ -196,13 +199,14 @@ def main(argv: list[str] | None = None) -> int:
                 shutil.rmtree(bag)
             kids.start('record', [exes['record'], '--out', str(bag)])
         ctl = ['--ros-args', '-p', f'design_file:={design_file}']
+        lqr_args = ['-p', f'controller:={args.controller}']
         if args.three:
             kids.start('estimator', [exes['estimator'], *ctl, '-p', f'summary_file:={files["estimator"]}'])
             timeout = 0.4 * design.info.dt / args.rtf if args.mode == 'realtime' else 0.5
-            kids.start('lqr', [exes['lqr'], *ctl, '-p', f'summary_file:={files["lqr"]}',
+            kids.start('lqr', [exes['lqr'], *ctl, *lqr_args, '-p', f'summary_file:={files["lqr"]}',
                                '-p', f'estimate_timeout_s:={timeout}'])
         else:
-            kids.start('lqg', [exes['lqg'], *ctl, '-p', f'summary_file:={files["lqg"]}'])
+            kids.start('lqg', [exes['lqg'], *ctl, *lqr_args, '-p', f'summary_file:={files["lqg"]}'])
         plant_args = [exes['plant'], '--ros-args', '-p', f'mode:={args.mode}',
                       '-p', f'real_time_factor:={args.rtf}', '-p', f'seed:={args.seed}',
                       '-p', f'run:={args.run}', '-p', f'summary_file:={files["plant"]}',
@@ -240,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
             report, bag_metrics = run_analysis(kids, exes['analyze'], bag, design_file, out)
             if bag_metrics.get('coverage_2sigma') is not None:
                 metrics_['coverage_2sigma'] = bag_metrics['coverage_2sigma']
-        print_metrics(metrics_, design)
+        print_metrics(metrics_, design, 'rom_mpc' if args.controller == 'mpc' else 'rom_lqg')
         if args.json:
             Path(args.json).parent.mkdir(parents=True, exist_ok=True)
             Path(args.json).write_text(json.dumps(metrics_, indent=2) + '\n')
@@ -276,6 +280,8 @@ def episode_metrics(design, traj: Path, files: dict, three: bool) -> dict:
                 'rejected_messages': plant['rejected_messages'] + est['rejected_messages'] + lqr['rejected_messages'],
                 'latency_p50_s': plant['latency_p50_s'], 'latency_p99_s': plant['latency_p99_s'],
                 'lqr_fallbacks': lqr['fallbacks'], 'wall_s': plant['wall_s'], 'nis_mean': est.get('nis_mean'),
+                'controller': lqr.get('controller', 'lqr'), 'mpc_fallbacks': lqr.get('mpc_fallbacks'),
+                'mpc_qp_steps': lqr.get('mpc_qp_steps'), 'mpc_qp_p99_s': lqr.get('mpc_qp_p99_s'),
                 'estimator_compute_p50_s': est.get('compute_p50_s'),
                 'rejected_by_node': {'plant': plant.get('rejected_by_reason', {}),
                                      'estimator': est.get('rejected_by_reason', {}),
@@ -304,7 +310,7 @@ def run_analysis(kids: Children, analyze: str, bag: Path, design_file: Path, out
     return report, data if isinstance(data, dict) else {}
 
 
-def print_metrics(m: dict, design) -> None:
+def print_metrics(m: dict, design, name: str = 'rom_lqg') -> None:
     from sep_control import metrics as M
     keys = [k for k in M.JSON_KEYS if k in m]
     info, obj = design.info, design.objective
@@ -313,11 +319,13 @@ def print_metrics(m: dict, design) -> None:
     target = f'{obj.target[0]:g}' if (obj.target == obj.target[0]).all() else 'the target pattern'
     unit = f' {info.field_unit}' if info.field_unit else ''
     print()
-    print(M.format_table({'rom_lqg (topics)': m}, keys))
+    print(M.format_table({f'{name} (topics)': m}, keys))
     print(f"\nin band (whole field within {target} +- {obj.band:g}{unit} over t = {k0 * info.dt:g}..{k1 * info.dt:g} s): "
           f"{'yes' if m['in_band'] >= 1 else 'NO'}; episode {m['wall_s']:.2f} s wall for {horizon:g} s simulated "
           f"({horizon / m['wall_s']:.1f}x real time; {m['total_wall_s']:.1f} s with start-up); "
-          f"LQR nominal fallbacks {m['lqr_fallbacks']}")
+          f"LQR nominal fallbacks {m['lqr_fallbacks']}"
+          + (f"; MPC: {m['mpc_qp_steps']} QPs (p99 {(m['mpc_qp_p99_s'] or 0) * 1e3:.2f} ms), "
+             f"{m['mpc_fallbacks']} fallbacks to the clipped LQR" if m.get('controller') == 'mpc' else ''))
 
 
 if __name__ == '__main__':

@@ -32,7 +32,7 @@ from sep_plant.scenario import Scenario
 
 from . import __version__
 from .budget import runs_per_batch
-from .lqr import design_lqg
+from .lqr import design_lqg, input_spread
 from .metrics import nominal_cost
 from .optimize import objective_of, optimize, run_belief
 from .tvera import SCHEMES, Identification, extend_nominal, identify, markov_relative_error
@@ -67,6 +67,8 @@ class DesignSettings:
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
     chunks: int = 4                 # impulse experiments in this many chunks of start steps (tasks)
+    limit_margin: float = 0.0       # keep this many closed-loop input stds inside u_min/u_max (0: none)
+    margin_iterations: int = 2      # nominal + LQG redesigns with the tightened limits
 
     def check(self) -> None:
         if self.method not in ("gn", "gd"):
@@ -80,6 +82,10 @@ class DesignSettings:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.ensemble % 2 or self.ensemble < 4:
             raise ValueError(f"ensemble must be even and >= 4 (antithetic pairs), got {self.ensemble}")
+        if not (np.isfinite(self.limit_margin) and self.limit_margin >= 0):
+            raise ValueError(f"limit_margin must be a finite number >= 0, got {self.limit_margin}")
+        if self.margin_iterations < 0:
+            raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
         for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -139,7 +145,12 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     """Run the whole offline design for `plant` and `problem` and return the `Design`.
 
     `engine` (`sep_control.engine`; in-process by default) runs the impulse experiments; the
-    result does not depend on it (the chunk plan is `settings.chunks`)."""
+    result does not depend on it (the chunk plan is `settings.chunks`).
+    With input limits and `settings.limit_margin` = c > 0 the nominal is re-optimized
+    `margin_iterations` times inside the limits tightened by c times the designed LQG's
+    closed-loop input std (`lqr.input_spread`): lo + c sigma_u,k <= ubar_k <= hi - c sigma_u,k,
+    so that the feedback has room to act on both sides (each time the ROM and the gains are
+    redesigned around the new nominal)."""
     st = settings or DesignSettings()
     st.check()
     check_plant(plant, problem.channels("u_init", int(plant.n_u)))
@@ -149,72 +160,111 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     obj = objective_of(plant, problem)
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
+    lo, hi = problem.limits(int(plant.n_u))
+    limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
 
-    # 1. nominal trajectory --------------------------------------------------
+    nom = _nominal(plant, problem, st, show_progress, log, engine, timings)
+    ident, lqg = _rom_and_gains(plant, problem, st, nom, show_progress, log, engine, timings)
+    margins: list[dict[str, Any]] = []
+    experiments = 0       # of the passes before the last (the margin loop's redesigns)
+    if limited and st.limit_margin > 0:
+        for it in range(st.margin_iterations):
+            sigma = input_spread(lqg)
+            LO, HI = tightened_limits(lo, hi, sigma, st.limit_margin)
+            experiments += nom["opt"].experiments + (nom["last"].experiments if st.belief else 0)
+            nom = _nominal(plant, problem, st, show_progress, log, engine, timings, U0=nom["U"], bounds=(LO, HI))
+            ident, lqg = _rom_and_gains(plant, problem, st, nom, show_progress, log, engine, timings)
+            margins.append({"iteration": it + 1, "sigma_u_max": float(sigma.max()),
+                            "sigma_u_mean": float(sigma.mean()), "objective": nom["cost"],
+                            "objective_kind": "belief" if st.belief else "nominal"})
+            log(f"limit margin {st.limit_margin:g} sigma_u (iteration {it + 1}): input std up to "
+                f"{sigma.max():.3g}, {'belief' if st.belief else 'nominal'} J = {nom['cost']:.6g}")
+    timings["total_s"] = time.perf_counter() - t_all
+
+    U, opt, last = nom["U"], nom["opt"], nom["last"]
+    N = problem.n_steps
+    X_nom = ident.X_ext[: N + 1]
+    F_nom = fields(plant, X_nom)
+    k0, k1 = obj.window
+    markov_err = markov_relative_error(ident.model, ident.data.Y)
+    meta: dict[str, Any] = {
+        "settings": asdict(st),
+        "provenance": {"tool": "sep design", "version": __version__, "python": platform.python_version(),
+                       "numpy": np.__version__, "created_unix": time.time(), "seed": st.seed},
+        "timings": timings,
+        "optimizer": {"method": st.method, "jacobian": nom["jacobian"], "mean_only_cost": nom["mean_only_cost"],
+                      "mean_only_history": opt.history, "belief_history": nom["belief_history"],
+                      "iterations": opt.iterations, "experiments": opt.experiments,
+                      "belief_experiments": last.experiments if st.belief else 0,
+                      "identification_reused": nom["reused"], "nominal_cost": float(nominal_cost(F_nom, U, obj)),
+                      "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
+        "validation": {"markov_rel_error": markov_err, "impulse_amplitude": ident.delta,
+                       "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
+    }
+    belief = nom["belief"]
+    nominal = Nominal(U, outputs(plant, X_nom), F_nom, belief.mean, belief.std)
+    return Design(scenario, info, obj, np.asarray(plant.field_coordinates(), dtype=float), nominal, lqg,
+                  ident.hankel_sv, meta)
+
+
+def tightened_limits(lo: np.ndarray, hi: np.ndarray, sigma: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N, n_u) bounds lo + c sigma, hi - c sigma; where they would cross, both at the middle."""
+    LO, HI = lo + c * sigma, hi - c * sigma
+    with np.errstate(invalid="ignore"):      # channels without limits: inf - inf, never crossing
+        mid = 0.5 * (np.where(np.isfinite(lo), lo, HI) + np.where(np.isfinite(hi), hi, LO))
+        cross = LO > HI
+    return np.where(cross, mid, LO), np.where(cross, mid, HI)
+
+
+def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: bool, log, engine,
+             timings: dict, U0: np.ndarray | None = None, bounds=None) -> dict[str, Any]:
+    """Stage 1: the open-loop nominal (mean-only optimum, then the belief-space refinement)."""
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
            "memory_budget": st.memory_budget, "scheme": st.impulse_scheme, "chunks": st.chunks, "engine": engine}
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
-    opt = optimize(plant, problem, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
+    opt = optimize(plant, problem, U0=U0, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
-                   jacobian=jacobian, rom=rom)
+                   jacobian=jacobian, rom=rom, bounds=bounds)
     log(f"mean-only {st.method} ({jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
         f"({opt.experiments} experiments, {opt.seconds:.2f} s)")
-    U, mean_only_cost = opt.U, opt.cost
-    belief_hist: list[float] = []
-    last = opt
+    U, belief_hist, last = opt.U, [], opt
     if st.belief:
         # the belief refinement moves U by ~1e-4 relative and its Jacobian is the nominal's to first
         # order: a chord on one ROM identified at the mean-only optimum (the optimizer's own, when it
         # used the ROM Jacobian), whichever Jacobian the mean-only stage used
         bopt = optimize(plant, problem, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
                         tol=st.tol, eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
-                        jacobian="rom", rom=rom, reuse=opt, chord=True, max_trials=BELIEF_TRIALS)
+                        jacobian="rom", rom=rom, reuse=opt, chord=True, max_trials=BELIEF_TRIALS, bounds=bounds)
         log(f"belief-space gn: J_b = {bopt.history[0]:.8g} -> {bopt.cost:.8g} "
             f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
         U, belief_hist, last = bopt.U, bopt.history, bopt
-    timings["optimize_s"] = time.perf_counter() - t0
+    timings["optimize_s"] = timings.get("optimize_s", 0.0) + time.perf_counter() - t0
     belief = last.belief if last.belief is not None else run_belief(plant, U, problem, st.ensemble, st.seed)
+    return {"U": U, "opt": opt, "last": last, "belief": belief, "belief_history": belief_hist,
+            "mean_only_cost": opt.cost, "cost": last.cost, "jacobian": jacobian, "reused": False}
 
-    # 2. TV-ERA: with the ROM Jacobian the optimizer's last identification is at U already ------
+
+def _rom_and_gains(plant: Plant, problem: Problem, st: DesignSettings, nom: dict, show_progress: bool, log,
+                   engine, timings: dict):
+    """Stages 2 and 3: TV-ERA around the nominal (the optimizer's last identification when it is
+    at this input already) and the LQG on the ROM."""
+    U, last = nom["U"], nom["last"]
     t0 = time.perf_counter()
     reused = last.identification is not None
     ident = last.identification if reused else identify_rom(plant, U, st, show_progress, engine)
     if reused and not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],
                         U=U.copy())     # the same linear model; the nominal of the final input
-    timings["identify_s"] = time.perf_counter() - t0
-    markov_err = markov_relative_error(ident.model, ident.data.Y)
+    nom["reused"] = reused
+    timings["identify_s"] = timings.get("identify_s", 0.0) + time.perf_counter() - t0
     log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
         f"experiments{' (the optimizer’s last identification, reused)' if reused else ''}, Markov relative "
-        f"error {markov_err:.2e}")
-
-    # 3. LQG on the ROM ----------------------------------------------------
+        f"error {markov_relative_error(ident.model, ident.data.Y):.2e}")
     t0 = time.perf_counter()
     lqg = design_lqg(ident.model, problem)
-    timings["gains_s"] = time.perf_counter() - t0
-    timings["total_s"] = time.perf_counter() - t_all
-
-    N = problem.n_steps
-    X_nom = ident.X_ext[: N + 1]
-    F_nom = fields(plant, X_nom)
-    k0, k1 = obj.window
-    meta: dict[str, Any] = {
-        "settings": asdict(st),
-        "provenance": {"tool": "sep design", "version": __version__, "python": platform.python_version(),
-                       "numpy": np.__version__, "created_unix": time.time(), "seed": st.seed},
-        "timings": timings,
-        "optimizer": {"method": st.method, "jacobian": jacobian, "mean_only_cost": mean_only_cost,
-                      "mean_only_history": opt.history, "belief_history": belief_hist,
-                      "iterations": opt.iterations, "experiments": opt.experiments,
-                      "belief_experiments": last.experiments if st.belief else 0,
-                      "identification_reused": reused, "nominal_cost": float(nominal_cost(F_nom, U, obj))},
-        "validation": {"markov_rel_error": markov_err, "impulse_amplitude": ident.delta,
-                       "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
-    }
-    nominal = Nominal(U, outputs(plant, X_nom), F_nom, belief.mean, belief.std)
-    return Design(scenario, info, obj, np.asarray(plant.field_coordinates(), dtype=float), nominal, lqg,
-                  ident.hankel_sv, meta)
+    timings["gains_s"] = timings.get("gains_s", 0.0) + time.perf_counter() - t0
+    return ident, lqg
 
 
 def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False,

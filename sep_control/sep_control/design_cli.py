@@ -57,6 +57,11 @@ SETTINGS_OPTIONS = (
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
      "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "
      "tolerance) but never on --dask; use at least twice the cluster's workers"),
+    ("--limit-margin", "limit_margin", dict(type=float),
+     "with input limits: re-optimize the nominal inside u_min + c sigma_u, u_max - c sigma_u (sigma_u: the "
+     "designed LQG's closed-loop input std) so the feedback has room; 0 = none. On the reference with "
+     "u in [0, 0.6] any c that binds costs the band (see README)"),
+    ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin"),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude"),
     ("--seed", "seed", dict(type=int), "EnKF random seed"),
 )

@@ -6,6 +6,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from sep_estimator.ltv import sensed_nodes
 
 from . import figures
@@ -40,7 +42,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--design", metavar="DESIGN_FILE", required=True, help="design file from `design`")
     p.add_argument("--runs", type=int, default=1000, help="Monte Carlo runs per controller")
     p.add_argument("--seed", type=int, default=1, help="base seed of the noise (common random numbers)")
-    p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=list(CONTROLLERS))
+    p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=None,
+                   help="default: open_loop rom_lqg oracle_lqg, and rom_mpc when the scenario has input limits")
+    p.add_argument("--mpc-horizon", type=int, default=20, help="rom_mpc: horizon H in steps")
+    p.add_argument("--mpc-budget", type=float, default=None,
+                   help="rom_mpc: seconds a QP may take before the step falls back to the clipped LQR "
+                        "(default: no budget offline, so the numbers do not depend on the machine's load; "
+                        "the online node's default is 0.02)")
     p.add_argument("--oracle-max-nx", type=int, default=500,
                    help="skip the full-order oracle above this many states (n_x^2 N memory)")
     p.add_argument("--json", metavar="PATH", help="write metrics as JSON (one object per controller)")
@@ -62,7 +70,12 @@ def main(argv: list[str] | None = None) -> int:
     budget = memory_budget_or_exit(args.memory_budget)
     design = design_or_exit(args.design)
     plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
-    controllers = list(args.controllers)
+    lo, hi = design.problem.limits(design.info.n_u)
+    limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
+    controllers = list(args.controllers) if args.controllers else \
+        [c for c in CONTROLLERS if c != "rom_mpc" or limited]
+    if args.mpc_horizon < 1 or (args.mpc_budget is not None and not args.mpc_budget > 0):
+        fail("--mpc-horizon must be >= 1 and --mpc-budget > 0")
     oracle_fits = design.info.n_x <= args.oracle_max_nx
     if "oracle_lqg" in controllers and not oracle_fits:
         print(f"oracle_lqg skipped: n_x = {design.info.n_x} > --oracle-max-nx = {args.oracle_max_nx}")
@@ -78,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         for name in progress(controllers, desc="Monte Carlo", enabled=not args.quiet):
             t0 = time.perf_counter()
             res = simulate(plant, design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1,
-                           keep_trajectories=1, memory_budget=budget, engine=engine)
+                           keep_trajectories=1, memory_budget=budget, engine=engine,
+                           mpc={"horizon": args.mpc_horizon, "time_budget_s": args.mpc_budget})
             rows[name] = res.metrics()
             rows[name]["seconds"] = time.perf_counter() - t0
             results[name] = res

@@ -8,6 +8,7 @@ fig_mean_vs_nominal closed-loop mean field vs nominal at the band window's start
 fig_estimation      estimation error with 2-sigma bounds at the two unsensed nodes where the
                     reconstruction std is largest, against the open-loop deviation (Fig. 1b-c)
 fig_rom_sweep       Hankel singular values, Markov error and cost vs n_r
+fig_inputs_limits   each input over time against its limits, for several controllers (one run)
 """
 from __future__ import annotations
 
@@ -242,4 +243,33 @@ def fig_rom_sweep(path: Path, hankel_sv: np.ndarray, k: int, rows: Sequence[Mapp
     b.set_title("ROM order sweep")
     h1, l1 = b.get_legend_handles_labels()
     b.legend(h1 + h2, l1 + l2, fontsize=8)
+    return save_figure(fig, path)
+
+
+def fig_inputs_limits(path: Path, info: PlantInfo, u_nom: np.ndarray, inputs: Mapping[str, np.ndarray],
+                      u_min: np.ndarray, u_max: np.ndarray, window: tuple[int, int]) -> Path:
+    """One panel per input: the nominal and each controller's applied input u_k (one run) over
+    time, the limits shaded outside, the band window marked."""
+    plt = pyplot()
+    N, n_u = u_nom.shape
+    t = np.arange(N) * info.dt
+    fig, axes = plt.subplots(n_u, 1, figsize=(8.0, 1.6 * n_u + 0.6), sharex=True, squeeze=False)
+    names = list(getattr(info, "input_names", [])) or [f"u{j}" for j in range(n_u)]
+    for j, ax in enumerate(axes[:, 0]):
+        ax.plot(t, u_nom[:, j], color="black", lw=1.0, ls="--", label="nominal")
+        for (label, U), color in zip(inputs.items(), ("tab:red", "tab:blue", "tab:green", "tab:purple")):
+            ax.step(t, U[:, j], where="post", color=color, lw=0.9, label=label)
+        lo, hi = float(u_min[j]), float(u_max[j])
+        top = max(float(np.max([U[:, j].max() for U in inputs.values()] + [u_nom[:, j].max()])), hi if np.isfinite(hi) else 0)
+        bot = min(float(np.min([U[:, j].min() for U in inputs.values()] + [u_nom[:, j].min()])), lo if np.isfinite(lo) else 0)
+        pad = 0.08 * max(top - bot, 1e-6)
+        if np.isfinite(hi):
+            ax.axhspan(hi, top + pad, color="0.85", zorder=0)
+        if np.isfinite(lo):
+            ax.axhspan(bot - pad, lo, color="0.85", zorder=0)
+        ax.axvspan(window[0] * info.dt, min(window[1], N) * info.dt, color="tab:orange", alpha=0.08, zorder=0)
+        ax.set_ylim(bot - pad, top + pad)
+        ax.set_ylabel(names[j] if j < len(names) else f"u{j}")
+    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=len(inputs) + 1)
+    axes[-1, 0].set_xlabel("t [s]  (grey: outside the limits; orange: band window)")
     return save_figure(fig, path)

@@ -23,6 +23,9 @@ from sep_estimator.ros_common import spin_episode
 from .lqr_node import LqrNode
 
 PARAMETERS = EST_PARAMETERS.replace('estimator.yaml', 'lqg.yaml') + """
+  controller (str, lqr)            lqr | mpc (box-constrained MPC on the ROM: input limits planned for)
+  mpc_horizon (int, 20)            mpc: horizon H in steps
+  mpc_time_budget_s (float, 0.02)  mpc: a QP slower than this falls back to the clipped LQR command
   (the LQR's estimate_timeout_s does not apply: the estimate is computed in-process)"""
 
 

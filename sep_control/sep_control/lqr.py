@@ -58,3 +58,24 @@ def design_lqg(model: LTVModel, problem: Problem, name: str = "rom_lqg") -> LQG:
     kf = kalman_gains(model, W, V)
     # priors from the posteriors, exactly as a loaded design file rebuilds them
     return LQG(name, model, K, schedule_from_posteriors(model, kf.L, kf.P_post, W), W, V)
+
+
+def input_spread(lqg: LQG) -> np.ndarray:
+    """sigma_u (N, n_u): the closed-loop std of the feedback du_k = K_k ahat_{k|k} (limits ignored).
+
+    The estimate's covariance Sigma_k = cov(ahat_{k|k}) grows by the innovations and moves with
+    the closed loop (the estimate starts at 0, innovations are white and orthogonal to it):
+        Sigma_k^+ = Sigma_k^- + L_k (C_k P_k^- C_k' + V) L_k',
+        Sigma_{k+1}^- = (A_k + B_k K_k) Sigma_k^+ (A_k + B_k K_k)',   Sigma_0^- = 0,
+    and sigma_u,k^2 = diag(K_k Sigma_k^+ K_k')."""
+    m, kf = lqg.model, lqg.kf
+    N, n_u, n = lqg.K.shape
+    sig = np.zeros((N, n_u))
+    Sm = np.zeros((n, n))
+    for k in range(N):
+        C, L = m.C[k], kf.L[k]
+        Sp = Sm + L @ (C @ kf.P_prior[k] @ C.T + lqg.V) @ L.T
+        sig[k] = np.sqrt(np.maximum(np.einsum("ui,ij,uj->u", lqg.K[k], Sp, lqg.K[k]), 0.0))
+        Acl = m.A[k] + m.B[k] @ lqg.K[k]
+        Sm = Acl @ Sp @ Acl.T
+    return sig

@@ -1,7 +1,10 @@
-"""`lqr`: the time-varying LQR tracking law as a ROS 2 node (DESIGN.md §4).
+"""`lqr`: the time-varying LQR tracking law (or the ROM-MPC) as a ROS 2 node (DESIGN.md §4).
 
 u_k = clip(ubar_k + K_k a_hat_k, u_min, u_max) for every state estimate a_hat_k received on
-slab/state_estimate, published on slab/heat_command stamped k.
+slab/state_estimate, published on slab/heat_command stamped k. With ``controller:=mpc`` the
+command is the first move of the box-constrained MPC on the design's ROM (`sep_control.mpc`):
+the LQR law itself whenever no limit binds, an OSQP solve when one does, and the clipped LQR
+command when that solve fails or runs past ``mpc_time_budget_s`` (counted on /diagnostics).
 
 No estimate in time: the node watches slab/measurements (only their stamps) to know that step
 k has begun; if no valid estimate of step k arrives within ``estimate_timeout_s`` (steady
@@ -21,8 +24,8 @@ import numpy as np
 
 from sep_plant import contract as c
 from sep_plant import gate
-from sep_plant.node_util import (SampleWindow, declare, fmt_s, limit_blas_threads, make_executor, parse_front,
-                                 run_node, sim_time_default, steady)
+from sep_plant.node_util import (SampleWindow, StartError, declare, fmt_s, limit_blas_threads, make_executor,
+                                 parse_front, run_node, sim_time_default, steady)
 from sep_estimator.ros_common import DesignedNode, scenario_summary, spin_episode
 
 from .lqr import command
@@ -31,6 +34,9 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/co
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's slab/scenario and check it first
+  controller (str, lqr)            lqr | mpc (box-constrained MPC on the ROM, input limits planned for)
+  mpc_horizon (int, 20)            mpc: horizon H in steps
+  mpc_time_budget_s (float, 0.02)  mpc: a QP slower than this falls back to the clipped LQR command
   estimate_timeout_s (float, 0.5)  send the nominal input if no estimate of step k arrives
                                    this long (steady clock) after measurement k  (0 = never)
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
@@ -52,7 +58,22 @@ class LqrNode(DesignedNode):
         self.timeout = declare(node, 'estimate_timeout_s', 0.5,
                                'nominal fallback when no estimate arrives this long after the '
                                'measurement of a step (0 = never)', lo=0.0, hi=3600.0)
+        self.controller = declare(node, 'controller', 'lqr', 'lqr | mpc', constraints='one of: lqr, mpc')
+        if self.controller not in ('lqr', 'mpc'):
+            raise StartError(f"parameter controller must be 'lqr' or 'mpc', got {self.controller!r}")
+        horizon = declare(node, 'mpc_horizon', 20, 'mpc: horizon in steps', lo=1, hi=100000)
+        budget = declare(node, 'mpc_time_budget_s', 0.02, 'mpc: QP time budget (then the clipped LQR command)',
+                         lo=1e-5, hi=60.0)
         d = self.design
+        self.mpc = None
+        self.warm = None
+        if self.controller == 'mpc':
+            from .mpc import RomMPC
+
+            t0 = steady()
+            self.mpc = RomMPC(d.lqg, d.problem, d.nominal.u, horizon=int(horizon), time_budget_s=float(budget))
+            self.log.info(f'mpc: horizon {self.mpc.H}, {self.mpc.H * self.info.n_u} moves, condensed in '
+                          f'{fmt_s(steady() - t0)}, QP budget {fmt_s(float(budget))}')
         self.heaters = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
         self.u_nom, self.K = d.nominal.u, d.lqg.K
@@ -95,7 +116,16 @@ class LqrNode(DesignedNode):
             self.log.warning(f'estimate of step {k} arrived after the nominal fallback was sent',
                              throttle_duration_sec=1.0)
             return
-        u = command(self.u_nom[k], self.K[k], a_hat, self.lo, self.hi)
+        if self.mpc is not None:
+            fb = self.mpc.stats.fallbacks
+            u, z = self.mpc.command(k, a_hat, self.warm)
+            self.warm = self.mpc.shift(z)
+            if self.mpc.stats.fallbacks > fb:
+                self.log.warning(f'mpc: step {k} fell back to the clipped LQR command '
+                                 f'({self.mpc.stats.fallbacks} fallbacks so far: '
+                                 f'{self.mpc.stats.fallback_reasons})', throttle_duration_sec=1.0)
+        else:
+            u = command(self.u_nom[k], self.K[k], a_hat, self.lo, self.hi)
         self._send(k, u)
         self.n_commands += 1
         self.compute_s.append(steady() - t0)
@@ -161,6 +191,9 @@ class LqrNode(DesignedNode):
             problems.append(f'{self.n_fallbacks} nominal fallbacks (no estimate in time)')
         if self.rej.total:
             problems.append(f'{self.rej.total} rejected estimates')
+        mpc = self._mpc_values()
+        if mpc.get('mpc_fallbacks'):
+            problems.append(f"{mpc['mpc_fallbacks']} MPC fallbacks to the clipped LQR")
         return c.Health(name=self.node.get_fully_qualified_name(), hardware_id='sep_lqr',
                         level=c.WARN if problems else c.OK, message='; '.join(problems) or 'ok',
                         values={'step': self.last_k, 'n_steps': self.N, 'commands': self.n_commands,
@@ -169,7 +202,16 @@ class LqrNode(DesignedNode):
                                 'rejected_by_reason': self.rej.as_dict(),
                                 'last_rejection': str(self.rej.last or ''),
                                 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
+                                'controller': self.controller, **mpc,
                                 'design_file': self.design_file})
+
+    def _mpc_values(self) -> dict:
+        if self.mpc is None:
+            return {}
+        st = self.mpc.stats.as_dict()
+        return {'mpc_horizon': self.mpc.H, 'mpc_unconstrained_steps': st['unconstrained'], 'mpc_qp_steps': st['qp'],
+                'mpc_fallbacks': st['fallbacks'], 'mpc_fallback_reasons': st['fallback_reasons'],
+                'mpc_qp_p50_s': st['qp_p50_s'], 'mpc_qp_p99_s': st['qp_p99_s']}
 
     def summary(self, status: str) -> dict:
         comp = self.compute_s.percentiles()
@@ -178,12 +220,15 @@ class LqrNode(DesignedNode):
                 'fallbacks': self.n_fallbacks, 'fallback_steps': self.fallback_steps,
                 'late_estimates': self.n_late, 'rejected_messages': self.rej.total,
                 'rejected_by_reason': self.rej.as_dict(),
-                'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99']}
+                'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
+                'controller': self.controller, **self._mpc_values()}
 
     def summary_line(self, s: dict) -> str:
-        return (f"{s['commands']} commands, {s['fallbacks']} nominal fallbacks, {s['late_estimates']} late "
-                f"estimates, {s['rejected_messages']} rejected, compute p50 {fmt_s(s['compute_p50_s'])} "
-                f"p99 {fmt_s(s['compute_p99_s'])}")
+        mpc = (f", mpc: {s['mpc_qp_steps']} QPs (p99 {fmt_s(s['mpc_qp_p99_s'])}), {s['mpc_fallbacks']} "
+               f"fallbacks" if s.get('controller') == 'mpc' else '')
+        return (f"{s['commands']} commands ({s.get('controller', 'lqr')}), {s['fallbacks']} nominal fallbacks, "
+                f"{s['late_estimates']} late estimates, {s['rejected_messages']} rejected, compute p50 "
+                f"{fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}{mpc}")
 
     def publishers(self):
         return [self.pub_cmd, self.pub_diag]

@@ -8,7 +8,8 @@ the same random numbers (common random numbers).
 
 Per step k = 0..N (as the ROS graph does it):
     y_k = h(x_k) + v_k;  ahat_{k|k} = KF update with y_k - ybar_k;
-    u_k = clip(ubar_k + K_k ahat_{k|k})   (open loop: u_k = clip(ubar_k), the filter still runs);
+    u_k = clip(ubar_k + K_k ahat_{k|k})   (open loop: u_k = clip(ubar_k), the filter still runs;
+                                          rom_mpc: the first move of `sep_control.mpc.RomMPC`);
     x_{k+1} = f(x_k, u_k, w_k);           ahat_{k+1|k} = KF predict with u_k - ubar_k.
 Pure numpy: no ROS import.
 """
@@ -25,7 +26,7 @@ from sep_estimator.tvkf import KalmanFilter
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import Plant, clip_inputs
 
-from .budget import runs_per_batch
+from .budget import runs_per_batch, worker_budget
 from .lqr import command
 from .metrics import MetricsAccumulator
 from .oracle import oracle_lqg
@@ -47,14 +48,18 @@ class MonteCarloResult:
         return dict(self.summary)
 
 
-CONTROLLER_NAMES = ("open_loop", "rom_lqg", "oracle_lqg")
+CONTROLLER_NAMES = ("open_loop", "rom_lqg", "oracle_lqg", "rom_mpc")
 
 
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
              oracle: LQG | None = None, keep_estimates: int | None = None,
              keep_trajectories: int | None = None, memory_budget: int | None = None,
-             engine=None, show_progress: bool = False) -> MonteCarloResult:
-    """Run `controller` ('open_loop', 'rom_lqg' or 'oracle_lqg') on `plant` for the given runs.
+             engine=None, show_progress: bool = False, mpc: dict | None = None) -> MonteCarloResult:
+    """Run `controller` ('open_loop', 'rom_lqg', 'oracle_lqg' or 'rom_mpc') on `plant` for the given runs.
+
+    'rom_mpc' is the box-constrained MPC on the design's ROM (`sep_control.mpc.RomMPC`, keyword
+    arguments `mpc`: horizon, time_budget_s); its counts (QPs solved, fallbacks, solve times)
+    join the summary as mpc_* keys.
 
     Metrics are accumulated step by step over all runs; the full field trajectories (and
     estimates) are kept for the first `keep_trajectories` (`keep_estimates`) runs, all by
@@ -78,14 +83,15 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
     n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
     in_process = type(engine) is InProcess
-    budget = memory_budget if (memory_budget is not None or in_process) else _worker_budget(engine)
+    budget = memory_budget if (memory_budget is not None or in_process) else worker_budget(engine)
     batch = runs_per_batch(info.n_x, info.n_field, budget)
     if not in_process:
         batch = min(batch, max(1, -(-M // (2 * engine.workers))))
     chunks = [(a, idx[a:a + batch], max(0, min(batch, n_traj - a)), max(0, min(batch, n_keep - a)))
               for a in range(0, M, batch)]
+    law = {"open_loop": "open", "rom_mpc": "mpc"}.get(controller, "lqr")
     shared = dict(plant=plant if in_process else plant_spec(plant), design=design if in_process else portable(design), lqg=lqg,
-                  feedback=controller != "open_loop", seed=seed)
+                  law=law, seed=seed, mpc=dict(mpc or {}))
     labels = [f"plant {type(plant).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
               for c in chunks]
     parts = engine.map(_mc_chunk, chunks, shared, labels, f"Monte Carlo {controller}",
@@ -96,21 +102,26 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     U = np.empty((M, N, info.n_u))
     Y = np.empty((M, N + 1, info.n_y))
     covered = 0
+    mpc_stats: list[dict] = []
     for (a, ids, nf, ne), part in zip(chunks, parts):
         rows = slice(a, a + len(ids))
         acc.merge(part["acc"], rows)
         U[rows], Y[rows] = part["U"], part["Y"]
         F[a:a + nf], F_hat[a:a + ne] = part["F"], part["F_hat"]
         covered += part["covered"]
+        if part["mpc"] is not None:
+            mpc_stats.append(part["mpc"])
     coverage = covered / (M * N * info.n_field)
-    summary = acc.result({"coverage_2sigma": coverage})
+    extra = {"coverage_2sigma": coverage}
+    if mpc_stats:
+        t = np.concatenate([s["qp_seconds"] for s in mpc_stats])
+        extra.update({"mpc_unconstrained_steps": sum(s["unconstrained"] for s in mpc_stats),
+                      "mpc_qp_steps": sum(s["qp"] for s in mpc_stats),
+                      "mpc_fallbacks": sum(s["fallbacks"] for s in mpc_stats),
+                      "mpc_qp_p50_s": float(np.percentile(t, 50)) if t.size else None,
+                      "mpc_qp_p99_s": float(np.percentile(t, 99)) if t.size else None})
+    summary = acc.result(extra)
     return MonteCarloResult(controller, F, U, Y, F_hat, lqg.field_std.copy(), acc.mean_traj, coverage, summary)
-
-
-def _worker_budget(engine) -> int | None:
-    """A quarter of the smallest worker memory limit (None: the local default)."""
-    limit = engine.memory_limit()
-    return None if limit is None else max(limit // 4, 1 << 26)
 
 
 def portable(design: Design) -> Design:
@@ -121,7 +132,7 @@ def portable(design: Design) -> Design:
     return replace(design, scenario=type(sc)(sc.plant_type, sc.plant_config, sc.problem, sc.design))
 
 
-def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, feedback: bool, seed: int) -> dict:
+def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, law: str, seed: int, mpc: dict) -> dict:
     """Simulate one chunk (first row a, run ids, trajectories and estimates to keep)."""
     from .engine import worker_plant
 
@@ -133,8 +144,19 @@ def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, feedback: bool, see
     acc = MetricsAccumulator(design.objective, nom.field, M)
     out = _Outputs(F=np.empty((keep_f, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
                    Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((keep_e, N + 1, info.n_field)))
-    covered = _run_batch(plant, design, lqg, feedback, seed, list(run_ids), slice(0, M), acc, out)
-    return {"acc": acc.state(), "U": out.U, "Y": out.Y, "F": out.F, "F_hat": out.F_hat, "covered": covered}
+    ctl = None
+    if law == "mpc":
+        from .mpc import RomMPC
+
+        ctl = RomMPC(lqg, problem, nom.u, **mpc)
+    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out, ctl)
+    stats = None
+    if ctl is not None:
+        st = ctl.stats
+        stats = {"unconstrained": st.unconstrained, "qp": st.qp, "fallbacks": st.fallbacks,
+                 "qp_seconds": np.asarray(st.qp_seconds)}
+    return {"acc": acc.state(), "U": out.U, "Y": out.Y, "F": out.F, "F_hat": out.F_hat, "covered": covered,
+            "mpc": stats}
 
 
 @dataclass
@@ -145,9 +167,10 @@ class _Outputs:
     F_hat: np.ndarray
 
 
-def _run_batch(plant: Plant, design: Design, lqg: LQG, feedback: bool, seed: int, run_ids: list[int],
-               rows: slice, acc: MetricsAccumulator, out: _Outputs) -> int:
-    """Simulate the runs `run_ids` (rows `rows` of the outputs); returns the covered node-steps."""
+def _run_batch(plant: Plant, design: Design, lqg: LQG, law: str, seed: int, run_ids: list[int],
+               rows: slice, acc: MetricsAccumulator, out: _Outputs, mpc=None) -> int:
+    """Simulate the runs `run_ids` (rows `rows` of the outputs) under `law` ('open', 'lqr' or
+    'mpc' with the controller `mpc`); returns the covered node-steps."""
     problem, info, nom = design.problem, design.info, design.nominal
     w, v = noise_sequences(problem, info, seed, run_ids)
     M, N = len(run_ids), problem.n_steps
@@ -158,6 +181,7 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, feedback: bool, seed: int
     keep_f = max(0, min(M, out.F.shape[0] - a0))           # kept trajectories in this batch
     keep_e = max(0, min(M, out.F_hat.shape[0] - a0))
     covered = 0
+    warm = None
     x = plant.initial_state(M)
     for k in range(N + 1):
         f = plant.field(x)
@@ -172,7 +196,10 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, feedback: bool, seed: int
             covered += int(np.count_nonzero(np.abs(est - f) <= 2.0 * lqg.field_std[k]))
         if k == N:
             break
-        if feedback:
+        if law == "mpc":
+            u, Z = mpc.command_batch(k, a, warm)
+            warm = mpc.shift(Z)
+        elif law == "lqr":
             u = command(nom.u[k], lqg.K[k], a, lo, hi)
         else:
             u = clip_inputs(np.broadcast_to(nom.u[k], (M, info.n_u)), lo, hi)

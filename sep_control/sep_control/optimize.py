@@ -37,7 +37,7 @@ import numpy as np
 
 from sep_estimator.enkf import EnKFResult, EnsembleKalmanFilter
 from sep_plant.problem import Objective, Problem
-from sep_plant.protocol import Plant, clip_inputs, fields, nominal_states, noise_channels
+from sep_plant.protocol import Plant, fields, nominal_states, noise_channels
 
 from .metrics import nominal_cost
 from .progress import progress
@@ -175,10 +175,15 @@ class SensitivityLinearization:
         self.ne, self.shape, self.experiments = ne, shape, ne.experiments
         self.identification = None
 
-    def step(self, lam: float) -> np.ndarray:
-        """(J'J + lam diag(J'J)) dU = -J'r."""
+    def step(self, lam: float, frozen: np.ndarray | None = None) -> np.ndarray:
+        """(J'J + lam diag(J'J)) dU = -J'r on the free variables (`frozen` ones: dU = 0)."""
         H = self.ne.JtJ + lam * np.diag(np.diag(self.ne.JtJ))
-        return -np.linalg.solve(H, self.ne.Jtr).reshape(self.shape)
+        if frozen is None or not frozen.any():
+            return -np.linalg.solve(H, self.ne.Jtr).reshape(self.shape)
+        free = ~frozen.ravel()
+        dU = np.zeros(H.shape[0])
+        dU[free] = -np.linalg.solve(H[np.ix_(free, free)], self.ne.Jtr[free])
+        return dU.reshape(self.shape)
 
     def gradient(self) -> np.ndarray:
         return 2.0 * self.ne.Jtr.reshape(self.shape)
@@ -219,9 +224,12 @@ class RomLinearization:
             if j > 0:
                 P = self.H[j] + m.A[j].T @ P @ m.A[j]
 
-    def step(self, lam: float) -> np.ndarray:
+    def step(self, lam: float, frozen: np.ndarray | None = None) -> np.ndarray:
+        """The LM step; `frozen` (N, n_u) inputs held (an active bound): their damping is made
+        FREEZE times their curvature, so their step is ~1/FREEZE of a free one (then clipped)."""
         m, N = self.model, self.U.shape[0]
         n_u = self.U.shape[1]
+        hold = np.zeros(self.U.shape) if frozen is None else FREEZE * frozen * (self.r_u + self.D)
         K = np.empty((N, n_u, m.n))
         kff = np.empty((N, n_u))
         S, s = self.H[N].copy(), self.h[N].copy()
@@ -229,7 +237,7 @@ class RomLinearization:
             A, B = m.A[k], m.B[k]
             SB = S @ B
             Quu = B.T @ SB
-            Quu[np.diag_indices(n_u)] += self.r_u + lam * self.D[k]
+            Quu[np.diag_indices(n_u)] += self.r_u + lam * self.D[k] + hold[k]
             Qux = SB.T @ A
             qu = self.r_u * self.U[k] + B.T @ s
             sol = np.linalg.solve(Quu, np.column_stack([Qux, qu]))
@@ -257,6 +265,20 @@ class RomLinearization:
         return 2.0 * g
 
 
+#: relative damping of an input held at an active bound in the ROM step (see RomLinearization.step)
+FREEZE = 1e10
+
+
+def active_bounds(U: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Inputs at a bound whose descent direction leaves the box (projected-gradient active set):
+    u <= lo with dJ/du > 0, or u >= hi with dJ/du < 0. Those are held in the next step, so that
+    the step of the free inputs is not spent against a bound and then clipped away."""
+    span = np.maximum(np.abs(hi - lo), 1.0)
+    span = np.where(np.isfinite(span), span, 1.0)
+    eps = 1e-9 * span
+    return ((U <= lo + eps) & (grad > 0)) | ((U >= hi - eps) & (grad < 0))
+
+
 # --------------------------------------------------------------- optimizer
 @dataclass
 class OptimizationResult:
@@ -277,7 +299,8 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
              eps: float = 1e-4, step_size: float = 1e-3, members: int = 200, seed: int = 0,
              show_progress: bool = True, jacobian: str = "sensitivity",
              rom: dict | None = None, reuse: "OptimizationResult | None" = None,
-             chord: bool = False, max_trials: int = 12) -> OptimizationResult:
+             chord: bool = False, max_trials: int = 12,
+             bounds: tuple[np.ndarray, np.ndarray] | None = None) -> OptimizationResult:
     """Minimize the nominal (``objective='nominal'``) or belief-space (``'belief'``) cost.
 
     method ``gn`` (Levenberg-Marquardt) or ``gd`` (gradient descent with step `step_size`
@@ -291,6 +314,10 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     `reuse` (an earlier result) saves identifying at its final input again; `chord` keeps the
     first identification for every iteration (a chord method: the belief-space refinement moves
     U by ~1e-4 relative, and its Jacobian is the nominal's to first order anyway).
+    Input limits: the problem's u_min/u_max, or `bounds` = (lo, hi), each broadcastable to
+    (N, n_u) (per-step bounds: the limits tightened by a margin for the feedback). Projected
+    Levenberg-Marquardt: inputs at an active bound (`active_bounds`) are held, the others step,
+    and the trial point is projected onto the box before the true objective accepts it.
     """
     if method not in ("gn", "gd"):
         raise ValueError(f"method must be 'gn' or 'gd', got {method!r}")
@@ -302,7 +329,11 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     t0 = time.perf_counter()
     n_u = int(plant.n_u)
     U = problem.u_start(n_u) if U0 is None else np.array(U0, dtype=float)
-    lo, hi = problem.limits(n_u)
+    lo, hi = problem.limits(n_u) if bounds is None else bounds
+    lo = np.broadcast_to(np.asarray(lo, dtype=float), U.shape)
+    hi = np.broadcast_to(np.asarray(hi, dtype=float), U.shape)
+    bounded = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
+    U = np.clip(U, lo, hi)
     obj = objective_of(plant, problem)
 
     last_belief: dict = {}
@@ -341,9 +372,15 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
     for it in bar:
         accepted = False
+        frozen = active_bounds(U, lin.gradient(), lo, hi) if bounded else None
         for _ in range(max_trials):
-            dU = lin.step(lam) if method == "gn" else -alpha * lin.gradient()
-            U_try = clip_inputs(U + dU, lo, hi)
+            if method == "gn":
+                dU = lin.step(lam, frozen)
+            else:
+                dU = -alpha * lin.gradient()
+                if frozen is not None:
+                    dU[frozen] = 0.0
+            U_try = np.clip(U + dU, lo, hi)
             J_try, X_try, f_try = evaluate(U_try)
             if np.isfinite(J_try) and J_try < J:
                 accepted = True

@@ -37,7 +37,7 @@ from sep_estimator.ltv import LTVModel, PODFieldMap
 from sep_plant.protocol import Plant, noise_channels, rollout
 
 from .basis import IncrementalBasis, truncate
-from .budget import runs_per_batch
+from .budget import default_budget, runs_per_batch, worker_budget
 from .progress import progress
 
 #: relative tolerance of the field responses' basis (against the largest response) and of its
@@ -145,11 +145,16 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
     n_ch = n_u + n_w
     n_y, n_f = int(plant.n_y), int(plant.n_field)
+    in_process = type(engine) is InProcess
+    if memory_budget is None and not in_process:
+        # the default budget is this machine's; a worker must hold a chunk's batch too (only
+        # when this binds does it change the plan: pass --memory-budget for the same bits)
+        wb = worker_budget(engine)
+        memory_budget = None if wb is None else min(wb, default_budget())
     slot_runs = runs_per_batch(int(plant.n_x), n_f, memory_budget) // lags     # runs per start step
     per_pass = max(1, (slot_runs - (scheme == "forward")) // SCHEMES[scheme])     # channels per pass
     groups = [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
     plan = experiment_chunks(N, chunks)
-    in_process = isinstance(engine, InProcess) and type(engine) is InProcess
     shared = dict(plant=plant if in_process else plant_spec(plant), U_ext=U_ext, lags=lags,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,

@@ -196,25 +196,38 @@ class _Watchdog:
     to stderr (the node's log) with `what`, and the process exits with `code` at once.  A node
     whose episode is over and whose outputs are written must exit, not hang in a DDS teardown."""
 
+    #: seconds after `seconds` at which faulthandler's own watchdog (a C thread that needs no GIL:
+    #: a middleware call that blocks while holding the GIL starves the Python timer) ends the
+    #: process too, with exit code 1
+    BACKSTOP_S = 5.0
+
     def __init__(self, seconds: float, what: str, code: Callable[[], int]):
+        import faulthandler
         import threading
 
         self._what, self._code = what, code
         self._timer = threading.Timer(seconds, self._fire)
         self._timer.daemon = True
         self._timer.start()
+        faulthandler.dump_traceback_later(seconds + self.BACKSTOP_S, exit=True)
 
     def _fire(self) -> None:
         import faulthandler
-        import os
 
         print(f'watchdog: {self._what}; thread stacks follow, exiting', file=sys.stderr, flush=True)
         faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
-        sys.stderr.flush()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001 - a closed stream must not stop the exit
+                pass
         os._exit(self._code())
 
     def disarm(self) -> None:
+        import faulthandler
+
         self._timer.cancel()
+        faulthandler.cancel_dump_traceback_later()
 
 
 def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str) -> int:
@@ -230,8 +243,10 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
 
     start = _Watchdog(STARTUP_WATCHDOG_S, f'{logger_name}: the ROS middleware did not start within '
                       f'{STARTUP_WATCHDOG_S:g} s', lambda: EXIT_TIMEOUT)
-    rclpy.init(args=args)
-    start.disarm()
+    try:
+        rclpy.init(args=args)
+    finally:
+        start.disarm()
     node = None
     rc = EXIT_FAILURE
     try:
