@@ -275,5 +275,8 @@ def test_the_controller_is_named_from_the_lqr_diagnostics(setup, tmp_path):
     ns = N * T.dt_ns(eps[0].info.dt)
     msgs.append((T.DIAGNOSTICS, t_last + 1, bytes(diagnostics(ns, {"controller": "mpc", "mpc_qp_steps": 12,
                                                                     "mpc_fallbacks": 1}, N, name="/slab/lqr"))))
-    m = analyze(write_messages(tmp_path / "mpc_bag", msgs), dpath).metrics
+    rep = analyze(write_messages(tmp_path / "mpc_bag", msgs), dpath)
+    m = rep.metrics
     assert m["controller"] == "rom_mpc" and m["mpc_qp_steps"] == 12 and m["mpc_fallbacks"] == 1
+    text = write_report(rep, tmp_path / "report", figures=False).read_text()
+    assert "Controller: rom_mpc (12 steps solved a QP, 1 fell back to the clipped LQR)" in text

@@ -349,6 +349,17 @@ def _figure_lines(rep, out: Path) -> list[str]:
     return lines
 
 
+def controller_line(reps) -> str:
+    """The feedback law(s) of the episodes, from the LQR node's /diagnostics."""
+    names = sorted({r.metrics.get("controller") or "not reported (sep < 0.3: the LQR)" for r in reps})
+    line = ", ".join(names)
+    if "rom_mpc" in names:
+        qp = sum(r.metrics.get("mpc_qp_steps") or 0 for r in reps)
+        fb = sum(r.metrics.get("mpc_fallbacks") or 0 for r in reps)
+        line += f" ({qp} steps solved a QP, {fb} fell back to the clipped LQR)"
+    return line
+
+
 def write_report(rep, out_dir: str | Path, figures: bool = True) -> Path:
     """Write report.md (+ PNGs) for an `EpisodeReport` or `AggregateReport`; returns report.md."""
     out = Path(out_dir)
@@ -363,6 +374,7 @@ def write_report(rep, out_dir: str | Path, figures: bool = True) -> Path:
         lines.append(scen)
     lines.append("Design file: " + ("given (nominal comparisons included)" if reps[0].design is not None else
                                     "none (no nominal comparisons; pass --design)"))
+    lines.append("Controller: " + controller_line(reps))
     lines += ["", "## Metrics", "", markdown_table(metrics_rows(rep)), "", f"- {LATENCY_NOTE}.",
               "- coverage_2sigma: share of node-steps k >= 1 with |f_hat - f| <= 2 std; field_nees: mean "
               "((f_hat - f)/std)^2 (about 1 when consistent).",
