@@ -187,3 +187,26 @@ def test_bad_arguments(small):
         optimize(sim, s, method="newton", show_progress=False)
     with pytest.raises(ValueError, match="objective"):
         optimize(sim, s, objective="robust", show_progress=False)
+
+
+def test_belief_members_stepped_in_memory_batches_equal_one_batch(small):
+    """The EnKF's forecast steps go in batches that fit the memory budget: the same belief."""
+    from unittest import mock
+
+    from sep_control import optimize as opt
+
+    s, sim = small
+    U = np.full((s.n_steps, sim.n_u), 0.3)
+    whole = run_belief(sim, U, s, 20, 3)
+    calls = []
+    step = sim.step
+
+    def counting_step(X, *a):
+        calls.append(X.shape[0])
+        return step(X, *a)
+
+    with mock.patch.object(opt, "runs_per_batch", return_value=6), mock.patch.object(sim, "step", counting_step):
+        split = run_belief(sim, U, s, 20, 3)
+    assert max(calls) == 6 and 2 in calls          # 20 members as 6 + 6 + 6 + 2
+    np.testing.assert_allclose(split.mean, whole.mean, rtol=0, atol=1e-12 * np.abs(whole.mean).max())
+    np.testing.assert_allclose(split.std, whole.std, rtol=0, atol=1e-12 * np.abs(whole.std).max())

@@ -240,7 +240,8 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
             f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
         U, belief_hist, last = bopt.U, bopt.history, bopt
     timings["optimize_s"] = timings.get("optimize_s", 0.0) + time.perf_counter() - t0
-    belief = last.belief if last.belief is not None else run_belief(plant, U, problem, st.ensemble, st.seed)
+    belief = last.belief if last.belief is not None else run_belief(plant, U, problem, st.ensemble, st.seed,
+                                                                    st.memory_budget)
     return {"U": U, "opt": opt, "last": last, "belief": belief, "belief_history": belief_hist,
             "mean_only_cost": opt.cost, "cost": last.cost, "jacobian": jacobian, "reused": False}
 

@@ -39,6 +39,7 @@ from sep_estimator.enkf import EnKFResult, EnsembleKalmanFilter
 from sep_plant.problem import Objective, Problem
 from sep_plant.protocol import Plant, fields, nominal_states, noise_channels
 
+from .budget import runs_per_batch
 from .metrics import nominal_cost
 from .progress import progress
 from .tvera import identify
@@ -56,11 +57,28 @@ def belief_cost(belief: EnKFResult, U: np.ndarray, obj: Objective) -> float:
     return float(nominal_cost(belief.mean, U, obj)) + spread
 
 
-def run_belief(plant: Plant, U: np.ndarray, problem: Problem, members: int, seed: int) -> EnKFResult:
-    """EnKF belief of the field along the nominal observations of U (same random numbers for every U)."""
+def run_belief(plant: Plant, U: np.ndarray, problem: Problem, members: int, seed: int,
+               memory_budget: int | None = None) -> EnKFResult:
+    """EnKF belief of the field along the nominal observations of U (same random numbers for every U).
+
+    The members' forecast steps go in batches that fit `memory_budget` (`sep_control.budget`):
+    a plant's step needs several state-sized temporaries per run, so 200 members of a large grid
+    in one call would need far more than the ensemble itself. Runs do not interact, so the
+    batching changes no member."""
     ybar = plant.observe(nominal_states(plant, U))
     n_w = noise_channels(plant)
-    enkf = EnsembleKalmanFilter(plant.step, plant.observe, problem.channels("w_std", n_w),
+    batch = runs_per_batch(int(plant.n_x), int(plant.n_field), memory_budget)
+
+    def step(X: np.ndarray, Uk: np.ndarray, Wk: np.ndarray | None = None) -> np.ndarray:
+        if X.shape[0] <= batch:
+            return plant.step(X, Uk) if Wk is None else plant.step(X, Uk, Wk)
+        out = np.empty_like(X)
+        for a in range(0, X.shape[0], batch):
+            b = slice(a, a + batch)
+            out[b] = plant.step(X[b], Uk[b]) if Wk is None else plant.step(X[b], Uk[b], Wk[b])
+        return out
+
+    enkf = EnsembleKalmanFilter(step, plant.observe, problem.channels("w_std", n_w),
                                 problem.channels("v_std", int(plant.n_y)), np.random.default_rng(seed),
                                 antithetic=True, field=plant.field,
                                 noise_on_inputs=bool(getattr(plant, "noise_on_inputs", True)))
@@ -343,7 +361,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
         Fc = fields(plant, Xc)
         if objective == "nominal":
             return float(nominal_cost(Fc, Uc, obj)), Xc, Fc
-        b = run_belief(plant, Uc, problem, members, seed)
+        b = run_belief(plant, Uc, problem, members, seed, (rom or {}).get("memory_budget"))
         last_belief["try"] = b
         return belief_cost(b, Uc, obj), Xc, b.mean
 
