@@ -46,7 +46,7 @@ COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s"
            "design/rollout", "mc100/rollout"]
 
 
-def run_row(name: str, runs: int) -> dict:
+def run_row(name: str, runs: int, dask: str | None = None) -> dict:
     """Measure one row (in this process)."""
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -69,7 +69,9 @@ def run_row(name: str, runs: int) -> dict:
         spent[0] += time.perf_counter() - t0
         return out
 
-    with threadpool_limits(1):
+    from sep_control.engine import open_engine
+
+    with threadpool_limits(1), open_engine(dask) as engine:
         U0 = problem.u_start(plant.n_u)
         nominal_states(plant, U0)
         t0 = time.perf_counter()
@@ -78,7 +80,7 @@ def run_row(name: str, runs: int) -> dict:
         plant.step = timed_step
         t0 = time.perf_counter()
         design = run_design(plant, problem, DesignSettings.for_scenario(scen), show_progress=False,
-                            log=lambda m: None)
+                            log=lambda m: None, engine=engine)
         t_design = time.perf_counter() - t0
         plant_s = spent[0]
         del plant.step
@@ -86,7 +88,7 @@ def run_row(name: str, runs: int) -> dict:
             path = save_design(Path(tmp) / "d.npz", design)
             file_mb = path.stat().st_size / 1e6
         t0 = time.perf_counter()
-        mc = simulate(plant, design, "rom_lqg", 1, runs, keep_estimates=0, keep_trajectories=0)
+        mc = simulate(plant, design, "rom_lqg", 1, runs, keep_estimates=0, keep_trajectories=0, engine=engine)
         t_mc = (time.perf_counter() - t0) * 100.0 / runs
     tm = design.meta["timings"]
     G = design.rom.G
@@ -104,10 +106,12 @@ def main() -> int:
     ap.add_argument("--rows", nargs="+", choices=list(ROWS), help="rows to run (default: all)")
     ap.add_argument("--runs", type=int, default=100, help="Monte Carlo runs of ROM-LQG per row")
     ap.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
+    ap.add_argument("--dask", metavar="WHERE", help="run every row's experiments and Monte Carlo on Dask "
+                    "(local, local:N, tcp://HOST:PORT); 'plant steps in the design' then counts the client's only")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     if args.row:
-        print(json.dumps(run_row(args.row, args.runs)))
+        print(json.dumps(run_row(args.row, args.runs, args.dask)))
         return 0
     names = args.rows or (list(QUICK) if args.quick else list(ROWS))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator",
@@ -115,8 +119,8 @@ def main() -> int:
     rows = {}
     for name in names:
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs)], env=env,
-                              capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs)]
+                              + (["--dask", args.dask] if args.dask else []), env=env, capture_output=True, text=True)
         if proc.returncode != 0:
             print(f"{name}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
             continue

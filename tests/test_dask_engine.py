@@ -137,3 +137,33 @@ def test_worker_killed_mid_batch_is_rerun_with_the_same_result(cluster, tmp_path
     assert marker.is_file(), "no worker was killed: the test tested nothing"
     close(there.Y, here.Y)
     close(there.Yf, here.Yf)
+
+
+def test_evaluate_and_validate_clis_on_a_cluster_match_in_process(tmp_path, capsys):
+    """`evaluate --dask local:2` and `validate --dask local:2` print what they print in-process."""
+    import json
+
+    from sep_control import evaluate_cli, validate_cli
+
+    scen = tmp_path / "small.yaml"
+    scen.write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))
+    fast = ["--p", "5", "--q", "5", "--n-r", "10", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
+    assert design_cli.main(["--scenario", str(scen), "--out", str(tmp_path / "d.npz")] + fast) == 0
+    out = {}
+    for tag, extra in (("here", []), ("there", ["--dask", "local:2"])):
+        ev = ["--design", str(tmp_path / "d.npz"), "--runs", "30", "--controllers", "open_loop", "rom_lqg",
+              "--quiet", "--json", str(tmp_path / f"{tag}.json")] + extra
+        assert evaluate_cli.main(ev) == 0
+        assert validate_cli.main(["--design", str(tmp_path / "d.npz"), "--lags", "12",
+                                  "--json", str(tmp_path / f"{tag}_val.json")] + extra) == 0
+        out[tag] = (json.loads((tmp_path / f"{tag}.json").read_text()),
+                    json.loads((tmp_path / f"{tag}_val.json").read_text()))
+    assert "dashboard" in capsys.readouterr().out
+    (ev_a, va_a), (ev_b, va_b) = out["here"], out["there"]
+    rows_a = {r["name"]: r for r in ev_a} if isinstance(ev_a, list) else ev_a
+    rows_b = {r["name"]: r for r in ev_b} if isinstance(ev_b, list) else ev_b
+    for name in ("open_loop", "rom_lqg"):
+        for key in ("cost_mean", "cost_std", "in_band", "rms", "coverage_2sigma"):
+            assert rows_b[name][key] == pytest.approx(rows_a[name][key], rel=1e-12, abs=1e-12), (name, key)
+    for key in ("markov_rel_error", "output_prediction_rel_error", "field_prediction_rel_error"):
+        assert va_b[key] == pytest.approx(va_a[key], rel=1e-9), key
