@@ -92,3 +92,16 @@ def test_demo_grid_plant_scenario_file(launcher, tmp_path):
         assert f']({png})' in md, (png, md)
         assert (report.parent / png).stat().st_size > 0, png
     assert 'field_image at k = ' in md and '32FC1' in md
+
+
+def test_demo_timeout_reports_where_the_nodes_are(launcher, small_case, tmp_path):
+    """A run that does not finish within --timeout is stopped, exit 1, and the report has every
+    node's log tail with its Python stacks (asked for with SIGUSR1), so a hang says where it is."""
+    out = tmp_path / 'demo'
+    p = launcher.start('demo', '--out', str(out), '--scenario', str(small_case.scenario_file), '--no-record',
+                       '--mode', 'realtime', '--rtf', '1', '--timeout', '8')      # a 10 s episode
+    assert p.wait(120) == 1, p.output()
+    text = p.output()
+    assert 'has not finished after --timeout 8 s' in text, text
+    assert '--- plant (running)' in text and '--- lqg (running)' in text, text
+    assert 'most recent call first' in text, text

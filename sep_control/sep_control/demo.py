@@ -81,6 +81,18 @@ class Children:
         for name in reversed(list(self.procs)):
             self.stop(name, grace=3.0)
 
+    def dump_stacks(self, settle_s: float = 1.0) -> None:
+        """Ask every running child for its Python stacks (SIGUSR1: the nodes' faulthandler writes
+        them to their logs and they go on), so that the log tails show where each one is."""
+        running = [p for p in self.procs.values() if p.poll() is None]
+        for p in running:
+            try:
+                os.kill(p.pid, signal.SIGUSR1)
+            except (ProcessLookupError, PermissionError):
+                pass
+        if running:
+            time.sleep(settle_s)
+
     def tails(self, n: int = 15) -> str:
         """The last lines of every child's log (what a failure report needs)."""
         return '\n'.join(f'--- {name} ({"running" if p.poll() is None else f"exit {p.returncode}"}), '
@@ -225,8 +237,9 @@ def main(argv: list[str] | None = None) -> int:
         prc = kids.wait('plant', args.timeout)
         wall = time.perf_counter() - t0
         if prc is None:
+            kids.dump_stacks()
             log(f'the plant has not finished after --timeout {args.timeout:g} s; stopping the nodes. '
-                f'Their logs end:\n{kids.tails()}')
+                f'Their logs (with their stacks now) end:\n{kids.tails(60)}')
             return EXIT_FAIL
         if prc != 0:
             log(f'plant failed (exit {prc}):\n{kids.tails()}')
@@ -255,7 +268,8 @@ def main(argv: list[str] | None = None) -> int:
             log(f'report: {report}')
         rc = EXIT_OK
     except KeyboardInterrupt:
-        log(f'interrupted; stopping the nodes. Their logs end:\n{kids.tails(5)}')
+        kids.dump_stacks(0.5)
+        log(f'interrupted; stopping the nodes. Their logs (with their stacks now) end:\n{kids.tails(40)}')
         rc = 130
     finally:
         kids.stop_all()

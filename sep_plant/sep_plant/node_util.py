@@ -184,10 +184,31 @@ def steady() -> float:
     return time.perf_counter()
 
 
-#: seconds rclpy.init, or the teardown after the episode (destroying the node's DDS entities,
-#: rclpy.shutdown), may take before the watchdog gives up (`_Watchdog`)
-STARTUP_WATCHDOG_S = 60.0
+#: seconds the start (rclpy.init and building the node: its DDS entities, the plant, the design
+#: file) or the teardown after the episode (destroying the entities, rclpy.shutdown) may take
+#: before the watchdog gives up (`_Watchdog`); SEP_STARTUP_WATCHDOG_S overrides the first, for
+#: a plant whose construction is slow
+STARTUP_WATCHDOG_S = 90.0
 TEARDOWN_WATCHDOG_S = 15.0
+
+
+def startup_watchdog_s() -> float:
+    try:
+        return max(1.0, float(os.environ.get('SEP_STARTUP_WATCHDOG_S', STARTUP_WATCHDOG_S)))
+    except ValueError:
+        return STARTUP_WATCHDOG_S
+
+
+def enable_stack_dumps() -> None:
+    """Python stacks of every thread on stderr (the node's log) on a crash, and on SIGUSR1
+    without stopping: `kill -USR1 <pid>` shows where a node is (the demo does it to a child that
+    has not finished in time)."""
+    import faulthandler
+    import signal
+
+    faulthandler.enable(all_threads=True)
+    if hasattr(signal, 'SIGUSR1'):
+        faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
 
 
 class _Watchdog:
@@ -234,23 +255,27 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
     """rclpy.init, build the node with `make`, call its ``run()`` (returns an exit code), and
     always destroy it and shut rclpy down.  Start errors and episode errors are logged as one
     clear line; Ctrl-C / SIGTERM exit EXIT_INTERRUPTED after the node's ``interrupted()``.
-    rclpy.init and the final teardown are bounded by watchdogs (STARTUP_WATCHDOG_S,
-    TEARDOWN_WATCHDOG_S): a middleware that blocks there ends the process with its stacks in
-    the log, EXIT_TIMEOUT at start-up, the episode's own exit code at teardown."""
+    The start (rclpy.init and `make`) and the final teardown are bounded by watchdogs
+    (`startup_watchdog_s()`, TEARDOWN_WATCHDOG_S): a middleware that blocks there ends the process
+    with its stacks in the log, EXIT_TIMEOUT at start-up, the episode's own exit code at teardown.
+    SIGUSR1 dumps the stacks at any time (`enable_stack_dumps`)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.logging import get_logger
 
-    start = _Watchdog(STARTUP_WATCHDOG_S, f'{logger_name}: the ROS middleware did not start within '
-                      f'{STARTUP_WATCHDOG_S:g} s', lambda: EXIT_TIMEOUT)
-    try:
-        rclpy.init(args=args)
-    finally:
-        start.disarm()
+    enable_stack_dumps()
+    bound = startup_watchdog_s()
+    start = _Watchdog(bound, f'{logger_name}: the node did not start within {bound:g} s (rclpy.init, '
+                      f'its DDS entities, the plant or design file; SEP_STARTUP_WATCHDOG_S sets the bound)',
+                      lambda: EXIT_TIMEOUT)
     node = None
     rc = EXIT_FAILURE
     try:
-        node = make(args)
+        try:
+            rclpy.init(args=args)
+            node = make(args)
+        finally:
+            start.disarm()
         rc = node.run()
     except StartError as exc:
         get_logger(logger_name).error(f'refusing to start: {exc}')
