@@ -322,7 +322,7 @@ def test_wrong_format_or_meta_refused(design_path, tmp_path):
     refused(_without_meta(design_path, tmp_path / "nometa.npz"), "meta")
     p = tmp_path / "badjson.npz"
     rewrite(design_path, p)
-    with np.load(p) as z:
+    with np.load(p, allow_pickle=False) as z:
         members = {k: z[k] for k in z.files}
     members["meta"] = np.frombuffer(b"{not json", dtype=np.uint8)
     np.savez(p, **members)
@@ -333,7 +333,7 @@ def test_wrong_format_or_meta_refused(design_path, tmp_path):
 
 
 def _without_meta(src, dst):
-    with np.load(src) as z:
+    with np.load(src, allow_pickle=False) as z:
         members = {k: z[k] for k in z.files if k != "meta"}
     np.savez(dst, **members)
     return dst
@@ -427,7 +427,7 @@ def _npy_bytes(header: str, data: bytes = b"") -> bytes:
 def test_crafted_npy_headers_refused(design_path, tmp_path, header, member):
     """A small file whose member header lies (a huge shape, a garbled dictionary, code): refused
     with DesignFileError, without trying to allocate what the header claims."""
-    with np.load(design_path) as z:
+    with np.load(design_path, allow_pickle=False) as z:
         members = {k: z[k] for k in z.files}
     p = tmp_path / "crafted.npz"
     with zipfile.ZipFile(p, "w") as zf:
@@ -466,7 +466,7 @@ def test_version_1_file_of_sep01_is_read(tmp_path):
     d = load_design(V1_FILE)
     assert d.meta["upgraded_from_version"] == 1 and d.scenario.plant_type == "slab"
     assert d.scenario.plant_config["n_x"] == 12 and d.problem.window == (6, 10) and d.problem.k_switch == 4
-    with np.load(V1_FILE) as z:
+    with np.load(V1_FILE, allow_pickle=False) as z:
         np.testing.assert_array_equal(d.nominal.field, z["T_nom"])
         np.testing.assert_array_equal(d.rom.G.G, z["G"])          # version 1: the dense field map
         np.testing.assert_array_equal(d.lqg.K, z["K"])
@@ -505,13 +505,13 @@ def test_large_trajectories_are_stored_compressed(tmp_path, monkeypatch):
     x = np.linspace(0, 1, N_X)
     d.nominal.field = 150 + np.outer(np.linspace(0, 1, N_STEPS + 1), np.sin(3 * x))    # rank 1
     path = save_design(tmp_path / "c.npz", d)
-    with np.load(path) as z:
+    with np.load(path, allow_pickle=False) as z:
         assert "field_nom" not in z.files and z["field_nom__basis"].shape == (N_X, 2)   # 150 + ramp: rank 2
     back = load_design(path)
     np.testing.assert_allclose(back.nominal.field, d.nominal.field, rtol=0, atol=1e-9)
     np.testing.assert_allclose(back.lqg.field_std, d.lqg.field_std, rtol=0, atol=1e-9)
     refused(rewrite(path, tmp_path / "half.npz", field_nom__coef=None))
-    with np.load(path) as z:
+    with np.load(path, allow_pickle=False) as z:
         bad = z["field_std__basis"].copy()
     bad[0, 0] = np.nan
     refused(rewrite(path, tmp_path / "nan.npz", field_std__basis=bad), "field_std")

@@ -80,7 +80,7 @@ def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design
     rep = analyze(tmp_path / "bag", design)
     ep = rep.episode
     assert ep.complete and not ep.missing, (ep.missing, ep.notes)
-    live = np.load(tmp_path / "traj.npz")
+    live = np.load(tmp_path / "traj.npz", allow_pickle=False)
     # the bag holds exactly what the plant simulated and applied
     np.testing.assert_array_equal(ep.F, live["F"])
     np.testing.assert_array_equal(ep.u, live["U"])

@@ -186,7 +186,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     X_nom = ident.X_ext[: N + 1]
     F_nom = fields(plant, X_nom)
     k0, k1 = obj.window
-    markov_err = markov_relative_error(ident.model, ident.data.Y)
+    markov_err = nom["markov_rel_error"]
     meta: dict[str, Any] = {
         "settings": asdict(st),
         "provenance": {"tool": "sep design", "version": __version__, "python": platform.python_version(),
@@ -259,9 +259,10 @@ def _rom_and_gains(plant: Plant, problem: Problem, st: DesignSettings, nom: dict
                         U=U.copy())     # the same linear model; the nominal of the final input
     nom["reused"] = reused
     timings["identify_s"] = timings.get("identify_s", 0.0) + time.perf_counter() - t0
+    nom["markov_rel_error"] = markov_relative_error(ident.model, ident.data.Y)
     log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
         f"experiments{' (the optimizer’s last identification, reused)' if reused else ''}, Markov relative "
-        f"error {markov_relative_error(ident.model, ident.data.Y):.2e}")
+        f"error {nom['markov_rel_error']:.2e}")
     t0 = time.perf_counter()
     lqg = design_lqg(ident.model, problem)
     timings["gains_s"] = timings.get("gains_s", 0.0) + time.perf_counter() - t0

@@ -17,9 +17,9 @@ same chunks, combined in the same order, give the same numbers on any engine. Mo
 follow the workers (two per worker), which is safe because each run is computed row by row:
 chunkings agree to BLAS round-off (about 1e-15 measured).
 
-Workers rebuild the plant from plain data (`plant_spec`: the plant type and its configuration,
-as in a scenario file) and keep it per process (`worker_plant`), so the plant object itself is
-not shipped. A worker that dies mid-batch has its tasks rerun elsewhere by the scheduler; a task
+Workers rebuild the plant from plain data (`engine.ship(plant)`: the plant type and its
+configuration, as in a scenario file) and keep it per process (`local_plant`), so the plant
+object itself is not shipped. A worker that dies mid-batch has its tasks rerun elsewhere by the scheduler; a task
 that raises fails the map at once with a `TaskError` naming the task (the plant and the
 experiments), and the remaining tasks are cancelled.
 
@@ -48,20 +48,12 @@ class TaskError(RuntimeError):
 
 # ----------------------------------------------------------------------------- plants on workers
 def plant_spec(plant: Any) -> tuple[str, str]:
-    """Plain data that rebuilds `plant` on a worker: (type name, configuration as JSON)."""
+    """Plain data that rebuilds `plant` on a worker: (type name, configuration as JSON), the
+    plant part of a scenario."""
     from sep_plant.plants import type_name_of
+    from sep_plant.scenario import plain_config
 
-    return type_name_of(plant), json.dumps(dict(plant.config()), sort_keys=True, default=_plain)
-
-
-def _plain(v: Any) -> Any:
-    import numpy as np
-
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, np.generic):
-        return v.item()
-    raise TypeError(f"plant configuration value {v!r} is not plain data")
+    return type_name_of(plant), json.dumps(plain_config(plant.config()), sort_keys=True)
 
 
 @functools.lru_cache(maxsize=8)
@@ -73,12 +65,22 @@ def worker_plant(spec: tuple[str, str]) -> Any:
     return make_plant(type_name, json.loads(config))
 
 
+def local_plant(plant: Any) -> Any:
+    """Inside a task: the plant an engine shipped (`ship`): a spec is rebuilt, a plant is itself."""
+    return worker_plant(plant) if isinstance(plant, tuple) else plant
+
+
 # ----------------------------------------------------------------------------------- engines
 class InProcess:
     """Run every task here, in chunk order (the default; nothing is serialized)."""
 
     name = "in-process"
     workers = 1
+    local = True             # tasks run in this process: objects are passed as they are
+
+    def ship(self, plant: Any) -> Any:
+        """What a task receives for `plant` (`local_plant` turns it back into the plant)."""
+        return plant
 
     def map(self, fn: Callable[..., Any], chunks: Sequence[Any], shared: dict[str, Any] | None = None,
             labels: Sequence[str] | None = None, desc: str = "tasks", show_progress: bool = False) -> list:
@@ -116,6 +118,10 @@ class DaskEngine(InProcess):
     """Run the tasks on a dask.distributed cluster (a `Client`; a LocalCluster we own, if any)."""
 
     name = "dask"
+    local = False
+
+    def ship(self, plant: Any) -> tuple[str, str]:
+        return plant_spec(plant)
 
     def __init__(self, client, cluster=None):
         self.client, self.cluster = client, cluster

@@ -116,7 +116,7 @@ def rom_sweep(plant, design, oracle, args, engine=None) -> list[dict]:
     """Re-identify the ROM at each order cap; Markov error and closed-loop cost vs the oracle.
     The impulse experiments run once (at the largest order) on `engine`; each sweep point
     (realization at n_r and its Monte Carlo) is one task."""
-    from .engine import InProcess, plant_spec
+    from .engine import InProcess
 
     engine = engine or InProcess()
     settings = DesignSettings.from_meta(design.meta)
@@ -126,10 +126,8 @@ def rom_sweep(plant, design, oracle, args, engine=None) -> list[dict]:
     if oracle is not None:
         oracle_cost = simulate(plant, design, "oracle_lqg", args.seed, args.sweep_runs, oracle=oracle,
                                keep_estimates=0, keep_trajectories=0, engine=engine).metrics()["cost_mean"]
-    here = type(engine) is InProcess
-    shared = dict(plant=plant if here else plant_spec(plant), data=ident.data,
-                  design=design if here else portable(design), p=settings.p, q=settings.q, sv_tol=settings.sv_tol, seed=args.seed,
-                  runs=args.sweep_runs)
+    shared = dict(plant=engine.ship(plant), data=ident.data, design=design if engine.local else portable(design),
+                  p=settings.p, q=settings.q, sv_tol=settings.sv_tol, seed=args.seed, runs=args.sweep_runs)
     points = engine.map(sweep_point, list(args.sweep_orders), shared,
                         [f"plant {design.scenario.plant_type}: ROM sweep point n_r = {n}" for n in args.sweep_orders],
                         "ROM sweep", show_progress=not args.quiet)
@@ -145,10 +143,9 @@ def rom_sweep(plant, design, oracle, args, engine=None) -> list[dict]:
 
 def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, seed: int, runs: int) -> dict:
     """One sweep point: TV-ERA at order cap n_r from the shared Markov data, then `runs` runs."""
-    from .engine import worker_plant
+    from .engine import local_plant
 
-    if isinstance(plant, tuple):
-        plant = worker_plant(plant)
+    plant = local_plant(plant)
     model, _ = tv_era(data, design.n_steps, p, q, n_r, sv_tol)
     m = simulate(plant, with_rom(design, model), "rom_lqg", seed, runs, keep_estimates=0,
                  keep_trajectories=0).metrics()

@@ -29,6 +29,7 @@ from sep_plant.node_util import (SampleWindow, StartError, declare, fmt_s, limit
 from sep_estimator.ros_common import DesignedNode, scenario_summary, spin_episode
 
 from .lqr import command
+from .mpc import DEFAULT_BUDGET_S, DEFAULT_HORIZON
 
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/lqr.yaml):
   design_file (str, required)      design file written by `design`
@@ -61,8 +62,8 @@ class LqrNode(DesignedNode):
         self.controller = declare(node, 'controller', 'lqr', 'lqr | mpc', constraints='one of: lqr, mpc')
         if self.controller not in ('lqr', 'mpc'):
             raise StartError(f"parameter controller must be 'lqr' or 'mpc', got {self.controller!r}")
-        horizon = declare(node, 'mpc_horizon', 20, 'mpc: horizon in steps', lo=1, hi=100000)
-        budget = declare(node, 'mpc_time_budget_s', 0.02, 'mpc: QP time budget (then the clipped LQR command)',
+        horizon = declare(node, 'mpc_horizon', DEFAULT_HORIZON, 'mpc: horizon in steps', lo=1, hi=100000)
+        budget = declare(node, 'mpc_time_budget_s', DEFAULT_BUDGET_S, 'mpc: QP time budget (then the clipped LQR command)',
                          lo=1e-5, hi=60.0)
         d = self.design
         self.mpc = None

@@ -70,7 +70,7 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     per-run quantity is computed row by row, so the chunking changes no result; the chunks'
     partial sums (the mean field) are added in chunk order.
     """
-    from .engine import InProcess, plant_spec
+    from .engine import InProcess
 
     if controller not in CONTROLLER_NAMES:
         raise ValueError(f"unknown controller {controller!r}: use {', '.join(CONTROLLER_NAMES)}")
@@ -82,7 +82,7 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
         else design.lqg
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
     n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
-    in_process = type(engine) is InProcess
+    in_process = engine.local
     budget = memory_budget if (memory_budget is not None or in_process) else worker_budget(engine)
     batch = runs_per_batch(info.n_x, info.n_field, budget)
     if not in_process:
@@ -90,7 +90,7 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     chunks = [(a, idx[a:a + batch], max(0, min(batch, n_traj - a)), max(0, min(batch, n_keep - a)))
               for a in range(0, M, batch)]
     law = {"open_loop": "open", "rom_mpc": "mpc"}.get(controller, "lqr")
-    shared = dict(plant=plant if in_process else plant_spec(plant), design=design if in_process else portable(design), lqg=lqg,
+    shared = dict(plant=engine.ship(plant), design=design if in_process else portable(design), lqg=lqg,
                   law=law, seed=seed, mpc=dict(mpc or {}))
     labels = [f"plant {type(plant).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
               for c in chunks]
@@ -134,11 +134,10 @@ def portable(design: Design) -> Design:
 
 def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, law: str, seed: int, mpc: dict) -> dict:
     """Simulate one chunk (first row a, run ids, trajectories and estimates to keep)."""
-    from .engine import worker_plant
+    from .engine import local_plant
 
     a, run_ids, keep_f, keep_e = chunk
-    if isinstance(plant, tuple):
-        plant = worker_plant(plant)
+    plant = local_plant(plant)
     problem, info, nom = design.problem, design.info, design.nominal
     M, N = len(run_ids), problem.n_steps
     acc = MetricsAccumulator(design.objective, nom.field, M)

@@ -148,38 +148,35 @@ class RomMPC:
     # ------------------------------------------------------------- online
     def unconstrained(self, k: int, a: np.ndarray) -> np.ndarray:
         """The unconstrained minimizers for estimates a (M, n): (M, H n_u)."""
-        q = np.atleast_2d(a) @ self.F[k].T
+        return self._unconstrained(k, np.atleast_2d(a) @ self.F[k].T)
+
+    def _unconstrained(self, k: int, q: np.ndarray) -> np.ndarray:
         return -sla.cho_solve((self.chol[k], True), q.T).T
 
     def command(self, k: int, a: np.ndarray, warm: np.ndarray | None = None,
                 fail: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-        """u_k for one estimate a (n,): (input (n_u,), the QP solution to warm-start the next step
-        from, or None). `fail` forces the fallback path (for tests and benchmarks)."""
-        z0 = self.unconstrained(k, a)[0]
-        lo, hi = self.bounds(k)
-        tol = 1e-12 * (1.0 + np.abs(z0))
-        if not fail and np.all(z0 >= lo - tol) and np.all(z0 <= hi + tol):
-            self.stats.unconstrained += 1
-            return self._clip(self.u_nom[k] + z0[:self.n_u]), z0
-        z, why = (None, "forced") if fail else self._solve(k, a, lo, hi, warm)
-        if z is None:
-            self.stats.fallbacks += 1
-            self.stats.fallback_reasons[why] = self.stats.fallback_reasons.get(why, 0) + 1
-            return self._clip(self.u_nom[k] + self.K[k] @ a), None
-        self.stats.qp += 1
-        return self._clip(self.u_nom[k] + z[:self.n_u]), z
+        """u_k for one estimate a (n,): (input (n_u,), the solution to warm-start the next step
+        from, None after a fallback). The online path is `command_batch` of one run, so it equals
+        the offline Monte Carlo's. `fail` forces the fallback path (for tests and benchmarks)."""
+        fallbacks = self.stats.fallbacks
+        U, Z = self.command_batch(k, np.atleast_2d(a), None if warm is None else np.atleast_2d(warm), fail)
+        return U[0], (None if self.stats.fallbacks > fallbacks else Z[0])
 
-    def command_batch(self, k: int, A_hat: np.ndarray, warm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def command_batch(self, k: int, A_hat: np.ndarray, warm: np.ndarray | None = None,
+                      fail: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """u_k for M estimates (M, n) at once: the feasible unconstrained ones in one solve, the
-        others one QP each. Returns (inputs (M, n_u), solutions (M, H n_u) for warm starts)."""
-        Z = self.unconstrained(k, A_hat)
+        others one QP each (`fail`: every one falls back). Returns (inputs (M, n_u), solutions
+        (M, H n_u) for warm starts; zero after a fallback)."""
+        Q = A_hat @ self.F[k].T                       # the QPs' linear terms, (M, H n_u)
+        Z = self._unconstrained(k, Q)
         lo, hi = self.bounds(k)
         tol = 1e-12 * (1.0 + np.abs(Z))
-        ok = np.all((Z >= lo - tol) & (Z <= hi + tol), axis=1)
+        ok = np.all((Z >= lo - tol) & (Z <= hi + tol), axis=1) & (not fail)
         self.stats.unconstrained += int(ok.sum())
         U = self.u_nom[k] + Z[:, :self.n_u]
         for r in np.flatnonzero(~ok):
-            z, why = self._solve(k, A_hat[r], lo, hi, None if warm is None else warm[r])
+            z, why = (None, "forced") if fail else self._solve(k, A_hat[r], lo, hi,
+                                                               None if warm is None else warm[r], Q[r])
             if z is None:
                 self.stats.fallbacks += 1
                 self.stats.fallback_reasons[why] = self.stats.fallback_reasons.get(why, 0) + 1
@@ -200,12 +197,13 @@ class RomMPC:
         return out.reshape(np.shape(z))
 
     def _solve(self, k: int, a: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-               warm: np.ndarray | None) -> tuple[np.ndarray | None, str]:
+               warm: np.ndarray | None, q: np.ndarray | None = None) -> tuple[np.ndarray | None, str]:
+        """The box QP of step k for the estimate a (its linear term q = F_k a when given)."""
         t0 = time.perf_counter()
         if self._P_step != k:
             self.solver.update(Px=self.P[k][self._iu])
             self._P_step = k
-        self.solver.update(q=self.F[k] @ a, l=lo, u=hi)
+        self.solver.update(q=self.F[k] @ a if q is None else q, l=lo, u=hi)
         # every solve starts from the same solver state (rho, duals) and its own warm start, so a
         # run's inputs do not depend on which runs were solved before it (batch = one by one)
         self.solver.update_settings(rho=self._rho0)

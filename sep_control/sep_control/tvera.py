@@ -133,7 +133,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     orthonormal snapshots, phi_c = Phi T_c + O(field_tol), and its coefficients become C_c T_c),
     so the result depends on the chunk plan, never on which worker finished first.
     """
-    from .engine import InProcess, plant_spec
+    from .engine import InProcess
 
     if scheme not in SCHEMES:
         raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
@@ -145,7 +145,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
     n_ch = n_u + n_w
     n_y, n_f = int(plant.n_y), int(plant.n_field)
-    in_process = type(engine) is InProcess
+    in_process = engine.local
     if memory_budget is None and not in_process:
         # the default budget is this machine's; a worker must hold a chunk's batch too (only
         # when this binds does it change the plan: pass --memory-budget for the same bits)
@@ -155,7 +155,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     per_pass = max(1, (slot_runs - (scheme == "forward")) // SCHEMES[scheme])     # channels per pass
     groups = [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
     plan = experiment_chunks(N, chunks)
-    shared = dict(plant=plant if in_process else plant_spec(plant), U_ext=U_ext, lags=lags,
+    shared = dict(plant=engine.ship(plant), U_ext=U_ext, lags=lags,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
                   n_chunks=len(plan))
@@ -184,12 +184,11 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     """One experiment chunk (start steps j0..j1-1, every channel group): returns its output
     Markov parameters Y (j1-j0, lags, n_y, n_ch), its field basis phi (n_f, r_c) and the field
     coefficients Yc (j1-j0, field_lags, r_c, n_ch) on it. `plant` is the plant or its
-    `engine.plant_spec` (rebuilt once per worker process)."""
-    from .engine import worker_plant
+    shipped form (`engine.ship`: rebuilt once per worker process)."""
+    from .engine import local_plant
 
     i, j0, j1, Xbar = task
-    if isinstance(plant, tuple):
-        plant = worker_plant(plant)
+    plant = local_plant(plant)
     n_y, n_f = int(plant.n_y), int(plant.n_field)
     n_ch = n_u + n_w
     n = j1 - j0

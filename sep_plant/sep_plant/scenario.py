@@ -86,7 +86,7 @@ class Scenario:
 
     def canonical(self) -> "Scenario":
         """The same scenario with the plant's complete configuration (builds the plant)."""
-        return Scenario(self.plant_type, _plain_config(self.plant.config()), self.problem.resolved(),
+        return Scenario(self.plant_type, plain_config(self.plant.config()), self.problem.resolved(),
                         dict(self.design))
 
     # ------------------------------------------------------------ variations
@@ -130,7 +130,7 @@ class Scenario:
             raise ScenarioError(f"{source}: `design:` must be a mapping of design settings (e.g. n_r: 40), "
                                 f"got {design!r}")
         scen = _parse_current(data, source) if "plant" in data else _parse_legacy(data, source)
-        scen = Scenario(scen.plant_type, scen.plant_config, scen.problem, _plain_config(design))
+        scen = Scenario(scen.plant_type, scen.plant_config, scen.problem, plain_config(design))
         if canonical:
             try:
                 return scen.canonical()
@@ -219,7 +219,7 @@ def _parse_current(data: dict, source: str) -> Scenario:
         problem = Problem.from_dict(data, source)
     except ProblemError as exc:
         raise ScenarioError(str(exc)) from None
-    return Scenario(ptype.strip(), _plain_config(plant), problem)
+    return Scenario(ptype.strip(), plain_config(plant), problem)
 
 
 def _parse_legacy(data: dict, source: str) -> Scenario:
@@ -238,7 +238,7 @@ def _parse_legacy(data: dict, source: str) -> Scenario:
         problem = Problem.from_dict(prob, source)
     except ProblemError as exc:
         raise ScenarioError(str(exc)) from None
-    return Scenario("slab", _plain_config(plant), problem)
+    return Scenario("slab", plain_config(plant), problem)
 
 
 def _decode_inf(v: Any) -> Any:
@@ -247,8 +247,9 @@ def _decode_inf(v: Any) -> Any:
     return v
 
 
-def _plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """YAML/JSON data as plain JSON types (tuples -> lists), keys as given."""
+def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """YAML/JSON data as plain JSON types (numpy values -> numbers and lists, tuples -> lists),
+    keys as given: what a scenario stores of a plant's configuration."""
     return json.loads(json.dumps(dict(cfg), default=_plain))
 
 
