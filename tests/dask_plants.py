@@ -21,21 +21,28 @@ def on_worker() -> bool:
 
 
 class KillsWorkerOnce(ToyPlant):
-    """The first step taken on any worker kills that worker's process (as a crash or the OOM
-    killer would); `marker` records that it happened, so the rerun succeeds."""
+    """The first `kills` steps taken on workers each kill their worker's process (as a crash or
+    the OOM killer would); marker files record that it happened (`marker`, `marker.1`, ...), so
+    the reruns succeed."""
 
-    def __init__(self, n_x: int = 6, decay: float = 0.1, marker: str = ""):
+    def __init__(self, n_x: int = 6, decay: float = 0.1, marker: str = "", kills: int = 1):
         super().__init__(n_x, decay)
-        self.marker = str(marker)
+        self.marker, self.kills = str(marker), int(kills)
 
     def config(self) -> dict:
-        return {**super().config(), "marker": self.marker}
+        return {**super().config(), "marker": self.marker, "kills": self.kills}
 
     def step(self, x, u, w=None):
-        if self.marker and on_worker() and not os.path.exists(self.marker):
-            with open(self.marker, "w") as fh:
-                fh.write(f"killed worker pid {os.getpid()}\n")
-            os._exit(1)
+        if self.marker and on_worker():
+            for j in range(self.kills):
+                try:   # atomic: of two workers stepping at once, exactly one takes marker j
+                    fd = os.open(self.marker if j == 0 else f"{self.marker}.{j}",
+                                 os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                except FileExistsError:
+                    continue
+                os.write(fd, f"killed worker pid {os.getpid()}\n".encode())
+                os.close(fd)
+                os._exit(1)
         return super().step(x, u, w)
 
 

@@ -127,6 +127,19 @@ def test_in_process_engine_names_the_failing_task():
         InProcess().map(lambda x: 1 / x, [1, 0], labels=["chunk a", "chunk b"])
 
 
+def test_every_worker_killed_the_batch_is_resubmitted_with_the_same_result(cluster, tmp_path):
+    """Both workers die (and with them every copy of the scattered inputs, which the scheduler
+    cannot recover): the engine scatters them again and resubmits the lost tasks."""
+    marker = tmp_path / "killed"
+    plant = KillsWorkerOnce(n_x=8, marker=str(marker), kills=2)
+    U = np.full((30, 2), 0.2)
+    here = tvera.impulse_experiments(plant, U, 6, 3, 1e-3, chunks=6)
+    there = tvera.impulse_experiments(plant, U, 6, 3, 1e-3, chunks=6, engine=cluster)
+    assert marker.is_file() and (tmp_path / "killed.1").is_file(), "not both workers were killed"
+    close(there.Y, here.Y)
+    close(there.Yf, here.Yf)
+
+
 def test_worker_killed_mid_batch_is_rerun_with_the_same_result(cluster, tmp_path):
     """Last in the module: it costs the cluster a worker (the nanny starts a new one)."""
     marker = tmp_path / "killed"

@@ -36,6 +36,8 @@ from typing import Any, Callable, Sequence
 
 #: seconds to wait for a scheduler given as tcp://HOST:PORT before giving up
 CONNECT_TIMEOUT_S = 10.0
+#: submissions of one task whose inputs were lost with their workers, before the map fails
+MAX_ATTEMPTS = 3
 
 
 class EngineError(RuntimeError):
@@ -140,25 +142,40 @@ class DaskEngine(InProcess):
         labels = list(labels) if labels is not None else [f"{desc} {i}" for i in range(len(chunks))]
         self._n += 1
         # scattered once; every task gets a reference (broadcast: no worker fetches from another)
-        # (in a one-element list: scatter would split a tuple or dict into several futures)
-        sfut = {k: self.client.scatter([v], broadcast=True, hash=False)[0] for k, v in shared.items()}
+        sfut = self._scatter(shared)
         tag = re.sub(r"[^A-Za-z0-9]+", "-", desc).strip("-").lower() or "task"
         # keys unique across clients: two runs sharing one scheduler must never share results
         run = uuid.uuid4().hex[:12]
-        futures = [self.client.submit(_apply, fn, c, sfut, key=f"sep-{tag}-{run}-{self._n}-{i}", pure=False,
-                                      retries=0) for i, c in enumerate(chunks)]
+
+        def submit(i: int, attempt: int):
+            return self.client.submit(_apply, fn, chunks[i], sfut, key=f"sep-{tag}-{run}-{self._n}-{i}-{attempt}",
+                                      pure=False, retries=0)
+
+        futures = [submit(i, 1) for i in range(len(chunks))]
         index = {f.key: i for i, f in enumerate(futures)}
+        attempts = [1] * len(futures)
         results: list[Any] = [None] * len(futures)
         bar = progress(None, desc, show_progress, total=len(futures))
+        pending = as_completed(futures)
         try:
-            for fut in as_completed(futures):
+            for fut in pending:
                 i = index[fut.key]
                 if fut.status == "error":
                     exc = fut.exception()
                     raise TaskError(f"{labels[i]} (on the cluster): {type(exc).__name__}: {exc}") from exc
                 if fut.status != "finished":
-                    raise TaskError(f"{labels[i]} (on the cluster): the task was {fut.status} "
-                                    f"(scheduler lost or the cluster shut down)")
+                    # cancelled or lost: every worker holding its inputs died (the scheduler reruns
+                    # tasks of a lost worker itself, but cannot recover scattered data): scatter
+                    # again what was lost and resubmit, a bounded number of times
+                    if attempts[i] >= MAX_ATTEMPTS:
+                        raise TaskError(f"{labels[i]} (on the cluster): the task was {fut.status} "
+                                        f"{attempts[i]} times (workers lost, or the cluster shut down)")
+                    attempts[i] += 1
+                    sfut = self._scatter(shared, sfut)
+                    futures[i] = submit(i, attempts[i])
+                    index[futures[i].key] = i
+                    pending.add(futures[i])
+                    continue
                 results[i] = fut.result()
                 fut.release()
                 if hasattr(bar, "update"):
@@ -172,6 +189,15 @@ class DaskEngine(InProcess):
             for f in sfut.values():
                 f.release()
         return results
+
+    def _scatter(self, shared: dict[str, Any], old: dict | None = None) -> dict:
+        """Futures of the shared values on every worker; with `old`, only those no longer held
+        (in a one-element list: scatter would split a tuple or dict into several futures)."""
+        out = dict(old or {})
+        for k, v in shared.items():
+            if k not in out or out[k].status != "finished":
+                out[k] = self.client.scatter([v], broadcast=True, hash=False)[0]
+        return out
 
     def memory_limit(self) -> int | None:
         """The smallest worker memory limit in bytes (None when unlimited or unknown)."""
