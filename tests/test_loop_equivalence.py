@@ -16,7 +16,7 @@ TOPICS = (c.FIELD, c.FIELD_ESTIMATE, c.HEAT_APPLIED, c.HEAT_COMMAND, c.MEASUREME
 
 
 def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run: int,
-                mode: str = 'lockstep', rtf: float = 10.0):
+                mode: str = 'lockstep', rtf: float = 10.0, field_subscribers: int = 1):
     pr = probe().subscribe(*TOPICS, c.DIAGNOSTICS)
     ctl = {'design_file': case.design_file, 'wait_for_scenario_s': 20.0}
     if three:
@@ -31,7 +31,7 @@ def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run:
     plant = launcher.start('plant', params={
         'scenario_file': case.scenario_file, 'seed': seed, 'run': run, 'mode': mode,
         'real_time_factor': rtf, 'wait_for_subscribers': subscribers,
-        'wait_for_field_subscribers': 1, 'summary_file': tmp_path / 'plant.json',
+        'wait_for_field_subscribers': field_subscribers, 'summary_file': tmp_path / 'plant.json',
         'command_timeout_s': 20.0})
     assert plant.wait(120) == 0, plant.output()
     for p in controllers:

@@ -82,8 +82,10 @@ def test_grid_plant_lockstep_over_topics_with_images(launcher, probe, plate_case
     case = plate_case
     info = case.design.info
     assert info.grid_shape == (12, 10)
-    images = probe(name="viewer").subscribe(c.FIELD_IMAGE, c.FIELD_ESTIMATE_IMAGE)
-    pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=1, run=0)
+    # the viewer also takes the field cloud, so that the plant waits for it (and its images are
+    # built from step 0: a plant builds them only while an image subscriber is matched)
+    images = probe(name="viewer").subscribe(c.FIELD_IMAGE, c.FIELD_ESTIMATE_IMAGE, c.FIELD)
+    pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=1, run=0, field_subscribers=2)
     assert summary["status"] == "completed"
     check_equivalence(pr, case, 1, 0)
     # the live heat maps: 32FC1 images of the true and the estimated field (rows = x)
