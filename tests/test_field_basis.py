@@ -108,3 +108,44 @@ def test_experiments_split_by_a_memory_budget_give_the_same_data():
     np.testing.assert_allclose(split.Y, whole.Y, rtol=0, atol=1e-12 * np.abs(whole.Y).max())
     # (the field responses agree to the basis tolerance, 1e-8 of the largest: the order of adding differs)
     np.testing.assert_allclose(split.Yf, whole.Yf, rtol=0, atol=5e-8 * np.abs(whole.Yf).max())
+
+
+def test_chunk_bases_merge_to_the_one_chunk_basis():
+    """Experiments in 4 chunks of start steps give the field basis one chunk gives: each chunk's
+    responses are streamed into the merged basis against the largest response overall, so no
+    chunk keeps its own small directions (as unit vectors they had doubled the rank), and the
+    merged basis reproduces every chunk's field responses to the basis' tolerance."""
+    from core_helpers import flat
+    from sep_control import tvera
+
+    s = flat(n_x=800, n_steps=40, k_band=24, lqr_k_switch=19)
+    U = np.full((40, 5), 0.2) + 0.01 * np.random.default_rng(3).standard_normal((40, 5))
+    one = tvera.identify(s.plant, U, 6, 6, 16, chunks=1).data
+    four = tvera.identify(s.plant, U, 6, 6, 16, chunks=4).data
+    assert abs(four.basis.shape[1] - one.basis.shape[1]) <= 2, (four.basis.shape, one.basis.shape)
+    np.testing.assert_allclose(four.basis.T @ four.basis, np.eye(four.basis.shape[1]), atol=1e-12)
+    Yf1 = np.einsum("fr,jlrc->jlfc", one.basis, one.Yc)
+    Yf4 = np.einsum("fr,jlrc->jlfc", four.basis, four.Yc)
+    assert np.abs(Yf4 - Yf1).max() <= 1e-7 * np.abs(Yf1).max()
+
+
+def test_merge_streams_coefficients_like_add():
+    """`merge(phi, C)` adds the snapshots phi C as `add` adds them block by block, without
+    forming them: the same rank, an orthonormal basis, the same projection of the data, and the
+    residual of every snapshot below the tolerance."""
+    rng = np.random.default_rng(4)
+    n, r, m = 500, 40, 640
+    phi = np.linalg.qr(rng.standard_normal((n, r)))[0]
+    C = rng.standard_normal((r, m)) * np.logspace(0, -12, r)[:, None]
+    a, b = IncrementalBasis(n, 1e-8), IncrementalBasis(n, 1e-8)
+    a.merge(phi, C)
+    X = (phi @ C).T
+    for i in range(0, m, 64):
+        b.add(X[i:i + 64])
+    assert a.rank == b.rank
+    np.testing.assert_allclose(a.phi.T @ a.phi, np.eye(a.rank), atol=1e-12)
+    res = X.T - a.phi @ (a.phi.T @ X.T)
+    assert np.sqrt((res ** 2).sum(axis=0)).max() <= 1e-7 * np.sqrt((X ** 2).sum(axis=1)).max()
+    # the same span where the data are (directions at the tolerance's edge may differ)
+    Pa, Pb = a.phi @ (a.phi.T @ X.T), b.phi @ (b.phi.T @ X.T)
+    assert np.abs(Pa - Pb).max() <= 1e-7 * np.abs(X).max()

@@ -67,7 +67,9 @@ def test_the_design_reuses_the_optimizers_last_identification():
     from sep_control.design import DesignSettings, run_design
     from sep_control.tvera import SCHEMES
 
-    st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False)
+    from sep_control.optimize import SAME_INPUT_RTOL
+
+    st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False, relinearize_rtol=SAME_INPUT_RTOL)
     d = run_design(P, S, st, show_progress=False, log=lambda m: None)
     runs_per_impulse = SCHEMES[st.impulse_scheme]          # central (default): 2, forward: 1
     assert d.meta["optimizer"]["experiments"] == \
@@ -75,6 +77,46 @@ def test_the_design_reuses_the_optimizers_last_identification():
     assert d.meta["timings"]["identify_s"] < 0.05          # reused, not identified again
     assert d.meta["validation"]["markov_rel_error"] < 1e-5       # (n_r = 16, p = q = 8)
     assert d.meta["optimizer"]["identification_reused"]
+
+
+def test_keeping_the_identification_for_small_steps_reaches_the_same_design():
+    """relinearize_rtol (default 1e-2): the optimizer keeps its last identification while the
+    input moved less than that (the last Gauss-Newton steps), so it identifies fewer times; the
+    optimum is the same to 1e-6 and the design's ROM is still identified at the final input."""
+    from sep_control.design import DesignSettings, run_design
+    from sep_control.optimize import SAME_INPUT_RTOL, same_input
+    from sep_control.tvera import identify, markov_relative_error
+
+    base = dict(jacobian="rom", p=8, q=8, n_r=16)
+    every = run_design(P, S, DesignSettings(**base, relinearize_rtol=SAME_INPUT_RTOL), show_progress=False,
+                       log=lambda m: None)
+    kept = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
+    assert DesignSettings().relinearize_rtol == 1e-2
+    a, b = every.meta["optimizer"], kept.meta["optimizer"]
+    assert b["experiments"] < a["experiments"]
+    assert b["nominal_cost"] == pytest.approx(a["nominal_cost"], rel=1e-6)
+    assert b["mean_only_cost"] == pytest.approx(a["mean_only_cost"], rel=1e-6)
+    # the ROM is the final nominal's own: it fits a fresh identification there as well as
+    # that identification's own model does
+    fresh = identify(P, kept.nominal.u, **ROM)
+    err_kept = markov_relative_error(kept.rom, fresh.data.Y)
+    assert err_kept < 1e-5 and err_kept <= 1.01 * markov_relative_error(fresh.model, fresh.data.Y) + 1e-12
+    # optimize on its own: the result carries its last identification, near (not at) the final U
+    from sep_control.optimize import optimize
+    res = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM, relinearize_rtol=1e-2)
+    ref = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM)
+    assert res.experiments < ref.experiments and res.cost == pytest.approx(ref.cost, rel=1e-6)
+    assert same_input(res.identification.U, res.U, 1e-2)
+
+
+def test_old_design_files_identified_after_every_step():
+    from sep_control.design import DesignSettings
+    from sep_control.optimize import SAME_INPUT_RTOL
+
+    assert DesignSettings.from_meta({"settings": {"n_r": 20}}).relinearize_rtol == SAME_INPUT_RTOL
+    assert DesignSettings.from_meta({"settings": {"relinearize_rtol": 0.05}}).relinearize_rtol == 0.05
+    with pytest.raises(ValueError, match="relinearize_rtol"):
+        DesignSettings(relinearize_rtol=0.0).check()
 
 
 def test_auto_picks_the_cheaper_jacobian():

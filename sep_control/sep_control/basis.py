@@ -38,13 +38,17 @@ class IncrementalBasis:
         """(n, r) orthonormal columns."""
         return self._phi[:, :self._cols]
 
-    def add(self, D: np.ndarray) -> np.ndarray:
-        """Coefficients (b, r) of the snapshots D (b, n) on the basis after adding them."""
+    def add(self, D: np.ndarray, scale: float | None = None) -> np.ndarray:
+        """Coefficients (b, r) of the snapshots D (b, n) on the basis after adding them.
+
+        `scale`: the size the tolerance is relative to, when D are not the snapshots themselves
+        but, e.g., their principal directions (default: the largest norm in D)."""
         D = np.atleast_2d(D)
         if D.shape[1] != self.n:
             raise ValueError(f"snapshots of length {D.shape[1]}, basis of length {self.n}")
-        norms = np.sqrt(np.einsum("ij,ij->i", D, D))
-        self.scale = max(self.scale, float(norms.max(initial=0.0)))
+        if scale is None:
+            scale = float(np.sqrt(np.einsum("ij,ij->i", D, D)).max(initial=0.0))
+        self.scale = max(self.scale, float(scale))
         phi = self.phi
         C = D @ phi
         E = D - C @ phi.T
@@ -60,8 +64,40 @@ class IncrementalBasis:
         k = int(np.count_nonzero(keep))
         if k == 0:
             return C
-        self._grow(Vt[keep].T)
-        return np.hstack([C, U[:, keep] * S[keep]])
+        # the smallest kept directions (S near tol * scale) carry the projection's round-off at
+        # a relative size of eps |D| / S: orthogonalize them once more and among themselves
+        # (V_old = V R + round-off, so E's coefficients on V are U S R')
+        V = Vt[keep].T
+        V -= phi @ (phi.T @ V)
+        V, R = np.linalg.qr(V)
+        self._grow(V)
+        return np.hstack([C, (U[:, keep] * S[keep]) @ R.T])
+
+    def merge(self, phi: np.ndarray, coefficients: np.ndarray, block: int = 64) -> None:
+        """Add the snapshots phi @ coefficients (phi (n, r_c) orthonormal, coefficients (r_c, m)),
+        as `add` would one block of `block` snapshots at a time, but without forming them: their
+        part outside the basis is Q Z (Q (n, r_c) orthonormal, Z = R coefficients from the QR of
+        phi's residual) and the streaming runs on the columns of Z, in r_c numbers each. How
+        chunk bases (`sep_control.tvera`) become one: the same tolerance as within a chunk,
+        against the largest snapshot so far."""
+        if phi.shape[1] == 0 or coefficients.size == 0:
+            return
+        self.scale = max(self.scale, float(np.sqrt(np.einsum("ij,ij->j", coefficients, coefficients)).max()))
+        own = self.phi
+        A = phi - own @ (own.T @ phi)
+        A -= own @ (own.T @ A)                      # re-orthogonalize
+        Q, R = np.linalg.qr(A)
+        Z = R @ coefficients                       # (r_c, m): the residual snapshots on Q
+        sub = IncrementalBasis(phi.shape[1], self.tol)
+        sub.scale = self.scale
+        for i in range(0, Z.shape[1], block):
+            sub.add(Z[:, i:i + block].T, scale=self.scale)
+        if self.max_rank is not None:
+            sub._cols = min(sub._cols, max(0, self.max_rank - self._cols))
+        if sub.rank:
+            V = Q @ sub.phi
+            V -= own @ (own.T @ V)                 # orthogonal to the basis to round-off
+            self._grow(np.linalg.qr(V)[0])
 
     def _grow(self, V: np.ndarray) -> None:
         need = self._cols + V.shape[1]

@@ -34,7 +34,7 @@ from . import __version__
 from .budget import runs_per_batch
 from .lqr import design_lqg, input_spread
 from .metrics import nominal_cost
-from .optimize import objective_of, optimize, run_belief
+from .optimize import SAME_INPUT_RTOL, objective_of, optimize, run_belief, same_input
 from .tvera import SCHEMES, Identification, extend_nominal, identify, markov_relative_error
 
 
@@ -65,6 +65,7 @@ class DesignSettings:
     impulse_scheme: str = "central"  # TV-ERA impulses: "central" (+- pairs) or "forward" (one run each)
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
+    relinearize_rtol: float = 1e-2  # ROM Jacobian: keep the last identification while U moved less (relative)
     memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
     chunks: int = 4                 # impulse experiments in this many chunks of start steps (tasks)
     limit_margin: float = 0.0       # keep this many closed-loop input stds inside u_min/u_max (0: none)
@@ -86,7 +87,7 @@ class DesignSettings:
             raise ValueError(f"limit_margin must be a finite number >= 0, got {self.limit_margin}")
         if self.margin_iterations < 0:
             raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
-        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol"):
+        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol", "relinearize_rtol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
@@ -130,8 +131,9 @@ class DesignSettings:
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
         """The settings recorded in a design file's metadata (unknown keys ignored; files older
-        than the chunked experiments ran them as one chunk)."""
-        recorded = {"chunks": 1, **meta.get("settings", {})}
+        than the chunked experiments ran them as one chunk, and older than `relinearize_rtol`
+        identified again after every step)."""
+        recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, **meta.get("settings", {})}
         return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
 
 
@@ -225,7 +227,7 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, U0=U0, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
-                   jacobian=jacobian, rom=rom, bounds=bounds)
+                   jacobian=jacobian, rom=rom, bounds=bounds, relinearize_rtol=st.relinearize_rtol)
     log(f"mean-only {st.method} ({jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
         f"({opt.experiments} experiments, {opt.seconds:.2f} s)")
     U, belief_hist, last = opt.U, [], opt
@@ -252,7 +254,8 @@ def _rom_and_gains(plant: Plant, problem: Problem, st: DesignSettings, nom: dict
     at this input already) and the LQG on the ROM."""
     U, last = nom["U"], nom["last"]
     t0 = time.perf_counter()
-    reused = last.identification is not None
+    # the optimizer's last identification is the design's ROM only when made at this very input
+    reused = last.identification is not None and same_input(last.identification.U, U)
     ident = last.identification if reused else identify_rom(plant, U, st, show_progress, engine)
     if reused and not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],

@@ -182,10 +182,10 @@ def rom_normal_equations(plant: Plant, U: np.ndarray, obj: Objective, residual_f
 SAME_INPUT_RTOL = 1e-6
 
 
-def same_input(U_a: np.ndarray, U_b: np.ndarray) -> bool:
-    """Whether a linearization at U_a serves at U_b (see SAME_INPUT_RTOL)."""
+def same_input(U_a: np.ndarray, U_b: np.ndarray, rtol: float = SAME_INPUT_RTOL) -> bool:
+    """Whether a linearization at U_a serves at U_b: max|U_a - U_b| <= rtol max|U_a|."""
     return U_a.shape == U_b.shape and float(np.max(np.abs(U_a - U_b))) <= \
-        SAME_INPUT_RTOL * max(float(np.max(np.abs(U_a))), 1e-12)
+        rtol * max(float(np.max(np.abs(U_a))), 1e-12)
 class SensitivityLinearization:
     """Gauss-Newton/LM steps and gradients from dense normal equations (sensitivity Jacobian)."""
 
@@ -308,7 +308,7 @@ class OptimizationResult:
     seconds: float = 0.0
     method: str = "gn"
     objective: str = "nominal"
-    identification: object = None          # ROM path: the TV-ERA model at the final U, if identified
+    identification: object = None          # ROM path: the last TV-ERA model (at or near the final U)
     belief: EnKFResult | None = None       # belief objective: the belief at the final U (after a step)
 
 
@@ -318,7 +318,8 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
              show_progress: bool = True, jacobian: str = "sensitivity",
              rom: dict | None = None, reuse: "OptimizationResult | None" = None,
              chord: bool = False, max_trials: int = 12,
-             bounds: tuple[np.ndarray, np.ndarray] | None = None) -> OptimizationResult:
+             bounds: tuple[np.ndarray, np.ndarray] | None = None,
+             relinearize_rtol: float = SAME_INPUT_RTOL) -> OptimizationResult:
     """Minimize the nominal (``objective='nominal'``) or belief-space (``'belief'``) cost.
 
     method ``gn`` (Levenberg-Marquardt) or ``gd`` (gradient descent with step `step_size`
@@ -331,7 +332,11 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     Jacobian the result carries the identification at the final input (`identification`), and
     `reuse` (an earlier result) saves identifying at its final input again; `chord` keeps the
     first identification for every iteration (a chord method: the belief-space refinement moves
-    U by ~1e-4 relative, and its Jacobian is the nominal's to first order anyway).
+    U by ~1e-4 relative, and its Jacobian is the nominal's to first order anyway), and
+    `relinearize_rtol` keeps it while U stays that close to where it was made (`same_input`;
+    the default identifies again after every step). Near the optimum the Gauss-Newton steps move
+    U by 1e-3 and less, and a model identified a step earlier proposes them as well: the steps
+    are accepted on the true objective whichever model proposed them.
     Input limits: the problem's u_min/u_max, or `bounds` = (lo, hi), each broadcastable to
     (N, n_u) (per-step bounds: the limits tightened by a margin for the feedback). Projected
     Levenberg-Marquardt: inputs at an active bound (`active_bounds`) are held, the others step,
@@ -371,7 +376,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
 
     def linearize(Uc: np.ndarray, Xc: np.ndarray, residual: np.ndarray):
         if jacobian == "rom":
-            near = [i for i in identified if chord or same_input(i.U, Uc)]
+            near = [i for i in identified if chord or same_input(i.U, Uc, relinearize_rtol)]
             if near:
                 ident = near[0]                       # identified at (virtually) this input already
             else:
@@ -425,10 +430,10 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
         lin = linearize(U, X, field_for_residual)   # ROM path at the end too: the design reuses it
         if stop:
             break
-    # the ROM path ends identified at the final input when the last linearization was there:
-    # the design reuses it as its TV-ERA model instead of identifying again
-    ident = getattr(lin, "identification", None)
-    result.identification = ident if ident is not None and same_input(ident.U, U) else None
+    # the ROM path ends with its last identification, at the final input or within
+    # relinearize_rtol of it: a later stage's chord starts from it, and the design reuses it as
+    # its TV-ERA model when it is at the final input (`same_input`) instead of identifying again
+    result.identification = getattr(lin, "identification", None)
     result.belief = last_belief.get("b")
     result.U, result.cost, result.seconds = U, J, time.perf_counter() - t0
     return result
