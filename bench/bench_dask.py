@@ -7,7 +7,7 @@ column: ≤ 1e-12 expected). Rows:
 * TV-ERA impulse experiments alone (reference problem, slab at several n_x, 4 chunks): where
   the cluster's overhead (scheduling, shipping nominal snapshots and field bases) starts to pay;
 * a whole design (default: the reference problem on the slab at n_x = 1600, whose Gauss-Newton
-  uses the ROM Jacobian: every iterate's identification runs in 4 chunks on the cluster; the
+  uses the ROM Jacobian: each identification of the optimizer runs in 4 chunks on the cluster; the
   EnKF belief and the Riccati passes stay in the client);
 * a 1000-run Monte Carlo of ROM-LQG (the reference design and that design).
 

@@ -9,7 +9,8 @@ them as well (every step is accepted on the true objective). The design's own RO
 identified at the final input. For each row this measures both settings, alternating, in one
 process with one BLAS thread:
 
-* design time, the optimizer's experiments, identifications (experiments / 2 N n_u);
+* design time, identifications (impulse experiments / 2 N n_u: the central scheme, noise on the
+  inputs), counting the design's final one;
 * the mean-only optimum J and the final nominal cost, their relative difference, max |dU| /
   max |U| between the two nominals, the final ROM's Markov relative error;
 * a Monte Carlo of ROM-LQG (cost, in band) and, where the full-order oracle fits (n_x <= 400),

@@ -149,3 +149,17 @@ def test_merge_streams_coefficients_like_add():
     # the same span where the data are (directions at the tolerance's edge may differ)
     Pa, Pb = a.phi @ (a.phi.T @ X.T), b.phi @ (b.phi.T @ X.T)
     assert np.abs(Pa - Pb).max() <= 1e-7 * np.abs(X).max()
+    # a second chunk that overlaps the first: only its new part extends the basis
+    phi2 = np.linalg.qr(np.hstack([phi[:, :20], rng.standard_normal((n, 10))]))[0]
+    C2 = rng.standard_normal((30, 320))
+    r0 = a.rank
+    a.merge(phi2, C2)
+    X2 = (phi2 @ C2).T
+    for i in range(0, 320, 64):
+        b.add(X2[i:i + 64])
+    assert a.rank == b.rank and r0 < a.rank <= r0 + 10 + 20
+    np.testing.assert_allclose(a.phi.T @ a.phi, np.eye(a.rank), atol=1e-12)
+    res2 = X2.T - a.phi @ (a.phi.T @ X2.T)
+    assert np.abs(res2).max() <= 1e-7 * np.abs(X2).max()
+    with pytest.raises(ValueError, match="merge"):
+        a.merge(phi2[:10], C2)

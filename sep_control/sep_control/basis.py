@@ -6,10 +6,14 @@ vectors of n_f numbers). `IncrementalBasis.add(D)` returns their coefficients on
 orthonormal basis Phi (n_f x r) and extends Phi by the part of D it does not yet span:
 
     C = D Phi,   E = D - C Phi'   (twice: re-orthogonalization keeps Phi orthonormal to round-off)
-    E = U S V',  new directions V_k for S_i > tol * scale,  Phi <- [Phi, V_k],  C <- [C, U_k S_k]
+    E = U S V',  new directions V_k for S_i > tol * scale,  V_k - Phi Phi' V_k = V R (QR: the
+    smallest kept directions carry round-off of relative size eps |D| / S_i),
+    Phi <- [Phi, V],  C <- [C, U_k S_k R']
 
 `scale` is the largest snapshot norm seen so far, so what is dropped is below `tol` relative to
 the data. Memory: n_f r for Phi instead of every snapshot; cost per block n_f r b flops.
+`merge(phi, coefficients)` adds snapshots given on another orthonormal basis (a chunk's) the
+same way, streaming their coefficients instead of the n_f-long vectors.
 `truncate(coefficients)` then compresses the basis to the span the coefficients actually use
 (an SVD of the r x m coefficient matrix, not of the n_f x m data).
 Pure numpy: no ROS import.
@@ -41,8 +45,8 @@ class IncrementalBasis:
     def add(self, D: np.ndarray, scale: float | None = None) -> np.ndarray:
         """Coefficients (b, r) of the snapshots D (b, n) on the basis after adding them.
 
-        `scale`: the size the tolerance is relative to, when D are not the snapshots themselves
-        but, e.g., their principal directions (default: the largest norm in D)."""
+        `scale`: the size the tolerance is relative to, when it is not the largest norm in D
+        (default), e.g. the largest snapshot of a whole set that arrives in parts."""
         D = np.atleast_2d(D)
         if D.shape[1] != self.n:
             raise ValueError(f"snapshots of length {D.shape[1]}, basis of length {self.n}")
@@ -59,6 +63,7 @@ class IncrementalBasis:
             return C
         U, S, Vt = np.linalg.svd(E, full_matrices=False)
         keep = S > self.tol * self.scale
+        keep &= np.arange(S.size) < self.n - self._cols       # never more directions than n
         if self.max_rank is not None:
             keep &= np.arange(S.size) < max(0, self.max_rank - self._cols)
         k = int(np.count_nonzero(keep))
@@ -79,7 +84,11 @@ class IncrementalBasis:
         part outside the basis is Q Z (Q (n, r_c) orthonormal, Z = R coefficients from the QR of
         phi's residual) and the streaming runs on the columns of Z, in r_c numbers each. How
         chunk bases (`sep_control.tvera`) become one: the same tolerance as within a chunk,
-        against the largest snapshot so far."""
+        against `scale` (set it beforehand to the largest snapshot of all chunks, so that the
+        order of the chunks does not decide what is dropped) or the largest snapshot so far."""
+        if phi.ndim != 2 or phi.shape[0] != self.n or coefficients.ndim != 2 or coefficients.shape[0] != phi.shape[1]:
+            raise ValueError(f"merge: basis {phi.shape} and coefficients {np.shape(coefficients)} do not "
+                             f"fit a basis of length {self.n}")
         if phi.shape[1] == 0 or coefficients.size == 0:
             return
         self.scale = max(self.scale, float(np.sqrt(np.einsum("ij,ij->j", coefficients, coefficients)).max()))
@@ -91,7 +100,7 @@ class IncrementalBasis:
         sub = IncrementalBasis(phi.shape[1], self.tol)
         sub.scale = self.scale
         for i in range(0, Z.shape[1], block):
-            sub.add(Z[:, i:i + block].T, scale=self.scale)
+            sub.add(Z[:, i:i + block].T, scale=self.scale)      # keeps sub.scale at ours
         if self.max_rank is not None:
             sub._cols = min(sub._cols, max(0, self.max_rank - self._cols))
         if sub.rank:

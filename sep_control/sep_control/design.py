@@ -233,8 +233,9 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
     U, belief_hist, last = opt.U, [], opt
     if st.belief:
         # the belief refinement moves U by ~1e-4 relative and its Jacobian is the nominal's to first
-        # order: a chord on one ROM identified at the mean-only optimum (the optimizer's own, when it
-        # used the ROM Jacobian), whichever Jacobian the mean-only stage used
+        # order: a chord on one ROM, the mean-only optimizer's last one when it used the ROM
+        # Jacobian (identified at its optimum or within relinearize_rtol of it), else one
+        # identified at the mean-only optimum
         bopt = optimize(plant, problem, U0=U, method="gn", objective="belief", max_iter=st.belief_iter,
                         tol=st.tol, eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
                         jacobian="rom", rom=rom, reuse=opt, chord=True, max_trials=BELIEF_TRIALS, bounds=bounds)

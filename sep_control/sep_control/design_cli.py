@@ -35,13 +35,15 @@ SETTINGS_OPTIONS = (
      "optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent"),
     ("--jacobian", "jacobian", dict(choices=["auto", "sensitivity", "rom"]),
      "Gauss-Newton Jacobian: sensitivity = N n_u impulse-sensitivity experiments per iteration and a "
-     "dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration, the step solved on it by a "
-     "Riccati pass (its last identification is the design's ROM); auto = rom when N + 1 > 5 (p + q), "
+     "dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration (see --relinearize-rtol), the "
+     "step solved on it by a Riccati pass (its last identification is the design's ROM when made at the "
+     "final input); auto = rom when N + 1 > 5 (p + q), "
      "where it is measured faster, or when the sensitivity batch would not fit the memory budget"),
     ("--relinearize-rtol", "relinearize_rtol", dict(type=float),
      "rom Jacobian: keep the last identification for the next step while the input moved by less than "
-     "this, relative (max |dU| / max |U|; default 0.01: near the optimum the steps move U by 1e-3 and "
-     "less). The final input is always identified afresh: the design's ROM is the nominal's own"),
+     "this, relative (max |dU| / max |U|; near the optimum the steps move U by 1e-3 and less). The "
+     "design's ROM is always identified at the final input (afresh, or the optimizer's last model when "
+     "made there); 1e-6 identifies after every step (the earlier behaviour)"),
     ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
     ("--tol", "tol", dict(type=float), "stop when an accepted step lowers the cost by less than this, relative"),
     ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha"),

@@ -324,19 +324,20 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
 
     method ``gn`` (Levenberg-Marquardt) or ``gd`` (gradient descent with step `step_size`
     and backtracking). `jacobian` ``sensitivity`` (N n_u impulse-sensitivity experiments) or
-    ``rom`` (a TV-ERA model identified at every iterate, settings `rom` passed to `identify`;
+    ``rom`` (a TV-ERA model identified at the iterates, settings `rom` passed to `identify`;
     the step is then an LQ problem on the ROM, `RomLinearization`). Stops after `max_iter`
     iterations or when an accepted step lowers the objective by less than `tol` relative (for the
     belief objective, an ensemble estimate, such a step is not taken). Every
     step is accepted on the true objective, whichever Jacobian proposed it. With the ROM
-    Jacobian the result carries the identification at the final input (`identification`), and
-    `reuse` (an earlier result) saves identifying at its final input again; `chord` keeps the
+    Jacobian the result carries its last identification (`identification`: at the final input,
+    or within `relinearize_rtol` of it), and `reuse` (an earlier result) starts from it; `chord` keeps the
     first identification for every iteration (a chord method: the belief-space refinement moves
     U by ~1e-4 relative, and its Jacobian is the nominal's to first order anyway), and
     `relinearize_rtol` keeps it while U stays that close to where it was made (`same_input`;
     the default identifies again after every step). Near the optimum the Gauss-Newton steps move
     U by 1e-3 and less, and a model identified a step earlier proposes them as well: the steps
-    are accepted on the true objective whichever model proposed them.
+    are accepted on the true objective whichever model proposed them, and when every trial
+    from a kept model fails, the trials are repeated once on a model identified at U.
     Input limits: the problem's u_min/u_max, or `bounds` = (lo, hi), each broadcastable to
     (N, n_u) (per-step bounds: the limits tightened by a margin for the feedback). Projected
     Levenberg-Marquardt: inputs at an active bound (`active_bounds`) are held, the others step,
@@ -374,11 +375,11 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     # one handed over by an earlier stage
     identified = [reuse.identification] if reuse is not None and reuse.identification is not None else []
 
-    def linearize(Uc: np.ndarray, Xc: np.ndarray, residual: np.ndarray):
+    def linearize(Uc: np.ndarray, Xc: np.ndarray, residual: np.ndarray, rtol: float = relinearize_rtol):
         if jacobian == "rom":
-            near = [i for i in identified if chord or same_input(i.U, Uc, relinearize_rtol)]
+            near = [i for i in identified if chord or same_input(i.U, Uc, rtol)]
             if near:
-                ident = near[0]                       # identified at (virtually) this input already
+                ident = near[0]                       # identified at (or within rtol of) this input
             else:
                 ident = identify(plant, Uc, **(rom or {}))
                 identified[:] = [ident]
@@ -393,8 +394,8 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     lam, alpha = 1e-3, step_size
     lin = linearize(U, X, field_for_residual)
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
-    for it in bar:
-        accepted = False
+    def attempt(lin, lam: float, alpha: float):
+        """Up to max_trials damped steps from U; the first the true objective accepts."""
         frozen = active_bounds(U, lin.gradient(), lo, hi) if bounded else None
         for _ in range(max_trials):
             if method == "gn":
@@ -406,11 +407,20 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
             U_try = np.clip(U + dU, lo, hi)
             J_try, X_try, f_try = evaluate(U_try)
             if np.isfinite(J_try) and J_try < J:
-                accepted = True
-                break
+                return True, lam, alpha, (U_try, J_try, X_try, f_try)
             lam, alpha = lam * 4.0, alpha * 0.5
+        return False, lam, alpha, None
+
+    for it in bar:
+        accepted, lam_next, alpha_next, trial = attempt(lin, lam, alpha)
+        if not accepted and jacobian == "rom" and not chord and not same_input(lin.identification.U, U):
+            # every trial failed on a model kept from an earlier input: once more on one made here
+            lin = linearize(U, X, field_for_residual, SAME_INPUT_RTOL)
+            accepted, lam_next, alpha_next, trial = attempt(lin, lam, alpha)
+        lam, alpha = lam_next, alpha_next
         if not accepted:
             break
+        U_try, J_try, X_try, f_try = trial
         rel = (J - J_try) / max(J, 1e-300)
         if objective == "belief" and rel < tol:
             # the belief cost is an ensemble estimate: a decrease below tol is no real improvement,

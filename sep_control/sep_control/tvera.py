@@ -129,11 +129,11 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     `Xbar_ext` is the nominal over N + lags steps (computed if None).
     Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
     relative to the chunk's largest response); only their coefficients are kept. The chunks'
-    bases are then merged in chunk order into one basis Phi: each chunk's responses enter as
-    their principal directions (phi_c U_c S_c, from the SVD of the chunk's coefficients C_c), so
-    the merged basis keeps what exceeds field_tol relative to the largest response overall, and
-    the coefficients become C_c T_c with T_c = phi_c' Phi. The result depends on the chunk plan,
-    never on which worker finished first.
+    bases are then merged in chunk order into one basis Phi: each chunk's responses phi_c C_c
+    are streamed in again from their coefficients (`IncrementalBasis.merge`, blocks of 64), with
+    field_tol relative to the largest response of all chunks, so the merged basis is what one
+    chunk would give (the same rank to +-2), and the coefficients become C_c' T_c with
+    T_c = phi_c' Phi. The result depends on the chunk plan, never on which worker finished first.
     """
     from .engine import InProcess
 
@@ -168,22 +168,21 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                        show_progress=show_progress and not in_process)
     Y = np.zeros((N, lags, n_y, n_ch))
     basis = IncrementalBasis(n_f, field_tol)
-    coefs: list[tuple[int, int, np.ndarray]] = []
-    for (j0, j1), (Yp, phi, Yc_local) in zip(plan, parts):
+    flat = [Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1) if phi.shape[1] else np.zeros((0, 0))
+            for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
+    # the tolerance is against the largest response of all chunks, whatever their order
+    basis.scale = max((float(np.sqrt(np.einsum("ij,ij->j", m, m)).max()) for m in flat if m.size), default=0.0)
+    for (j0, j1), (Yp, phi, _), m in zip(plan, parts, flat):
         Y[j0:j1] = Yp
-        if phi.shape[1] == 0:
-            coefs.append((j0, j1, np.zeros(Yc_local.shape[:2] + (0, n_ch))))
-            continue
-        # the chunk's responses are streamed in again as coefficients (`IncrementalBasis.merge`),
-        # against the largest response of all chunks so far: entering phi_c as unit vectors
-        # would keep each chunk's own small directions (r 172 instead of 63 at n_x = 1600)
-        basis.merge(phi, Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1))
-        T = phi.T @ basis.phi                                  # (r_c, r now): phi_c on Phi
-        coefs.append((j0, j1, np.einsum("jlsc,sr->jlrc", Yc_local, T)))
+        # each chunk's responses are streamed in again as coefficients (`IncrementalBasis.merge`):
+        # entering phi_c as unit vectors would keep each chunk's own small directions (rank 172
+        # instead of 63 at n_x = 1600 with 4 chunks)
+        basis.merge(phi, m)
     r = basis.rank
     Yc = np.zeros((N, field_lags, r, n_ch))
-    for j0, j1, C in coefs:
-        Yc[j0:j1, :, :C.shape[2]] = C
+    for (j0, j1), (_, phi, Yc_local) in zip(plan, parts):
+        if phi.shape[1]:
+            Yc[j0:j1] = np.einsum("jlsc,sr->jlrc", Yc_local, phi.T @ basis.phi)   # phi_c on Phi
     return MarkovData(Y, Yc, basis.phi.copy(), delta, SCHEMES[scheme] * N * n_ch, n_u)
 
 
