@@ -109,14 +109,34 @@ def test_keeping_the_identification_for_small_steps_reaches_the_same_design():
     assert same_input(res.identification.U, res.U, 1e-2) and not same_input(res.identification.U, res.U)
 
 
+def test_a_kept_model_whose_trials_all_fail_is_replaced_by_one_identified_at_U(monkeypatch):
+    """A kept identification proposes steps from where it was made; when none of them lowers the
+    true objective, the optimizer identifies at the current input and tries again, instead of
+    stopping. Forced here: every model used away from its own input proposes uphill steps."""
+    from sep_control import optimize as opt_mod
+
+    ref = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM)
+    orig = opt_mod.RomLinearization.step
+
+    def uphill_when_kept(self, lam, frozen=None):
+        d = orig(self, lam, frozen)
+        return d if np.array_equal(self.U, self.identification.U) else -d
+
+    monkeypatch.setattr(opt_mod.RomLinearization, "step", uphill_when_kept)
+    res = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM, relinearize_rtol=1e9)
+    assert res.iterations >= 3
+    assert res.cost == pytest.approx(ref.cost, rel=1e-6)
+
+
 def test_old_design_files_identified_after_every_step():
     from sep_control.design import DesignSettings
     from sep_control.optimize import SAME_INPUT_RTOL
 
     assert DesignSettings.from_meta({"settings": {"n_r": 20}}).relinearize_rtol == SAME_INPUT_RTOL
     assert DesignSettings.from_meta({"settings": {"relinearize_rtol": 0.05}}).relinearize_rtol == 0.05
-    with pytest.raises(ValueError, match="relinearize_rtol"):
-        DesignSettings(relinearize_rtol=0.0).check()
+    for bad in (0.0, 0.5, float("nan")):
+        with pytest.raises(ValueError, match="relinearize_rtol"):
+            DesignSettings(relinearize_rtol=bad).check()
 
 
 def test_auto_picks_the_cheaper_jacobian():

@@ -85,6 +85,9 @@ class DesignSettings:
             raise ValueError(f"ensemble must be even and >= 4 (antithetic pairs), got {self.ensemble}")
         if not (np.isfinite(self.limit_margin) and self.limit_margin >= 0):
             raise ValueError(f"limit_margin must be a finite number >= 0, got {self.limit_margin}")
+        if not 0.0 < self.relinearize_rtol <= 0.1:
+            raise ValueError(f"relinearize_rtol must be in (0, 0.1], got {self.relinearize_rtol}: a model kept "
+                             "through the large early steps makes a chord method, which stops short of the optimum")
         if self.margin_iterations < 0:
             raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
         for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol", "relinearize_rtol"):

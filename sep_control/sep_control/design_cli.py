@@ -41,7 +41,7 @@ SETTINGS_OPTIONS = (
      "where it is measured faster, or when the sensitivity batch would not fit the memory budget"),
     ("--relinearize-rtol", "relinearize_rtol", dict(type=float),
      "rom Jacobian: keep the last identification for the next step while the input moved by less than "
-     "this, relative (max |dU| / max |U|; near the optimum the steps move U by 1e-3 and less). The "
+     "this, relative (max |dU| / max |U|, at most 0.1; near the optimum the steps move U by 1e-3 and less). The "
      "design's ROM is always identified at the final input (afresh, or the optimizer's last model when "
      "made there); 1e-6 identifies after every step (the earlier behaviour)"),
     ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
