@@ -181,7 +181,8 @@ def test_lockstep_plant_times_out_without_command(launcher, probe, small_case, t
 
 def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe, small_case, tmp_path):
     """A fake controller answers steps 0..9 (with a bad command before the good one at steps
-    2..5), then goes silent: the plant counts 30 deadline misses and holds command 9."""
+    2..5), then goes silent: the plant refuses each bad command for its reason, counts 30
+    deadline misses and holds command 9 (an answer late on a busy machine is one miss more)."""
     s, N = small_case.design.info, small_case.n_steps
     pr = probe().subscribe(c.MEASUREMENTS, c.HEAT_APPLIED, c.DIAGNOSTICS)
     pub = pr.publisher(c.HEAT_COMMAND)
@@ -208,17 +209,30 @@ def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe,
                                             'wait_for_subscribers': 1})
     assert plant.wait(60) == 0, plant.output()
     summ = json.loads((tmp_path / 'plant.json').read_text())
-    assert summ['deadline_misses'] == N - 10, summ
-    assert summ['rejected_by_reason'] == {'non_finite': 1, 'wrong_length': 1, 'unknown_names': 1,
-                                          'stale': 1}, summ
     pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == N, 10, 'all heat_applied')
     U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, N, 'effort')
-    np.testing.assert_array_equal(U[:10], np.array([u_of(k) for k in range(10)]))
-    np.testing.assert_array_equal(U[10:], np.tile(u_of(9), (N - 10, 1)))
-    assert 'deadline miss at step 10' in plant.output()
+    # the fake controller answers from this (loaded) test process: an answer can miss its 50 ms
+    # tick on a busy machine. Such a step is a deadline miss too and holds the input before it;
+    # its late commands are refused as stale. Everything else is exact.
+    late = [k for k in range(10) if not np.array_equal(U[k], u_of(k))]
+    assert len(late) <= 2, (late, summ)
+    for k in late:
+        np.testing.assert_array_equal(U[k], U[k - 1] if k else np.zeros(s.n_u))
+    for k in set(range(10)) - set(late):
+        np.testing.assert_array_equal(U[k], u_of(k))
+    np.testing.assert_array_equal(U[10:], np.tile(U[9], (N - 10, 1)))
+    assert summ['deadline_misses'] == N - 10 + len(late), summ
+    reasons = dict(summ['rejected_by_reason'])
+    if not set(late) & {2, 3, 4, 5}:      # the bad commands arrived in time: each its own reason
+        assert reasons.pop('stale') >= 1 and reasons == {'non_finite': 1, 'wrong_length': 1,
+                                                         'unknown_names': 1}, summ
+    else:
+        assert sum(reasons.values()) >= 4, summ
+    assert 'deadline miss at step 10' in plant.output() or late, plant.output()
     pr.wait_for(lambda: pr.diagnostics('plant'), 5, 'plant diagnostics')
     st = last_status(pr, 'plant')
-    assert int(st['deadline_misses']) == N - 10 and int(st['rejected_messages']) == 4
+    assert int(st['deadline_misses']) == N - 10 + len(late)
+    assert int(st['rejected_messages']) == summ['rejected_messages'] >= 4
 
 
 # ------------------------------------------------------- design / parameter refusal
