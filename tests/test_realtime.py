@@ -22,6 +22,7 @@ from sep_control import metrics
 from sep_control.montecarlo import simulate
 from sep_plant import contract as c
 from sep_plant.noise import noise_sequences
+from sep_plant.protocol import fields, rollout
 
 pytestmark = pytest.mark.ros
 
@@ -67,12 +68,8 @@ def test_realtime_rtf10_reference_episode_on_schedule(launcher, probe, reference
 
     # the field is the plant stepped with the applied inputs and the run's noise
     w, _ = noise_sequences(case.design.problem, case.design.info, 4, [2])
-    x = case.plant.initial_state(1)
-    replay = [case.plant.field(x)[0]]
-    for k in range(N):
-        x = case.plant.step(x, U[k][None], w[0, k][None])
-        replay.append(case.plant.field(x)[0])
-    assert np.max(np.abs(T - np.array(replay))) <= 1e-9
+    replay = fields(case.plant, rollout(case.plant, case.plant.initial_state(1), U, w)[0])
+    assert np.max(np.abs(T - replay)) <= 1e-9
 
     # the offline closed loop: all of it without a miss, up to the first miss otherwise
     ref = simulate(case.plant, case.design, 'rom_lqg', 4, range(2, 3))

@@ -97,12 +97,10 @@ class IncrementalBasis:
         A -= own @ (own.T @ A)                      # re-orthogonalize
         Q, R = np.linalg.qr(A)
         Z = R @ coefficients                       # (r_c, m): the residual snapshots on Q
-        sub = IncrementalBasis(phi.shape[1], self.tol)
-        sub.scale = self.scale
+        room = None if self.max_rank is None else max(0, self.max_rank - self._cols)
+        sub = IncrementalBasis(phi.shape[1], self.tol, max_rank=room)
         for i in range(0, Z.shape[1], block):
-            sub.add(Z[:, i:i + block].T, scale=self.scale)      # keeps sub.scale at ours
-        if self.max_rank is not None:
-            sub._cols = min(sub._cols, max(0, self.max_rank - self._cols))
+            sub.add(Z[:, i:i + block].T, scale=self.scale)      # the tolerance against our scale
         if sub.rank:
             V = Q @ sub.phi
             V -= own @ (own.T @ V)                 # orthogonal to the basis to round-off
