@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from core_helpers import flat
-from sep_estimator.design_file import (ARRAYS, VERSION, Design, DesignFileError, Nominal, arrays_of,
+from sep_estimator.design_file import (ARRAYS, SINGLE, VERSION, Design, DesignFileError, Nominal, arrays_of,
                                        check_matches, load_design, save_design)
 from sep_estimator.ltv import LQG, DenseFieldMap, KalmanSchedule, LTVModel, PODFieldMap
 from sep_estimator.tvkf import KalmanFilter
@@ -52,12 +52,17 @@ def design_path(tmp_path):
 
 
 def assert_same(a: Design, b: Design):
+    """Every array equal; the float32-stored belief statistics to float32 round-off (equal when
+    both designs come from files)."""
     xa, xb = arrays_of(a), arrays_of(b)
     assert set(xa) == set(xb)
     for name in xa:
         x, y = xa[name], xb[name]
         assert x.shape == y.shape, name
-        np.testing.assert_array_equal(x, y, err_msg=name)
+        if name in SINGLE:
+            np.testing.assert_array_equal(x.astype(np.float32), y.astype(np.float32), err_msg=name)
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=name)
     assert a.scenario == b.scenario and a.info == b.info
 
 
@@ -515,3 +520,33 @@ def test_large_trajectories_are_stored_compressed(tmp_path, monkeypatch):
         bad = z["field_std__basis"].copy()
     bad[0, 0] = np.nan
     refused(rewrite(path, tmp_path / "nan.npz", field_std__basis=bad), "field_std")
+
+
+def test_belief_statistics_are_stored_in_float32_and_read_as_float64(tmp_path, monkeypatch):
+    """belief_mean/belief_std (EnKF estimates) go into the file as float32, never SVD-compressed,
+    and come back as float64 to float32 round-off; float64 ones (sep <= 0.3 files, compressed or
+    not) still load; a non-finite float32 one is refused; any other float32 member is refused."""
+    import sep_estimator.design_file as df
+
+    monkeypatch.setattr(df, "COMPRESS_ABOVE", 10)
+    d = synthetic_design()
+    path = save_design(tmp_path / "s.npz", d)
+    with np.load(path, allow_pickle=False) as z:
+        for name in SINGLE:
+            assert z[name].dtype == np.float32 and f"{name}__basis" not in z.files
+        assert "field_nom__basis" in z.files           # the others still compressed
+    back = load_design(path)
+    for name in SINGLE:
+        x, y = getattr(d.nominal, name), getattr(back.nominal, name)
+        assert y.dtype == np.float64
+        np.testing.assert_allclose(y, x, rtol=1e-7, atol=1e-30)
+    old = rewrite(path, tmp_path / "old.npz", belief_mean=d.nominal.belief_mean, belief_std=None,
+                  belief_std__coef=d.nominal.belief_std[:, :1] * 0 + 1.0,
+                  belief_std__basis=np.full((N_X, 1), 0.5))
+    back = load_design(old)
+    np.testing.assert_array_equal(back.nominal.belief_mean, d.nominal.belief_mean)
+    np.testing.assert_array_equal(back.nominal.belief_std, np.full((N_STEPS + 1, N_X), 0.5))
+    bad = d.nominal.belief_std.astype(np.float32)
+    bad[1, 1] = np.inf
+    refused(rewrite(path, tmp_path / "inf.npz", belief_std=bad), "belief_std")
+    refused(rewrite(path, tmp_path / "f32.npz", target=d.objective.target.astype(np.float32)), "target")

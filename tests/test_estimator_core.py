@@ -42,6 +42,28 @@ def test_in_order_stream_is_the_kalman_filter(design):
     assert core.counters()["updates"] == d.n_steps + 1 and core.counters()["input_source"]["applied"] == d.n_steps
 
 
+def test_float32_field_reconstruction_tracks_the_float64_one(design):
+    """field_precision 'float32' changes only the reconstruction's round-off (the estimate, the
+    std and everything else are the same numbers)."""
+    d = design
+    y, u = data(d, 2)
+    exact, single = core_of(d), EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field,
+                                              field_precision="float32")
+    for k in range(d.n_steps + 1):
+        a64, _ = exact.measurement(k, y[k])
+        a32, _ = single.measurement(k, y[k])
+        np.testing.assert_array_equal(a32, a64)
+        (f64, s64), (f32, s32) = exact.field_estimate(), single.field_estimate()
+        dev = np.abs(f64 - d.nominal.field[k]).max()
+        assert f32.dtype == np.float64 and np.abs(f32 - f64).max() <= 1e-6 * max(dev, 1e-12)
+        np.testing.assert_array_equal(s32, s64)
+        if k < d.n_steps:
+            exact.applied(k, u[k])
+            single.applied(k, u[k])
+    with pytest.raises(ValueError, match="field precision"):
+        EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field, field_precision="half")
+
+
 def test_stale_and_duplicate_steps_are_refused_without_touching_the_filter(design):
     d = design
     y, u = data(d, 1)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sep_control.basis import IncrementalBasis, truncate
-from sep_estimator.ltv import DenseFieldMap, PODFieldMap
+from sep_estimator.ltv import DenseFieldMap, Float32Reconstruction, PODFieldMap, in_precision
 
 
 def low_rank(rng, n, m, rank, decay=1.0):
@@ -65,10 +65,34 @@ def test_pod_field_map_equals_the_dense_one():
     np.testing.assert_allclose(pod.std_all(P), dense.std_all(P), rtol=1e-10)
 
 
+def test_float32_reconstruction_agrees_to_single_precision_and_keeps_the_rest_float64():
+    """field_precision 'float32': the reconstruction (a g_k') Phi' from a float32 copy of Phi,
+    within float32 round-off of the float64 one, returned as float64; std and the rest unchanged."""
+    rng = np.random.default_rng(3)
+    Phi = np.linalg.qr(rng.standard_normal((3000, 40)))[0]
+    pod = PODFieldMap(Phi, rng.standard_normal((5, 40, 6)))
+    f32 = in_precision(pod, "float32")
+    assert isinstance(f32, Float32Reconstruction) and in_precision(pod, "float64") is pod
+    assert in_precision(f32, "float32") is f32
+    a = rng.standard_normal((2, 6))
+    P = np.eye(6)
+    for k in range(5):
+        exact, single = pod.apply(k, a), f32.apply(k, a)
+        assert single.dtype == np.float64 and single.shape == exact.shape
+        err = np.abs(single - exact).max() / np.abs(exact).max()
+        assert 0 < err < 1e-6, err        # float32 round-off: present, and small
+        np.testing.assert_array_equal(f32.std(k, P), pod.std(k, P))
+    dense = DenseFieldMap(np.zeros((5, 7, 6)))
+    assert in_precision(dense, "float32") is dense
+    with pytest.raises(ValueError, match="float64, float32"):
+        in_precision(pod, "float16")
+
+
 def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_grid():
-    """The slab's field map lives in a basis of ~60 directions at 400 and at 1600 nodes (memory
-    n_field r_f + N r_f n_r), and equals the field map of a near-exact basis (tolerance 1e-13) to
-    the basis' tolerance."""
+    """The slab's field map lives in a basis of a few dozen directions at 400 and at 1600 nodes
+    (memory n_field r_f + N r_f n_r), and equals the field map of a near-exact basis (tolerances
+    1e-13) to the map's tolerance: |G_k - G_k,exact|_2 <= map_tol sigma_1([G_0 ... G_N]) at every
+    k; a smaller map_tol keeps more directions and comes closer."""
     from core_helpers import flat
     from sep_control import tvera
 
@@ -81,11 +105,20 @@ def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_gri
         assert isinstance(G, PODFieldMap)
         ranks.append(G.rank)
     assert max(ranks) < 100 and ranks[1] <= ranks[0] + 10
-    fine = tvera.identify(s.plant, U, 6, 6, 16, field_tol=1e-13)
+    fine = tvera.identify(s.plant, U, 6, 6, 16, field_tol=1e-13, map_tol=1e-13)
     assert fine.model.G.rank > 2 * G.rank
+    Gf = np.stack([fine.model.G.matrix(k) for k in range(41)])
+    sigma_1 = np.linalg.norm(np.concatenate(list(Gf), axis=1), 2)
+    errors = {}
+    for map_tol in (tvera.FIELD_MAP_TOL, 1e-8):
+        Gk = G if map_tol == tvera.FIELD_MAP_TOL else tvera.identify(s.plant, U, 6, 6, 16, map_tol=map_tol).model.G
+        errors[map_tol] = max(np.linalg.norm(Gk.matrix(k) - Gf[k], 2) for k in range(41)) / sigma_1
+        assert errors[map_tol] <= max(map_tol, 1e-6), (map_tol, errors[map_tol])
+        if map_tol == 1e-8:
+            assert Gk.rank > G.rank
+    assert errors[1e-8] < errors[tvera.FIELD_MAP_TOL] / 5
     for k in (1, 10, 40):
-        Gf = fine.model.G.matrix(k)
-        assert np.abs(G.matrix(k) - Gf).max() <= 1e-6 * np.abs(Gf).max()
+        assert np.abs(G.matrix(k) - Gf[k]).max() <= tvera.FIELD_MAP_TOL * np.abs(Gf[k]).max()
 
 
 def test_basis_rejects_wrong_length():

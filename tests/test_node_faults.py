@@ -290,7 +290,9 @@ def test_corrupt_or_missing_design_refused(launcher, other_files, tmp_path, case
     ('lqr', {'estimate_timeout_s': -1.0}, 'bad parameter estimate_timeout_s'),
     ('lqg', {'controller': 'pid'}, "parameter controller must be 'lqr' or 'mpc', got 'pid'"),
     ('lqr', {'controller': 'mpc', 'mpc_horizon': 0}, 'bad parameter mpc_horizon'),
-], ids=['mode', 'rtf', 'seed', 'type', 'scenario_file', 'estimate_timeout', 'controller', 'mpc_horizon'])
+    ('estimator', {'field_precision': 'float16'}, "bad parameter field_precision: 'float16'"),
+], ids=['mode', 'rtf', 'seed', 'type', 'scenario_file', 'estimate_timeout', 'controller', 'mpc_horizon',
+        'field_precision'])
 def test_bad_parameter_refused(launcher, small_case, exe, params, expect):
     if exe != 'plant':
         params = {'design_file': small_case.design_file, **params}

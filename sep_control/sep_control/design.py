@@ -35,7 +35,7 @@ from .budget import runs_per_batch
 from .lqr import design_lqg, input_spread
 from .metrics import nominal_cost
 from .optimize import SAME_INPUT_RTOL, objective_of, optimize, run_belief, same_input
-from .tvera import SCHEMES, Identification, extend_nominal, identify, markov_relative_error
+from .tvera import FIELD_MAP_TOL, FIELD_TOL, SCHEMES, Identification, extend_nominal, identify, markov_relative_error
 
 
 #: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
@@ -63,6 +63,7 @@ class DesignSettings:
     sv_tol: float = 1e-10           # relative singular-value cutoff
     impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
     impulse_scheme: str = "central"  # TV-ERA impulses: "central" (+- pairs) or "forward" (one run each)
+    field_map_tol: float = FIELD_MAP_TOL  # field map: directions of [g_0..g_N] below this x sigma_1 dropped
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     relinearize_rtol: float = 1e-2  # ROM Jacobian: keep the last identification while U moved less (relative)
@@ -90,7 +91,9 @@ class DesignSettings:
                              "through the large early steps makes a chord method, which stops short of the optimum")
         if self.margin_iterations < 0:
             raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
-        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol", "relinearize_rtol"):
+        if not 0.0 < self.field_map_tol < 1.0:
+            raise ValueError(f"field_map_tol must be in (0, 1), got {self.field_map_tol}")
+        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol", "relinearize_rtol", "field_map_tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
@@ -134,9 +137,11 @@ class DesignSettings:
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
         """The settings recorded in a design file's metadata (unknown keys ignored; files older
-        than the chunked experiments ran them as one chunk, and older than `relinearize_rtol`
-        identified again after every step)."""
-        recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, **meta.get("settings", {})}
+        than the chunked experiments ran them as one chunk, older than `relinearize_rtol`
+        identified again after every step, and older than `field_map_tol` truncated the field map
+        at the field basis' tolerance)."""
+        recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, "field_map_tol": FIELD_TOL,
+                    **meta.get("settings", {})}
         return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
 
 
@@ -226,7 +231,8 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
     """Stage 1: the open-loop nominal (mean-only optimum, then the belief-space refinement)."""
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
-           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme, "chunks": st.chunks, "engine": engine}
+           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme, "chunks": st.chunks, "engine": engine,
+           "map_tol": st.field_map_tol}
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, U0=U0, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
@@ -280,7 +286,8 @@ def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress:
                  engine=None) -> Identification:
     """`tvera.identify` with the design's settings."""
     return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress,
-                    memory_budget=st.memory_budget, scheme=st.impulse_scheme, chunks=st.chunks, engine=engine)
+                    memory_budget=st.memory_budget, scheme=st.impulse_scheme, chunks=st.chunks, engine=engine,
+                    map_tol=st.field_map_tol)
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:

@@ -4,7 +4,7 @@ A design file is a numpy `.npz` archive read with ``allow_pickle=False`` (no cod
 load). Member ``meta`` holds a UTF-8 JSON document (format version, the scenario — plant type,
 plant keys and problem —, the plant's description, design settings, validation numbers,
 provenance); every other member is a float64/int64 array listed below with its expected
-shape. Loading checks the format version, every member's presence, dtype, shape and
+shape (the two belief statistics float32, see below). Loading checks the format version, every member's presence, dtype, shape and
 finiteness, and the zip CRCs, and raises `DesignFileError` with a message that says what is
 wrong. Loading never imports the plant's code: the file is self-contained data.
 
@@ -19,10 +19,13 @@ Arrays (N steps, n_r ROM order, n_field field nodes; index conventions of `sep_e
     K (N, n_u, n_r)  L (N+1, n_r, n_y)  P_post (N+1, n_r, n_r)  field_std (N+1, n_field)
     hankel_sv (N+1, n_sv)
 
-Trajectories over the field (field_nom, belief_mean, belief_std, field_std) of more than
-`COMPRESS_ABOVE` numbers are stored as a truncated SVD, `<name>__basis` (n_field, r) and
-`<name>__coef` (N+1, r), to `TRAJECTORY_TOL` relative (smooth fields: r of a few dozen, so a
-large grid's file grows as n_field r, not N n_field); they are expanded on load.
+Trajectories over the field (field_nom, field_std) of more than `COMPRESS_ABOVE` numbers are
+stored as a truncated SVD, `<name>__basis` (n_field, r) and `<name>__coef` (N+1, r), to
+`TRAJECTORY_TOL` relative (smooth fields: r of a few dozen, so a large grid's file grows as
+n_field r, not N n_field); they are expanded on load. The EnKF belief statistics (belief_mean,
+belief_std: estimates from M members, sampling error ~1/sqrt(M), 7 % of the std at M = 200) are
+noise to an SVD (full rank) and are stored as float32 (round-off 6e-8 relative), read as
+float64; files that hold them as float64, compressed or not (sep <= 0.3), are read too.
 
 Version 1 files (sep 0.1, the slab only) are read too: their scenario is the flat slab format
 and their field is the state (``T_nom``).
@@ -51,6 +54,8 @@ READS = (1, 2)
 COMPRESS_ABOVE = 1 << 20
 TRAJECTORY_TOL = 1e-11
 TRAJECTORIES = ("field_nom", "belief_mean", "belief_std", "field_std")
+#: members written as float32 (ensemble statistics) and never SVD-compressed
+SINGLE = ("belief_mean", "belief_std")
 
 #: members every version-2 file has (Bw only for plants whose noise is not on the inputs)
 ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", "field_xyz", "rom_dims", "A",
@@ -152,8 +157,10 @@ def save_design(path: str | Path, d: Design) -> Path:
     meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": d.scenario.to_dict(),
             "plant_info": d.info.to_dict(), "n_r": d.n_r}
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    for name in SINGLE:
+        arrays[name] = arrays[name].astype(np.float32)
     for name in TRAJECTORIES:
-        if arrays[name].size > COMPRESS_ABOVE:
+        if name not in SINGLE and arrays[name].size > COMPRESS_ABOVE:
             arrays.update(_compressed(name, arrays.pop(name)))
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -186,6 +193,16 @@ def _expand(path: Path, raw: dict[str, np.ndarray]) -> None:
         raw[name] = coef @ basis.T
 
 
+def _widen(path: Path, raw: dict[str, np.ndarray]) -> None:
+    """The float32 members (`SINGLE`) as float64, in place (finite float32 or float64 only)."""
+    for name in SINGLE:
+        arr = raw.get(name)
+        if arr is not None and arr.dtype == np.float32:
+            if not np.all(np.isfinite(arr)):
+                raise DesignFileError(f"{path}: array {name} is not finite")
+            raw[name] = arr.astype(np.float64)
+
+
 def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> Design:
     """Read and check a design file; with `expect_scenario`, refuse one made for another plant."""
     path = Path(path)
@@ -199,6 +216,7 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
                 raise DesignFileError(f"{path}: not a sep design file (no 'meta' member)")
             raw = {name: z[name] for name in names}   # reading each member checks its CRC
         _expand(path, raw)
+        _widen(path, raw)
     except DesignFileError:
         raise
     except Exception as exc:  # zlib, zipfile, numpy header parsing: all mean "corrupt"

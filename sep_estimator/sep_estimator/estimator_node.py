@@ -37,10 +37,11 @@ import numpy as np
 
 from sep_plant import contract as c
 from sep_plant import gate
-from sep_plant.node_util import (SampleWindow, declare, fmt_s, limit_blas_threads, make_executor, parse_front,
-                                 run_node, sim_time_default, steady)
+from sep_plant.node_util import (SampleWindow, StartError, declare, fmt_s, limit_blas_threads, make_executor,
+                                 parse_front, run_node, sim_time_default, steady)
 
 from .estimator_core import EstimatorCore
+from .ltv import FIELD_PRECISIONS
 from .ros_common import DesignedNode, scenario_summary, spin_episode
 
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/estimator.yaml):
@@ -48,6 +49,9 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/co
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's slab/scenario and check it first
   publish_field_estimate (bool, true)
+  field_precision (str, float64)   float32: the field reconstruction Phi (g_k a_hat) from a float32
+                                   copy of Phi (~1e-7 relative round-off; about half the time on
+                                   large grids, where the product is memory-bound); messages stay float64
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
@@ -61,9 +65,16 @@ class EstimatorNode(DesignedNode):
         node = self.node
         self.publish_field = declare(node, 'publish_field_estimate', True,
                                      'publish slab/field_estimate (reconstructed field with std)')
+        self.field_precision = declare(node, 'field_precision', 'float64',
+                                       'field reconstruction arithmetic: float64, or float32 (half the memory '
+                                       'traffic on large grids; ~1e-7 relative round-off; messages stay float64)',
+                                       constraints="one of: float64, float32")
+        if self.field_precision not in FIELD_PRECISIONS:
+            raise StartError(f"bad parameter field_precision: {self.field_precision!r}, expected one of "
+                             f"{list(FIELD_PRECISIONS)}")
         d = self.design
         nom = d.nominal
-        self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field)
+        self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
         self.sensors = list(self.info.output_names)
         self.heaters = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
@@ -87,7 +98,10 @@ class EstimatorNode(DesignedNode):
                                                  self._on_command, c.LOOP_QOS)
                         if subscribe_command else None)
         self._warm_up()
+        rank = getattr(d.rom.G, 'rank', None)
         self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
+                      f'field reconstruction {self.field_precision}'
+                      f"{f' on a field basis of rank {rank}' if rank is not None else ''}, "
                       f'namespace {node.get_namespace()}, use_sim_time '
                       f"{node.get_parameter('use_sim_time').value}")
 
@@ -97,7 +111,8 @@ class EstimatorNode(DesignedNode):
         from rclpy.serialization import serialize_message
 
         d = self.design
-        core = EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field)
+        core = EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field,
+                             field_precision=self.field_precision)
         a, _ = core.measurement(0, d.nominal.y[0])
         lo, hi = d.problem.limits(self.info.n_u)
         np.clip(d.nominal.u[0] + a @ d.lqg.K[0].T, lo, hi)   # the LQR law's ops

@@ -107,6 +107,35 @@ class PODFieldMap:
         return (v @ self.Phi) @ self.g[k]
 
 
+class Float32Reconstruction(PODFieldMap):
+    """A POD field map whose `apply`, the per-step reconstruction (a g_k') Phi', reads a float32
+    copy of Phi. At large n_field the product is memory-bound (it streams n_field r numbers), so
+    half the bytes is about half the time (65 536 x 94: README, bench/bench_field.py); the
+    deviation carries float32 round-off, ~1e-7 relative (the map itself is truncated at 1e-5),
+    and is returned as float64. Everything else (std, gram, project) stays float64."""
+
+    def __init__(self, base: PODFieldMap):
+        super().__init__(base.Phi, base.g)
+        self._PhiT32 = np.ascontiguousarray(base.Phi.T, dtype=np.float32)    # (r, n_field)
+
+    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
+        return ((a @ self.g[k].T).astype(np.float32) @ self._PhiT32).astype(np.float64)
+
+
+#: reconstruction precisions the online estimator offers (parameter field_precision)
+FIELD_PRECISIONS = ("float64", "float32")
+
+
+def in_precision(G: "FieldMap", precision: str) -> "FieldMap":
+    """G for the online reconstruction in `precision` ('float64': G itself; 'float32': a
+    `Float32Reconstruction` of a POD map, other maps unchanged: they are small)."""
+    if precision not in FIELD_PRECISIONS:
+        raise ValueError(f"field precision must be one of {', '.join(FIELD_PRECISIONS)}, got {precision!r}")
+    if precision == "float32" and isinstance(G, PODFieldMap) and not isinstance(G, Float32Reconstruction):
+        return Float32Reconstruction(G)
+    return G
+
+
 class IdentityFieldMap:
     """G_k = I (the state is the field): the oracle's field map."""
 
