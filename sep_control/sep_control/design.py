@@ -32,10 +32,10 @@ from sep_plant.scenario import Scenario
 
 from . import __version__
 from .budget import runs_per_batch
-from .lqr import design_lqg, input_spread
+from .lqr import FIELD_MAP_TOL, design_lqg, input_spread
 from .metrics import nominal_cost
 from .optimize import SAME_INPUT_RTOL, objective_of, optimize, run_belief, same_input
-from .tvera import FIELD_MAP_TOL, FIELD_TOL, SCHEMES, Identification, extend_nominal, identify, markov_relative_error
+from .tvera import FIELD_TOL, SCHEMES, Identification, extend_nominal, identify, markov_relative_error
 
 
 #: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
@@ -63,7 +63,7 @@ class DesignSettings:
     sv_tol: float = 1e-10           # relative singular-value cutoff
     impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
     impulse_scheme: str = "central"  # TV-ERA impulses: "central" (+- pairs) or "forward" (one run each)
-    field_map_tol: float = FIELD_MAP_TOL  # field map: directions of [g_0..g_N] below this x sigma_1 dropped
+    field_map_tol: float = FIELD_MAP_TOL  # field map: drop directions moving the field < this x its open-loop spread
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     relinearize_rtol: float = 1e-2  # ROM Jacobian: keep the last identification while U moved less (relative)
@@ -231,8 +231,7 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
     """Stage 1: the open-loop nominal (mean-only optimum, then the belief-space refinement)."""
     t0 = time.perf_counter()
     rom = {"p": st.p, "q": st.q, "n_r": st.n_r, "sv_tol": st.sv_tol, "impulse": st.impulse,
-           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme, "chunks": st.chunks, "engine": engine,
-           "map_tol": st.field_map_tol}
+           "memory_budget": st.memory_budget, "scheme": st.impulse_scheme, "chunks": st.chunks, "engine": engine}
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, U0=U0, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
@@ -277,7 +276,7 @@ def _rom_and_gains(plant: Plant, problem: Problem, st: DesignSettings, nom: dict
         f"experiments{' (the optimizer’s last identification, reused)' if reused else ''}, Markov relative "
         f"error {nom['markov_rel_error']:.2e}")
     t0 = time.perf_counter()
-    lqg = design_lqg(ident.model, problem)
+    lqg = design_lqg(ident.model, problem, map_tol=st.field_map_tol)
     timings["gains_s"] = timings.get("gains_s", 0.0) + time.perf_counter() - t0
     return ident, lqg
 
@@ -286,8 +285,7 @@ def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress:
                  engine=None) -> Identification:
     """`tvera.identify` with the design's settings."""
     return identify(plant, U, st.p, st.q, st.n_r, st.sv_tol, st.impulse, show_progress,
-                    memory_budget=st.memory_budget, scheme=st.impulse_scheme, chunks=st.chunks, engine=engine,
-                    map_tol=st.field_map_tol)
+                    memory_budget=st.memory_budget, scheme=st.impulse_scheme, chunks=st.chunks, engine=engine)
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:

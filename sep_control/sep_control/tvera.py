@@ -40,15 +40,10 @@ from .basis import IncrementalBasis, truncate
 from .budget import default_budget, runs_per_batch, worker_budget
 from .progress import progress
 
-#: relative tolerance of the field responses' basis (against the largest response; at 1e-8 the
-#: slab's responses span ~60 directions whatever n_x, 400 to 6400 nodes)
+#: relative tolerance of the field responses' basis (against the largest response) and of its
+#: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
+#: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes)
 FIELD_TOL = 1e-8
-#: relative tolerance of the field map's final truncation to the span its g_k use: directions of
-#: [g_0 ... g_N] below FIELD_MAP_TOL sigma_1 are dropped. The control law does not use the field
-#: map (LQR weighs the outputs); the reconstruction does, and at 1e-5 its error stayed below
-#: 5e-4 of the estimate's std on every node of the plate (2e-5 rms), its coverage the same to
-#: four digits, while Phi shrank 220 -> 94 columns (README, "Offline performance and scale")
-FIELD_MAP_TOL = 1e-5
 #: impulse schemes: experiments per impulse (a forward pass also steps one unperturbed copy of the
 #: nominal per start step, beside its impulses, so that both sides of every difference come from
 #: the same batched solve: a nominal from a separate rollout differs in round-off, which the
@@ -296,14 +291,13 @@ def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
              memory_budget: int | None = None, scheme: str = "central", chunks: int = 1,
-             engine=None, map_tol: float = FIELD_MAP_TOL) -> Identification:
+             engine=None) -> Identification:
     """TV-ERA around the nominal input U.
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
     k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input;
     `scheme` "central" or "forward"; the experiments run in `chunks` chunks on `engine` (see
-    `impulse_experiments`); `field_tol` the field basis' tolerance, `map_tol` the field map's
-    (`tv_era`).
+    `impulse_experiments`).
     """
     N = U.shape[0]
     lags = p + q
@@ -312,7 +306,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     ftol = FIELD_TOL if field_tol is None else field_tol
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
                                memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine)
-    model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, map_tol=map_tol)
+    model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float))
 
 
@@ -328,11 +322,8 @@ def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:
 
 
 def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 1e-10,
-           show_progress: bool = False, map_tol: float = FIELD_MAP_TOL) -> tuple[LTVModel, np.ndarray]:
+           show_progress: bool = False, field_tol: float = FIELD_TOL) -> tuple[LTVModel, np.ndarray]:
     """Realize (A_k, B_k, C_k, G_k) for k = 0..N from Markov parameters (needs lags >= p+q).
-
-    The field map G_k = Phi g_k keeps the directions of the data's field basis that [g_0 ... g_N]
-    uses above `map_tol` sigma_1 (`sep_control.basis.truncate`).
 
     Returns the model (B_w split off when there are noise channels) and the Hankel singular
     values (N+1, n_sv)."""
@@ -384,7 +375,7 @@ def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 
     n_u = data.n_u
     Bw = B[:, :, n_u:].copy() if n_ch > n_u else None
     # the basis spans every field response; the field map needs only the span of its g_k
-    Phi, coef = truncate(data.basis, g.transpose(1, 0, 2).reshape(r_f, -1), map_tol)
+    Phi, coef = truncate(data.basis, g.transpose(1, 0, 2).reshape(r_f, -1), field_tol)
     g = coef.reshape(Phi.shape[1], N + 1, n_r).transpose(1, 0, 2)
     model = LTVModel(A=A, B=B[:, :, :n_u].copy() if Bw is not None else B, C=C,
                      G=PODFieldMap(np.ascontiguousarray(Phi), np.ascontiguousarray(g)), dims=dims, Bw=Bw)
