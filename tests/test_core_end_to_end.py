@@ -51,9 +51,10 @@ def test_coarse_design_nominal_and_rom(coarse):
     # ROM: Markov parameters match the experiments; order grows by n_u from k = 0
     assert d.meta["validation"]["markov_rel_error"] < 1e-8
     assert list(d.rom.dims[:4]) == [0, 5, 10, 15] and d.rom.dims.max() <= 20
-    # the identified model knows which field nodes the sensors read (C_k rows = G_k rows)
+    # the identified model knows which field nodes the sensors read (C_k rows = G_k rows, in the
+    # directions the state takes: the design's field map is compressed to those)
     from sep_estimator.ltv import sensed_nodes
-    assert sensed_nodes(d.rom) == list(plant.sensor_nodes())
+    assert sensed_nodes(d.rom, P=d.lqg.kf.P_prior[-1]) == list(plant.sensor_nodes())
     # belief: the EnKF along the nominal observations follows the nominal, with a spread
     assert np.max(np.abs(nom.belief_mean[k0:] - 150.0)) < d.objective.band
     assert np.all(nom.belief_std[0] == 0) and np.all(nom.belief_std[1:].max(axis=1) > 0)

@@ -166,7 +166,7 @@ def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
         ol = results["open_loop"].F[0] if "open_loop" in results else None
         paths.append(figures.fig_estimation(out / "estimation_error_2sigma.png", info, xyz, nom.field, closed.F[0],
                                             closed.F_hat[0], closed.F_std, ol, obj.window,
-                                            sensed=sensed_nodes(design.rom)))
+                                            sensed=sensed_nodes(design.rom, P=design.lqg.kf.P_prior[-1])))
         paths.append(figures.fig_std_map(out / "estimation_std.png", info, xyz, closed.F_std, obj.window))
     if sweep_rows:
         paths.append(figures.fig_rom_sweep(out / "rom_order_sweep.png", design.hankel_sv,

@@ -59,17 +59,12 @@ def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min, u_ma
     return u
 
 
-def state_spread(model: LTVModel, W: np.ndarray, X0: np.ndarray) -> np.ndarray:
-    """Open-loop state covariances X_0 = X0, X_{k+1} = A_k X_k A_k' + B_w,k W B_w,k' (N+1, n, n):
-    the spread of the ROM state with no feedback, which bounds both the estimate's spread and its
-    error covariance (X_k = cov(ahat_k) + P_k|k for the Kalman filter in open loop; feedback
-    shrinks it)."""
-    A, Bw = model.A, model.noise_input
-    X = np.empty((A.shape[0] + 1, *A.shape[1:]))
-    X[0] = X0
-    for k in range(A.shape[0]):
-        X[k + 1] = A[k] @ X[k] @ A[k].T + Bw[k] @ W @ Bw[k].T
-    return X
+def state_spread(model: LTVModel, K: np.ndarray, kf, V: np.ndarray) -> np.ndarray:
+    """X_k = P_k|k + cov(ahat_k) in closed loop + cov(ahat_k) in open loop (N+1, n, n): covers the
+    ROM state's covariance with the LQG running (P_k|k + the closed-loop estimate's, which moves
+    along B_k through the feedback) and without it (P_k|k + the open-loop estimate's)."""
+    return (kf.P_post + estimate_covariances(model, K, kf, V, closed_loop=True)
+            + estimate_covariances(model, K, kf, V, closed_loop=False))
 
 
 def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap:
@@ -77,9 +72,9 @@ def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap
     (X (N+1, n, n): the state spread, `state_spread`), keeps U_r, the directions with
     S > tol S_1: Phi' = Phi U_r (still orthonormal), g_k' = U_r' g_k.
 
-    What is dropped moves the field by less than tol times its largest open-loop spread, both
-    the reconstructed mean and the std. Neither the LQR (weights on the outputs) nor the filter
-    (it reads the outputs) uses G, so the gains do not change."""
+    What is dropped moves the field by less than tol times its largest spread, both the
+    reconstructed mean and the std. Neither the LQR (weights on the outputs) nor the filter (it
+    reads the outputs) uses G, so the gains do not change."""
     L = []
     for Xk in X:
         w, V = np.linalg.eigh(0.5 * (Xk + Xk.T))
@@ -93,35 +88,41 @@ def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap
 def design_lqg(model: LTVModel, problem: Problem, name: str = "rom_lqg", map_tol: float | None = None) -> LQG:
     """TV-LQR (weights on the outputs) and TV Kalman filter for `model` under `problem`'s weights
     and noise: Q_k = C_k' Q_y,k C_k, R = lqr_r I, W = diag(w_std^2), V = diag(v_std^2). With
-    `map_tol`, a POD field map is compressed against the open-loop state spread from the
-    filter's initial covariance (`compress_field_map`); the gains do not depend on it."""
+    `map_tol`, a POD field map is compressed against the ROM state's spread with and without
+    the feedback (`state_spread`, `compress_field_map`); the gains do not depend on it."""
     Q = output_weights(model.C, problem.lqr_output_weights(model.n_y))
     R = np.eye(model.n_u) * problem.lqr_r
     K, _ = tv_lqr(model.A, model.B, Q, R)
     W, V = problem.noise_covariances(model.noise_input.shape[2], model.n_y)
     kf = kalman_gains(model, W, V)
     if map_tol is not None and isinstance(model.G, PODFieldMap):
-        model = replace(model, G=compress_field_map(model.G, state_spread(model, W, kf.P_prior[0]), map_tol))
+        model = replace(model, G=compress_field_map(model.G, state_spread(model, K, kf, V), map_tol))
     # priors from the posteriors, exactly as a loaded design file rebuilds them
     return LQG(name, model, K, schedule_from_posteriors(model, kf.L, kf.P_post, W), W, V)
 
 
-def input_spread(lqg: LQG) -> np.ndarray:
-    """sigma_u (N, n_u): the closed-loop std of the feedback du_k = K_k ahat_{k|k} (limits ignored).
-
-    The estimate's covariance Sigma_k = cov(ahat_{k|k}) grows by the innovations and moves with
-    the closed loop (the estimate starts at 0, innovations are white and orthogonal to it):
+def estimate_covariances(model: LTVModel, K: np.ndarray, kf, V: np.ndarray, closed_loop: bool = True) -> np.ndarray:
+    """Sigma_k = cov(ahat_{k|k}) for k = 0..N (N+1, n, n), limits ignored. The estimate starts at
+    0 and grows by the innovations, which are white and orthogonal to it; it moves with the closed
+    loop A_k + B_k K_k (du_k = K_k ahat_{k|k}) or, `closed_loop` False, with A_k:
         Sigma_k^+ = Sigma_k^- + L_k (C_k P_k^- C_k' + V) L_k',
-        Sigma_{k+1}^- = (A_k + B_k K_k) Sigma_k^+ (A_k + B_k K_k)',   Sigma_0^- = 0,
-    and sigma_u,k^2 = diag(K_k Sigma_k^+ K_k')."""
-    m, kf = lqg.model, lqg.kf
-    N, n_u, n = lqg.K.shape
-    sig = np.zeros((N, n_u))
+        Sigma_{k+1}^- = A_cl,k Sigma_k^+ A_cl,k',   Sigma_0^- = 0.
+    The state's covariance is Sigma_k + P_k|k (the estimation error is orthogonal to the estimate)."""
+    m = model
+    N, n = m.A.shape[0], m.A.shape[1]
+    out = np.zeros((N + 1, n, n))
     Sm = np.zeros((n, n))
-    for k in range(N):
+    for k in range(N + 1):
         C, L = m.C[k], kf.L[k]
-        Sp = Sm + L @ (C @ kf.P_prior[k] @ C.T + lqg.V) @ L.T
-        sig[k] = np.sqrt(np.maximum(np.einsum("ui,ij,uj->u", lqg.K[k], Sp, lqg.K[k]), 0.0))
-        Acl = m.A[k] + m.B[k] @ lqg.K[k]
-        Sm = Acl @ Sp @ Acl.T
-    return sig
+        out[k] = Sm + L @ (C @ kf.P_prior[k] @ C.T + V) @ L.T
+        if k < N:
+            Acl = m.A[k] + m.B[k] @ K[k] if closed_loop else m.A[k]
+            Sm = Acl @ out[k] @ Acl.T
+    return out
+
+
+def input_spread(lqg: LQG) -> np.ndarray:
+    """sigma_u (N, n_u): the closed-loop std of the feedback du_k = K_k ahat_{k|k} (limits ignored):
+    sigma_u,k^2 = diag(K_k Sigma_k K_k'), Sigma_k = cov(ahat_{k|k}) (`estimate_covariances`)."""
+    S = estimate_covariances(lqg.model, lqg.K, lqg.kf, lqg.V)[:-1]
+    return np.sqrt(np.maximum(np.einsum("kui,kij,kuj->ku", lqg.K, S, lqg.K), 0.0))

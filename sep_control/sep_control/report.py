@@ -129,7 +129,7 @@ def estimation_nodes(reps: list[EpisodeReport]) -> list[int]:
     k0, k1 = r0.objective.window if r0.objective is not None else (1, r0.episode.n_steps)
     std = np.stack([r.episode.F_std[k0:k1 + 1] for r in reps])
     score = np.nan_to_num(np.nanmean(std, axis=(0, 1)), nan=-np.inf)
-    sensed = sensed_nodes(r0.design.rom) if r0.design is not None else []
+    sensed = sensed_nodes(r0.design.rom, P=r0.design.lqg.kf.P_prior[-1]) if r0.design is not None else []
     return spread_nodes(score, r0.xyz, exclude=sensed)
 
 

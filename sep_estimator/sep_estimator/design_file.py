@@ -25,7 +25,7 @@ stored as a truncated SVD, `<name>__basis` (n_field, r) and `<name>__coef` (N+1,
 n_field r, not N n_field); they are expanded on load. The EnKF belief statistics (belief_mean,
 belief_std: estimates from M members, sampling error ~1/sqrt(M), 7 % of the std at M = 200) are
 noise to an SVD (full rank) and are stored as float32 (round-off 6e-8 relative), read as
-float64; files that hold them as float64, compressed or not (sep <= 0.3), are read too.
+float64; version 2 files (sep 0.2-0.3) hold them as float64, compressed or not, and are read too.
 
 Version 1 files (sep 0.1, the slab only) are read too: their scenario is the flat slab format
 and their field is the state (``T_nom``).
@@ -48,8 +48,9 @@ from .ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from .tvkf import schedule_from_posteriors
 
 FORMAT = "sep-design"
-VERSION = 2
-READS = (1, 2)
+#: 3 (sep 0.4): belief statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64
+VERSION = 3
+READS = (1, 2, 3)
 #: (N+1) x n_field trajectories larger than this many numbers are stored as a truncated SVD
 COMPRESS_ABOVE = 1 << 20
 TRAJECTORY_TOL = 1e-11
@@ -57,7 +58,7 @@ TRAJECTORIES = ("field_nom", "belief_mean", "belief_std", "field_std")
 #: members written as float32 (ensemble statistics) and never SVD-compressed
 SINGLE = ("belief_mean", "belief_std")
 
-#: members every version-2 file has (Bw only for plants whose noise is not on the inputs)
+#: members every version-2/3 file has (Bw only for plants whose noise is not on the inputs)
 ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", "field_xyz", "rom_dims", "A",
           "B", "C", "field_basis", "field_coef", "K", "L", "P_post", "field_std", "hankel_sv")
 

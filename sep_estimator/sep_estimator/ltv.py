@@ -221,14 +221,22 @@ class LTVModel:
         return out
 
 
-def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3) -> list[int]:
+def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3,
+                 P: np.ndarray | None = None) -> list[int]:
     """Field nodes that a sensor reads directly: output i reads node j when the row C_k[i] equals
     the field map's row G_k[j] (to `rtol`), found from the identified model alone (k: the last
-    step by default). Sensors that average or mix the field read no single node."""
+    step by default). Sensors that average or mix the field read no single node. With `P`
+    (n, n), a covariance of the state at step k, the rows are compared in the directions the
+    state takes, (C_k[i] - G_k[j]) P^(1/2): a field map compressed to those directions
+    (`sep_control.lqr.compress_field_map`) differs from C elsewhere."""
     k = model.C.shape[0] - 1 if k is None else k
-    G = model.G.matrix(k)
+    G, C = model.G.matrix(k), model.C[k]
+    if P is not None:
+        w, V = np.linalg.eigh(0.5 * (P + P.T))
+        L = V * np.sqrt(np.maximum(w, 0.0))
+        G, C = G @ L, C @ L
     out = []
-    for c in model.C[k]:
+    for c in C:
         scale = float(np.linalg.norm(c))
         if scale == 0.0:
             continue
