@@ -63,7 +63,7 @@ class DesignSettings:
     sv_tol: float = 1e-10           # relative singular-value cutoff
     impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
     impulse_scheme: str = "central"  # TV-ERA impulses: "central" (+- pairs) or "forward" (one run each)
-    field_map_tol: float = FIELD_MAP_TOL  # field map: drop directions moving the field < this x its open-loop spread
+    field_map_tol: float = FIELD_MAP_TOL  # field map: drop directions moving the field < this x its spread
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     relinearize_rtol: float = 1e-2  # ROM Jacobian: keep the last identification while U moved less (relative)

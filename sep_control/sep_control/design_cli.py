@@ -56,8 +56,8 @@ SETTINGS_OPTIONS = (
     ("--impulse", "impulse", dict(type=float), "impulse amplitude relative to the RMS nominal input"),
     ("--field-map-tol", "field_map_tol", dict(type=float),
      "the design's field map G_k = Phi g_k keeps the directions that move the field by more than this times "
-     "its largest open-loop spread (the ROM state's covariance without feedback); what is dropped changes the "
-     "reconstructed field and its std by about that much (measured: <= 1.3e-3 of the largest std at 1e-5). The "
+     "its largest spread (the ROM state's covariance with and without the feedback); what is dropped changes the "
+     "reconstructed field and its std by about that much (measured: <= 9.3e-4 of the largest std at 1e-5). The "
      "gains do not use the map. Smaller keeps more of Phi: a larger file and a slower online reconstruction"),
     ("--impulse-scheme", "impulse_scheme", dict(choices=["central", "forward"]),
      "TV-ERA impulse experiments: central = +- pairs (no first-order bias); forward = one run per "

@@ -9,8 +9,7 @@ so du_k = K_k a_k. On the ROM the state weight comes from the outputs, Q_k = C_k
 
 Online: u_k = clip(ubar_k + K_k ahat_{k|k}, u_min, u_max).
 `design_lqg` puts the LQR and the Kalman filter together on one model (ROM or oracle), and
-compresses a POD field map to the directions the filter's uncertainty reaches
-(`compress_field_map`).
+compresses a POD field map to the directions the ROM state reaches (`compress_field_map`).
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -19,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from sep_estimator.ltv import LQG, LTVModel, PODFieldMap
+from sep_estimator.ltv import LQG, LTVModel, PODFieldMap, psd_factor
 from sep_estimator.tvkf import kalman_gains, schedule_from_posteriors
 from sep_plant.problem import Problem
 
@@ -76,11 +75,8 @@ def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap
     What is dropped moves the field by less than tol times its largest spread, both the
     reconstructed mean and the std. Neither the LQR (weights on the outputs) nor the filter (it
     reads the outputs) uses G, so the gains do not change."""
-    L = []
-    for Xk in X:
-        w, V = np.linalg.eigh(0.5 * (Xk + Xk.T))
-        L.append(V * np.sqrt(np.maximum(w, 0.0)))
-    U, S, _ = np.linalg.svd(np.concatenate([gk @ Lk for gk, Lk in zip(G.g, L)], axis=1), full_matrices=False)
+    gL = G.g @ psd_factor(X)                                   # (N+1, r_f, n)
+    U, S, _ = np.linalg.svd(np.concatenate(list(gL), axis=1), full_matrices=False)
     r = int(np.count_nonzero(S > tol * S[0])) if S.size and S[0] > 0 else 0
     Ur = U[:, :max(r, 1)] if G.rank else U[:, :0]
     return PODFieldMap(np.ascontiguousarray(G.Phi @ Ur), np.ascontiguousarray(np.einsum("rs,krn->ksn", Ur, G.g)))

@@ -75,6 +75,13 @@ class DenseFieldMap:
         return v @ self.G[k]
 
 
+def psd_factor(P: np.ndarray) -> np.ndarray:
+    """L with L L' = P for a symmetric PSD P (n, n) or a stack (..., n, n): the eigen-factor
+    V sqrt(max(w, 0)) of its symmetric part, defined where a Cholesky factor is not (singular P)."""
+    w, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, -1, -2)))
+    return V * np.sqrt(np.maximum(w, 0.0))[..., None, :]
+
+
 class PODFieldMap:
     """G_k = Phi g_k: one orthonormal basis Phi (n_field, r) shared by every step and per-step
     coefficients g (N+1, r, n). Memory n_field r + N r n instead of N n_field n; G_k' G_k =
@@ -92,9 +99,8 @@ class PODFieldMap:
         return self.Phi @ self.g[k]
 
     def std(self, k: int, P: np.ndarray) -> np.ndarray:
-        # diag(Phi g P g' Phi') = rowsum((Phi g L)^2) with P = L L' (P is PSD; eigen-factor it)
-        w, V = np.linalg.eigh(0.5 * (P + P.T))
-        L = V * np.sqrt(np.maximum(w, 0.0))
+        # diag(Phi g P g' Phi') = rowsum((Phi g L)^2) with P = L L'
+        L = psd_factor(P)
         return np.sqrt(np.einsum("ij,ij->i", *(2 * [self.Phi @ (self.g[k] @ L)])))
 
     def std_all(self, P: np.ndarray) -> np.ndarray:
@@ -110,9 +116,9 @@ class PODFieldMap:
 class Float32Reconstruction(PODFieldMap):
     """A POD field map whose `apply`, the per-step reconstruction (a g_k') Phi', reads a float32
     copy of Phi. At large n_field the product is memory-bound (it streams n_field r numbers), so
-    half the bytes is about half the time (65 536 x 94: README, bench/bench_field.py); the
-    deviation carries float32 round-off, ~1e-7 relative (the map itself is truncated at 1e-5),
-    and is returned as float64. Everything else (std, gram, project) stays float64."""
+    half the bytes is about half the time or less (65 536 x 69: 1.6 -> 0.46 ms, README,
+    bench/bench_field.py); the deviation carries float32 round-off, ~1e-7 relative (the design's
+    map itself is compressed at 1e-5), and is returned as float64. Everything else (std, gram, project) stays float64."""
 
     def __init__(self, base: PODFieldMap):
         super().__init__(base.Phi, base.g)
@@ -232,8 +238,7 @@ def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3,
     k = model.C.shape[0] - 1 if k is None else k
     G, C = model.G.matrix(k), model.C[k]
     if P is not None:
-        w, V = np.linalg.eigh(0.5 * (P + P.T))
-        L = V * np.sqrt(np.maximum(w, 0.0))
+        L = psd_factor(P)
         G, C = G @ L, C @ L
     out = []
     for c in C:
