@@ -14,7 +14,11 @@ Per plant (slab n_x = 100 and 10^4, plate 64^2 and 128^2, block 24^3, Allen-Cahn
 --solvers adds a second table: the grid plants' cost with each line solver of adi.py ("auto",
 the default; "lapack": dptsv on every axis; "thomas": vectorized Thomas on every axis).
 
-    OPENBLAS_NUM_THREADS=1 python bench/bench_plants.py [--solvers] [--horizon 10] [--repeats 5]
+--blocks adds a table of the cost of the large batches the design steps (the sensitivity
+experiments' N n_u runs, a TV-ERA chunk's runs) stepped in one piece and in blocks of 2^17 to
+2^21 nodes (`sep_plant.plants.blocks`; the default block is marked), side by side in one run.
+
+    OPENBLAS_NUM_THREADS=1 python bench/bench_plants.py [--solvers] [--blocks] [--horizon 10] [--repeats 5]
 """
 from __future__ import annotations
 
@@ -23,7 +27,7 @@ import time
 
 import numpy as np
 
-from sep_plant.plants import adi, make_plant
+from sep_plant.plants import adi, blocks, make_plant
 
 CASES = [  # label, type, config, batch sizes, constant input, RK4 reference
     ("slab 100", "slab", {"n_x": 100}, (1, 64, 200), 0.1, False),
@@ -33,6 +37,17 @@ CASES = [  # label, type, config, batch sizes, constant input, RK4 reference
     ("block 24^3", "block", {}, (1, 64), 0.1, True),
     ("allen_cahn 50^2", "allen_cahn", {}, (1, 64), 0.05, True),
 ]
+
+BLOCK_CASES = [  # label, type, config, batch (the design's: N n_u sensitivity runs or a TV-ERA chunk)
+    ("slab 10^4", "slab", {"n_x": 10_000}, 400),
+    ("plate 64^2", "plate", {}, 720),
+    ("plate 128^2", "plate", {"nodes": [128, 128]}, 720),
+    ("plate 256^2", "plate", {"nodes": [256, 256]}, 360),
+    ("block 24^3", "block", {}, 540),
+    ("block 32^3", "block", {"nodes": [32, 32, 32]}, 540),
+    ("allen_cahn 50^2", "allen_cahn", {}, 720),
+]
+BLOCK_SIZES = (15, 16, 17, 18, 19, 20)          # log2 of the nodes per block
 
 
 def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> float:
@@ -115,19 +130,23 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="timing repeats (best is reported)")
     ap.add_argument("--horizon", type=float, default=10.0, help="accuracy horizon [s]")
     ap.add_argument("--solvers", action="store_true", help="also compare the line solvers")
+    ap.add_argument("--blocks", action="store_true", help="also compare block sizes of large batches")
+    ap.add_argument("--only-blocks", action="store_true", help="the block table alone")
     args = ap.parse_args()
+    args.blocks = args.blocks or args.only_blocks
 
     rows = []
-    for label, kind, cfg, batches, u, with_rk4 in CASES:
+    for label, kind, cfg, batches, u, with_rk4 in ([] if args.only_blocks else CASES):
         p = make_plant(kind, cfg)
         cost = {b: ns_per_node_step(p, b, args.repeats) for b in batches}
         rows.append([label, str(p.n_x), f"{p.dt:g}"]
                     + [f"{cost[b]:.1f}" if b in cost else "-" for b in (1, 64, 200)]
                     + [f"{cost[1] * p.n_x * 1e-6:.3f}"] + accuracy(kind, cfg, u, args.horizon, with_rk4))
-    print_table(f"Cost [ns per node-step of one batched step; one core, best of {args.repeats}] and accuracy at the "
-                f"default dt after {args.horizon:g} s (error / largest change of the field)",
-                ["plant", "n_x", "dt [s]", "M = 1", "M = 64", "M = 200", "ms/step M=1", "max change",
-                 "vs Richardson max", "rms", "vs RK4 max", "rms", "RK4 vs Richardson"], rows)
+    if rows:
+        print_table(f"Cost [ns per node-step of one batched step; one core, best of {args.repeats}] and accuracy at the "
+                    f"default dt after {args.horizon:g} s (error / largest change of the field)",
+                    ["plant", "n_x", "dt [s]", "M = 1", "M = 64", "M = 200", "ms/step M=1", "max change",
+                     "vs Richardson max", "rms", "vs RK4 max", "rms", "RK4 vs Richardson"], rows)
 
     if args.solvers:
         rows = []
@@ -145,6 +164,24 @@ def main() -> None:
                     "2048 lines), lapack (dptsv on every axis), thomas (Thomas on every axis)",
                     ["plant", "M=1 auto", "M=1 lapack", "M=1 thomas", "M=64 auto", "M=64 lapack",
                      "M=64 thomas"], rows)
+
+    if args.blocks:
+        rows = []
+        for label, kind, cfg, batch in BLOCK_CASES:
+            p = make_plant(kind, cfg)
+            p.block_nodes = batch * p.n_x                                  # one piece
+            whole = ns_per_node_step(p, batch, args.repeats)
+            row = [label, str(p.n_x), str(batch), f"{whole:.1f}"]
+            for k in BLOCK_SIZES:
+                p.block_nodes = 1 << k
+                t = ns_per_node_step(p, batch, args.repeats)
+                row.append(f"{t:.1f} ({whole / t:.2f}x)")
+            rows.append(row)
+            print(" | ".join(row), flush=True)
+        default = blocks.BLOCK_NODES.bit_length() - 1
+        print_table(f"Batch in blocks [ns per node-step; (speed-up over one piece)]; default block 2^{default} nodes",
+                    ["plant", "n_x", "runs", "one piece"]
+                    + [f"2^{k}{' (default)' if k == default else ''}" for k in BLOCK_SIZES], rows)
 
 
 if __name__ == "__main__":

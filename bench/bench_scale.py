@@ -16,6 +16,12 @@ process (so its peak resident memory is its own) and measures, in one run:
     OPENBLAS_NUM_THREADS=1 python bench/bench_scale.py --quick     # the small rows (~2 min)
     OPENBLAS_NUM_THREADS=1 python bench/bench_scale.py             # every row (long: hours)
     python bench/bench_scale.py --rows slab:1600 plate:128          # chosen rows
+    python bench/bench_scale.py --rows block:24 --block-nodes 0 default   # batch in one piece vs blocks
+
+`--block-nodes` runs every row once per value: the built-in plants' `block_nodes` (the batch is
+stepped in blocks of that many nodes, `sep_plant.plants.blocks`; 0: in one piece; default: the
+plants' own), and ends with the design, plant-step and Monte Carlo times of each value relative
+to the first.
 """
 from __future__ import annotations
 
@@ -46,7 +52,11 @@ COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s"
            "design/rollout", "mc100/rollout"]
 
 
-def run_row(name: str, runs: int, dask: str | None = None) -> dict:
+def block_label(value: str) -> str:
+    return "one piece" if value == "0" else ("blocks" if value == "default" else f"blocks of {value}")
+
+
+def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "default") -> dict:
     """Measure one row (in this process)."""
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -60,6 +70,8 @@ def run_row(name: str, runs: int, dask: str | None = None) -> dict:
     file, changes = ROWS[name]
     scen = load_scenario(REPO / "sep_plant" / "scenarios" / file if file else None).with_plant(**changes)
     plant, problem = scen.plant, scen.problem
+    if block_nodes != "default":
+        plant.block_nodes = int(block_nodes) or 1 << 62
     spent = [0.0]
     step = plant.step
 
@@ -108,28 +120,50 @@ def main() -> int:
     ap.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
     ap.add_argument("--dask", metavar="WHERE", help="run every row's experiments and Monte Carlo on Dask "
                     "(local, local:N, tcp://HOST:PORT); 'plant steps in the design' then counts the client's only")
+    ap.add_argument("--block-nodes", nargs="+", default=["default"], metavar="N",
+                    help="run each row once per value: nodes per block of the plants' batched step "
+                         "(0: the batch in one piece; default: the plants' own)")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
+    for v in args.block_nodes:
+        if v != "default" and not (v.isdigit()):
+            ap.error(f"--block-nodes: expected a number of nodes or 'default', got {v!r}")
     if args.row:
-        print(json.dumps(run_row(args.row, args.runs, args.dask)))
+        print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0])))
         return 0
     names = args.rows or (list(QUICK) if args.quick else list(ROWS))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator",
                                                                                 "sep_control")))
     rows = {}
+    compare = len(args.block_nodes) > 1
     for name in names:
-        t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs)]
-                              + (["--dask", args.dask] if args.dask else []), env=env, capture_output=True, text=True)
-        if proc.returncode != 0:
-            print(f"{name}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
-            continue
-        rows[name] = json.loads(proc.stdout.strip().splitlines()[-1])
-        print(f"{name}: {time.perf_counter() - t0:.0f} s", flush=True)
+        for value in args.block_nodes:
+            label = f"{name} {block_label(value)}" if compare else name
+            t0 = time.perf_counter()
+            proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs),
+                                   "--block-nodes", value] + (["--dask", args.dask] if args.dask else []),
+                                  env=env, capture_output=True, text=True)
+            if proc.returncode != 0:
+                print(f"{label}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
+                continue
+            rows[label] = json.loads(proc.stdout.strip().splitlines()[-1])
+            print(f"{label}: {time.perf_counter() - t0:.0f} s", flush=True)
     from sep_control.metrics import format_table
 
     print("\nOne run per row, one BLAS thread, this machine; ratios measured in the same run")
     print(format_table(rows, COLUMNS))
+    if compare:
+        first = block_label(args.block_nodes[0])
+        ratios = {}
+        for name in names:
+            base = rows.get(f"{name} {first}")
+            for value in args.block_nodes[1:]:
+                row = rows.get(f"{name} {block_label(value)}")
+                if base and row:
+                    ratios[f"{name} {block_label(value)}"] = {
+                        f"{k} / {first}": row[k] / base[k] for k in ("design_s", "plant_step_s", "mc_s_per_100")}
+        print(f"\nRelative to {first} (same run)")
+        print(format_table(ratios, [f"{k} / {first}" for k in ("design_s", "plant_step_s", "mc_s_per_100")]))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
     return 0

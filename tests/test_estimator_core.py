@@ -62,6 +62,10 @@ def test_float32_field_reconstruction_tracks_the_float64_one(design):
             single.applied(k, u[k])
     with pytest.raises(ValueError, match="field precision"):
         EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field, field_precision="half")
+    # the default 'auto' keeps this small basis in float64: the reconstruction is the float64 one
+    auto = EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field)
+    assert auto.field_precision == "float64" and exact.field_precision == "float64"
+    assert single.field_precision == "float32"
 
 
 def test_stale_and_duplicate_steps_are_refused_without_touching_the_filter(design):

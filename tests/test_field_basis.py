@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from sep_control.basis import IncrementalBasis, truncate
-from sep_estimator.ltv import DenseFieldMap, Float32Reconstruction, PODFieldMap, in_precision
+from sep_estimator.ltv import (AUTO_FLOAT32_BYTES, DenseFieldMap, Float32Reconstruction, PODFieldMap, in_precision,
+                               resolve_precision)
 
 
 def low_rank(rng, n, m, rank, decay=1.0):
@@ -84,8 +85,24 @@ def test_float32_reconstruction_agrees_to_single_precision_and_keeps_the_rest_fl
         np.testing.assert_array_equal(f32.std(k, P), pod.std(k, P))
     dense = DenseFieldMap(np.zeros((5, 7, 6)))
     assert in_precision(dense, "float32") is dense
-    with pytest.raises(ValueError, match="float64, float32"):
+    with pytest.raises(ValueError, match="auto, float64, float32"):
         in_precision(pod, "float16")
+
+
+def test_auto_precision_is_float32_only_for_a_field_basis_too_large_for_the_caches():
+    """'auto' keeps a small basis in float64 (the reconstruction is then bitwise the default's)
+    and reconstructs from a float32 copy of a basis of AUTO_FLOAT32_BYTES or more."""
+    rng = np.random.default_rng(5)
+    g = rng.standard_normal((3, 16, 4))
+    rows = AUTO_FLOAT32_BYTES // (8 * 16)
+    small = PODFieldMap(np.linalg.qr(rng.standard_normal((rows - 1, 16)))[0], g)
+    large = PODFieldMap(np.linalg.qr(rng.standard_normal((rows, 16)))[0], g)
+    assert resolve_precision(small, "auto") == "float64" and in_precision(small, "auto") is small
+    assert resolve_precision(large, "auto") == "float32"
+    assert isinstance(in_precision(large, "auto"), Float32Reconstruction)
+    assert resolve_precision(large, "float64") == "float64" and in_precision(large, "float64") is large
+    dense = DenseFieldMap(np.zeros((3, rows, 4)))
+    assert resolve_precision(dense, "auto") == "float64" and in_precision(dense, "auto") is dense
 
 
 def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_grid():

@@ -287,6 +287,31 @@ def test_batch_equals_runs_one_by_one_and_solvers_agree(name):
         np.testing.assert_allclose(p.step(X, U), batch, rtol=1e-13, atol=0)
 
 
+@pytest.mark.parametrize("name", sorted(SMALL) + ["slab"])
+def test_a_batch_stepped_in_cache_sized_blocks_equals_the_batch_in_one_piece(name):
+    """Blocks of 2 runs (the last one short) give what one piece gives: bitwise with the same
+    line solver (the runs are independent), to round-off with 'auto' (a block's line count may
+    pick the other solver); inputs given once for every run and noise are sliced with the runs."""
+    p = SlabPlant(n_x=30) if name == "slab" else small(name)
+    rng = np.random.default_rng(7)
+    X = p.initial_state(7) + 0.5 * rng.standard_normal((7, p.n_x))
+    U = 0.2 * rng.standard_normal((7, p.n_u))
+    W = 0.1 * rng.standard_normal((7, p.n_u))
+    solvers = ["auto"] if name == "slab" else list(adi.SOLVERS)
+    for solver in solvers:
+        if name != "slab":
+            p.solver = solver
+        for u, w in ((U, None), (U[:1], None), (U, W)):
+            p.block_nodes = 10 ** 9
+            whole = p.step(X, u, w)
+            p.block_nodes = 2 * p.n_x
+            blocked = p.step(X, u, w)
+            assert blocked.shape == whole.shape == X.shape
+            if solver == "auto" and name != "slab":
+                np.testing.assert_allclose(blocked, whole, rtol=1e-13, atol=0)
+            else:
+                np.testing.assert_array_equal(blocked, whole)
+
 # ------------------------------------------------------------------------------ the split vs 1-D
 def backward_euler_1d(n: int, length: float, T: np.ndarray, steps: int, *, k0, beta, t_ref, t_scale,
                       eta, t_amb, t_right, dt) -> np.ndarray:

@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import os
 
-#: state-sized arrays alive per run while a batch steps (measured on the built-in plants: the
-#: ADI step's coefficient and right-hand-side arrays dominate)
+#: state-sized arrays alive per run while a batch steps, for a plant that steps a batch in one
+#: piece (measured on the built-in plants stepped so: the ADI step's coefficient and right-hand-side
+#: arrays dominate). The built-in plants now step in cache-sized blocks (`sep_plant.plants.blocks`),
+#: whose temporaries are a block's, not the batch's; for them the budget is an upper bound (the
+#: peak memory of the scale rows: README)
 RUN_COPIES = 12
 MIN_BUDGET = 256 << 20
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from sep_plant import gate
 
-from .ltv import LQG, in_precision
+from .ltv import LQG, in_precision, resolve_precision
 from .tvkf import KalmanFilter
 
 NIS_WINDOW = 50
@@ -40,15 +40,17 @@ class EstimatorCore:
     """One episode of the online filter (batch of one run)."""
 
     def __init__(self, lqg: LQG, u_nom: np.ndarray, y_nom: np.ndarray, field_nom: np.ndarray,
-                 nis_window: int = NIS_WINDOW, field_precision: str = "float64"):
-        """`field_precision` of the field reconstruction G_k a_hat ('float64', or 'float32':
-        `ltv.Float32Reconstruction`, half the memory traffic on large grids)."""
+                 nis_window: int = NIS_WINDOW, field_precision: str = "auto"):
+        """`field_precision` of the field reconstruction G_k a_hat ('float64'; 'float32':
+        `ltv.Float32Reconstruction`, half the memory traffic on large grids; 'auto': float32
+        from a field basis of `ltv.AUTO_FLOAT32_BYTES` on); the one used is `field_precision`."""
         self.lqg = lqg
         self.u_nom, self.y_nom, self.field_nom = u_nom, y_nom, field_nom
         self.N = int(u_nom.shape[0])
         self.n_u, self.n_y = int(u_nom.shape[1]), int(y_nom.shape[1])
         self.kf = KalmanFilter(lqg)
-        self.kf.G = in_precision(self.kf.G, field_precision)
+        self.field_precision = resolve_precision(self.kf.G, field_precision)
+        self.kf.G = in_precision(self.kf.G, self.field_precision)
         m = lqg.model
         # innovation covariance inverses S_k^-1 = (C_k P_{k|k-1} C_k' + V)^-1 of the schedule (NIS)
         Pp = lqg.kf.P_prior

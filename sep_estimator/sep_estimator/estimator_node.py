@@ -49,9 +49,11 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/co
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's slab/scenario and check it first
   publish_field_estimate (bool, true)
-  field_precision (str, float64)   float32: the field reconstruction Phi (g_k a_hat) from a float32
-                                   copy of Phi (~1e-7 relative round-off; about half the time on
-                                   large grids, where the product is memory-bound); messages stay float64
+  field_precision (str, auto)      float32: the field reconstruction Phi (g_k a_hat) from a float32
+                                   copy of Phi (~1e-7 relative round-off; a half to a third of the
+                                   time on large grids, where the product is memory-bound); float64;
+                                   auto: float32 from a Phi of 8 MB on (65 536 nodes x r_f 16),
+                                   float64 below; messages stay float64
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
@@ -65,16 +67,18 @@ class EstimatorNode(DesignedNode):
         node = self.node
         self.publish_field = declare(node, 'publish_field_estimate', True,
                                      'publish slab/field_estimate (reconstructed field with std)')
-        self.field_precision = declare(node, 'field_precision', 'float64',
-                                       'field reconstruction arithmetic: float64, or float32 (half the memory '
-                                       'traffic on large grids; ~1e-7 relative round-off; messages stay float64)',
-                                       constraints="one of: float64, float32")
+        self.field_precision = declare(node, 'field_precision', 'auto',
+                                       'field reconstruction arithmetic: float64, float32 (half the memory '
+                                       'traffic on large grids; ~1e-7 relative round-off; messages stay float64), '
+                                       'or auto (float32 from a field basis of 8 MB on)',
+                                       constraints="one of: auto, float64, float32")
         if self.field_precision not in FIELD_PRECISIONS:
             raise StartError(f"bad parameter field_precision: {self.field_precision!r}, expected one of "
                              f"{list(FIELD_PRECISIONS)}")
         d = self.design
         nom = d.nominal
         self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
+        self.precision_used = self.core.field_precision
         self.sensors = list(self.info.output_names)
         self.heaters = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
@@ -100,7 +104,8 @@ class EstimatorNode(DesignedNode):
         self._warm_up()
         rank = getattr(d.rom.G, 'rank', None)
         self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
-                      f'field reconstruction {self.field_precision}'
+                      f'field reconstruction {self.precision_used}'
+                      f"{' (auto)' if self.field_precision == 'auto' else ''}"
                       f"{f' on a field basis of rank {rank}' if rank is not None else ''}, "
                       f'namespace {node.get_namespace()}, use_sim_time '
                       f"{node.get_parameter('use_sim_time').value}")

@@ -129,15 +129,29 @@ class Float32Reconstruction(PODFieldMap):
 
 
 #: reconstruction precisions the online estimator offers (parameter field_precision)
-FIELD_PRECISIONS = ("float64", "float32")
+FIELD_PRECISIONS = ("auto", "float64", "float32")
+#: 'auto' reconstructs in float32 from this size of Phi [bytes] on: below it Phi stays in the
+#: caches and float64 costs little more (reference slab 19 kB, plate 64^2 2.3 MB); above it the
+#: product is memory-bound (plate 256^2: 36 MB, float32 3.5x faster, README)
+AUTO_FLOAT32_BYTES = 8 << 20
+
+
+def resolve_precision(G: "FieldMap", precision: str) -> str:
+    """'float64' or 'float32': `precision` itself, or for 'auto' float32 where G is a POD map
+    whose Phi holds at least AUTO_FLOAT32_BYTES (ValueError naming the choices otherwise)."""
+    if precision not in FIELD_PRECISIONS:
+        raise ValueError(f"field precision must be one of {', '.join(FIELD_PRECISIONS)}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    big = isinstance(G, PODFieldMap) and G.Phi.size * 8 >= AUTO_FLOAT32_BYTES
+    return "float32" if big else "float64"
 
 
 def in_precision(G: "FieldMap", precision: str) -> "FieldMap":
-    """G for the online reconstruction in `precision` ('float64': G itself; 'float32': a
-    `Float32Reconstruction` of a POD map, other maps unchanged: they are small)."""
-    if precision not in FIELD_PRECISIONS:
-        raise ValueError(f"field precision must be one of {', '.join(FIELD_PRECISIONS)}, got {precision!r}")
-    if precision == "float32" and isinstance(G, PODFieldMap) and not isinstance(G, Float32Reconstruction):
+    """G for the online reconstruction in `precision` (`resolve_precision`; 'float64': G itself;
+    'float32': a `Float32Reconstruction` of a POD map, other maps unchanged: they are small)."""
+    if resolve_precision(G, precision) == "float32" and isinstance(G, PODFieldMap) \
+            and not isinstance(G, Float32Reconstruction):
         return Float32Reconstruction(G)
     return G
 

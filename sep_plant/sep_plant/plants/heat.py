@@ -66,7 +66,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from . import adi, keys
+from . import adi, blocks, keys
 
 #: T_K = (T + offset) * scale for each temperature unit
 UNITS: dict[str, tuple[float, float]] = {"K": (0.0, 1.0), "C": (273.15, 1.0), "F": (459.67, 5.0 / 9.0)}
@@ -87,6 +87,8 @@ class GridPlant:
     noise_on_inputs = True
     #: line solver of `adi.douglas_step` ("auto", "lapack" or "thomas"; same results to round-off)
     solver = "auto"
+    #: a batch is stepped in blocks of at most this many nodes (`blocks.step_in_blocks`)
+    block_nodes = blocks.BLOCK_NODES
 
     grid: adi.Grid
     _B: np.ndarray
@@ -119,7 +121,8 @@ class GridPlant:
     def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """x_{k+1} = f(x_k, u_k + w_k) for every run of the batch (a new array)."""
         X, src, single = self._batch(x, u, w)
-        out = self._step(X.reshape((X.shape[0],) + self.grid.shape), src).reshape(X.shape)
+        T = X.reshape((X.shape[0],) + self.grid.shape)
+        out = blocks.step_in_blocks(self._step, T, src, self.block_nodes).reshape(X.shape)
         return out[0] if single else out
 
     def rhs(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:

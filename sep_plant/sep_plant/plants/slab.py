@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.linalg import lapack
 
-from . import keys
+from . import blocks, keys
 
 
 class SlabPlant:
@@ -33,6 +33,8 @@ class SlabPlant:
     field_unit = "F"
     field_is_state = True
     noise_on_inputs = True
+    #: a batch is stepped in blocks of at most this many nodes (`blocks.step_in_blocks`)
+    block_nodes = blocks.BLOCK_NODES
 
     def __init__(self, n_x: int = 100, length: float = 1.0, k0: float = 0.01, beta: float = 0.5,
                  gamma: float = 0.2, t_ref: float = 100.0, t_scale: float = 50.0, eta: float = 0.002,
@@ -118,6 +120,12 @@ class SlabPlant:
                              f"got {X.shape} and {U.shape}")
         if U.shape[0] != M:
             U = np.broadcast_to(U, (M, self.n_u))
+        out = blocks.step_in_blocks(self._step, X, U, self.block_nodes)
+        return out[0] if single else out
+
+    def _step(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """One backward-Euler step of the runs X (M, n_x) under inputs U (M, n_u): one gtsv call."""
+        M, n = X.shape
         # c_i = dt K(x_i, T_i) / h^2
         c = self._c_scale * (1.0 + self.beta * (X - self.t_ref) / self.t_scale) * self._space
         d = self._diag0 + 2.0 * c
@@ -134,8 +142,7 @@ class SlabPlant:
         if info != 0:
             raise FloatingPointError(f"tridiagonal solve failed (LAPACK info {info}): "
                                      "non-finite state or input?")
-        out = sol.reshape(M, n)
-        return out[0] if single else out
+        return sol.reshape(M, n)
 
     def observe(self, x: np.ndarray) -> np.ndarray:
         """Noise-free sensor outputs h(x): temperatures at the sensor nodes."""
