@@ -14,7 +14,7 @@ import os
 #: piece (measured on the built-in plants stepped so: the ADI step's coefficient and right-hand-side
 #: arrays dominate). The built-in plants now step in cache-sized blocks (`sep_plant.plants.blocks`),
 #: whose temporaries are a block's, not the batch's; for them the budget is an upper bound (the
-#: peak memory of the scale rows: README)
+#: plate 256^2 design peaks at 2.39 GB instead of 3.33 GB, README)
 RUN_COPIES = 12
 MIN_BUDGET = 256 << 20
 
