@@ -212,7 +212,10 @@ class Probe:
             return (all(self.subs[t].get_publisher_count() > 0 for t in subs)
                     and all(self.pubs[t].get_subscription_count() > 0 for t in pubs))
         self.wait_for(ok, timeout, f'publishers on {subs} / subscribers on {pubs}')
-        time.sleep(0.2)  # all endpoints of the peer participant matched, not only the first
+        # Our side seeing the peer's endpoint does not mean the peer's writer has matched our
+        # reader yet (discovery is asymmetric); a reliable, volatile sample written before that
+        # is lost. 0.2 s lost estimate 0 once in a loaded CI run (sep 0.5); 0.5 s settles it.
+        time.sleep(0.5)
 
     def diagnostics(self, name_part: str) -> list[dict]:
         """Key/values of every /diagnostics status whose name contains name_part."""
