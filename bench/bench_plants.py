@@ -15,8 +15,8 @@ Per plant (slab n_x = 100 and 10^4, plate 64^2 and 128^2, block 24^3, Allen-Cahn
 the default; "lapack": dptsv on every axis; "thomas": vectorized Thomas on every axis).
 
 --blocks adds a table of the cost of the large batches the design steps (the sensitivity
-experiments' N n_u runs, a TV-ERA chunk's runs) stepped in one piece and in blocks of 2^17 to
-2^21 nodes (`sep_plant.plants.blocks`; the default block is marked), side by side in one run.
+experiments' N n_u runs, a TV-ERA chunk's runs) stepped in one piece and in blocks of 2^15 to
+2^20 nodes (`sep_plant.plants.blocks`; the default block is marked), side by side in one run.
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_plants.py [--solvers] [--blocks] [--horizon 10] [--repeats 5]
 """

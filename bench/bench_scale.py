@@ -126,7 +126,7 @@ def main() -> int:
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     for v in args.block_nodes:
-        if v != "default" and not (v.isdigit()):
+        if v != "default" and not v.isdigit():
             ap.error(f"--block-nodes: expected a number of nodes or 'default', got {v!r}")
     if args.row:
         print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0])))

@@ -78,7 +78,6 @@ class EstimatorNode(DesignedNode):
         d = self.design
         nom = d.nominal
         self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
-        self.precision_used = self.core.field_precision
         self.sensors = list(self.info.output_names)
         self.heaters = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
@@ -104,7 +103,7 @@ class EstimatorNode(DesignedNode):
         self._warm_up()
         rank = getattr(d.rom.G, 'rank', None)
         self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
-                      f'field reconstruction {self.precision_used}'
+                      f'field reconstruction {self.core.field_precision}'
                       f"{' (auto)' if self.field_precision == 'auto' else ''}"
                       f"{f' on a field basis of rank {rank}' if rank is not None else ''}, "
                       f'namespace {node.get_namespace()}, use_sim_time '

@@ -137,21 +137,22 @@ AUTO_FLOAT32_BYTES = 8 << 20
 
 
 def resolve_precision(G: "FieldMap", precision: str) -> str:
-    """'float64' or 'float32': `precision` itself, or for 'auto' float32 where G is a POD map
-    whose Phi holds at least AUTO_FLOAT32_BYTES (ValueError naming the choices otherwise)."""
+    """The precision the reconstruction of G runs in for `precision`: 'float32' only for a POD map
+    asked 'float32', or 'auto' with a Phi of at least AUTO_FLOAT32_BYTES; other maps are small
+    and stay 'float64' (ValueError naming the choices for an unknown `precision`)."""
     if precision not in FIELD_PRECISIONS:
         raise ValueError(f"field precision must be one of {', '.join(FIELD_PRECISIONS)}, got {precision!r}")
-    if precision != "auto":
-        return precision
-    big = isinstance(G, PODFieldMap) and G.Phi.size * 8 >= AUTO_FLOAT32_BYTES
-    return "float32" if big else "float64"
+    if not isinstance(G, PODFieldMap):
+        return "float64"
+    if precision == "auto":
+        return "float32" if G.Phi.size * 8 >= AUTO_FLOAT32_BYTES else "float64"
+    return precision
 
 
 def in_precision(G: "FieldMap", precision: str) -> "FieldMap":
-    """G for the online reconstruction in `precision` (`resolve_precision`; 'float64': G itself;
-    'float32': a `Float32Reconstruction` of a POD map, other maps unchanged: they are small)."""
-    if resolve_precision(G, precision) == "float32" and isinstance(G, PODFieldMap) \
-            and not isinstance(G, Float32Reconstruction):
+    """G for the online reconstruction in `resolve_precision(G, precision)`: G itself for
+    float64, a `Float32Reconstruction` of a POD map for float32."""
+    if resolve_precision(G, precision) == "float32" and not isinstance(G, Float32Reconstruction):
         return Float32Reconstruction(G)
     return G
 
