@@ -12,13 +12,20 @@ Per plant (slab n_x = 100 and 10^4, plate 64^2 and 128^2, block 24^3, Allen-Cahn
   the split (its distance to (a) is printed: both references agree).
 
 --solvers adds a second table: the grid plants' cost with each line solver of adi.py ("auto",
-the default; "lapack": dptsv on every axis; "thomas": vectorized Thomas on every axis).
+the default; "lapack": dptsv on every axis; "thomas": vectorized Thomas on every axis; "pcr":
+parallel cyclic reduction, the GPU's solver, here on the CPU).
 
 --blocks adds a table of the cost of the large batches the design steps (the sensitivity
 experiments' N n_u runs, a TV-ERA chunk's runs) stepped in one piece and in blocks of 2^15 to
 2^20 nodes (`sep_plant.plants.blocks`; the default block is marked), side by side in one run.
 
+--device cuda adds a table of batched steps on a GPU (CuPy, `sep_plant.device`) against one CPU
+core, side by side in one run, up to 10^6 states: the device step with the state's round trip
+over the bus (what `--device cuda` does), the step of a state resident on the device, and the
+largest difference from the CPU step (relative to the field's change in the step).
+
     OPENBLAS_NUM_THREADS=1 python bench/bench_plants.py [--solvers] [--blocks] [--horizon 10] [--repeats 5]
+    python bench/bench_plants.py --only-device --device cuda                 # on a machine with a GPU
 """
 from __future__ import annotations
 
@@ -27,6 +34,7 @@ import time
 
 import numpy as np
 
+from sep_plant.device import DevicePlant, array_module
 from sep_plant.plants import adi, blocks, make_plant
 
 CASES = [  # label, type, config, batch sizes, constant input, RK4 reference
@@ -49,6 +57,14 @@ BLOCK_CASES = [  # label, type, config, batch (the design's: N n_u sensitivity r
 ]
 BLOCK_SIZES = (15, 16, 17, 18, 19, 20)          # log2 of the nodes per block
 
+DEVICE_CASES = [  # label, type, config, batch
+    ("slab 10^4", "slab", {"n_x": 10_000}, 400),
+    ("plate 256^2", "plate", {"nodes": [256, 256]}, 360),
+    ("plate 1000^2", "plate", {"nodes": [1000, 1000]}, 16),
+    ("block 32^3", "block", {"nodes": [32, 32, 32]}, 540),
+    ("block 100^3", "block", {"nodes": [100, 100, 100]}, 16),
+]
+
 
 def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> float:
     """Best-of-`repeats` time of one step of a batch, per node and run [ns]."""
@@ -67,6 +83,35 @@ def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> 
             plant.step(X, U)
         best = min(best, (time.perf_counter() - t0) / reps)
     return best / (batch * plant.n_x) * 1e9
+
+
+def device_row(label: str, kind: str, cfg: dict, batch: int, xp, repeats: int) -> list[str]:
+    """One row of the device table: CPU vs device (round trip, resident) [ns per node-step]."""
+    cpu = make_plant(kind, cfg)
+    dev = DevicePlant(cpu, xp, "cuda")
+    rng = np.random.default_rng(0)
+    X = cpu.initial_state(batch) + 0.1 * rng.standard_normal((batch, cpu.n_x))
+    U = np.full((batch, cpu.n_u), 0.1)
+    ref = cpu.step(X, U)
+    diff = np.max(np.abs(dev.step(X, U) - ref)) / max(np.max(np.abs(ref - X)), 1e-300)
+    t_cpu = ns_per_node_step(cpu, batch, max(1, min(repeats, 2)))
+    t_trip = ns_per_node_step(dev, batch, repeats)
+
+    class Resident:                        # the state stays on the device; float() waits for the step
+        n_x, n_u = cpu.n_x, cpu.n_u
+        Xd, Ud = xp.asarray(X), xp.asarray(U)
+
+        def initial_state(self, b):
+            return X
+
+        def step(self, _x, _u):
+            out = dev.plant.step(self.Xd, self.Ud)
+            float(out[0, 0])
+            return out
+
+    t_res = ns_per_node_step(Resident(), batch, repeats)
+    return [label, str(cpu.n_x), str(batch), f"{t_cpu:.1f}", f"{t_trip:.2f}", f"{t_cpu / t_trip:.1f}x",
+            f"{t_res:.2f}", f"{t_cpu / t_res:.1f}x", f"{diff:.1e}"]
 
 
 def rollout(plant, x, u, steps: int) -> np.ndarray:
@@ -132,8 +177,16 @@ def main() -> None:
     ap.add_argument("--solvers", action="store_true", help="also compare the line solvers")
     ap.add_argument("--blocks", action="store_true", help="also compare block sizes of large batches")
     ap.add_argument("--only-blocks", action="store_true", help="the block table alone")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="cuda: also the table of batched steps on the GPU (CuPy)")
+    ap.add_argument("--only-device", action="store_true", help="the device table alone")
     args = ap.parse_args()
     args.blocks = args.blocks or args.only_blocks
+    if args.only_device and args.device == "cpu":
+        ap.error("--only-device needs --device cuda")
+    if args.only_device:
+        args.only_blocks = True
+        args.blocks = False
 
     rows = []
     for label, kind, cfg, batches, u, with_rk4 in ([] if args.only_blocks else CASES):
@@ -156,14 +209,14 @@ def main() -> None:
             p = make_plant(kind, cfg)
             row = [label]
             for batch in (1, 64):
-                for solver in ("auto", "lapack", "thomas"):
+                for solver in ("auto", "lapack", "thomas", "pcr"):
                     p.solver = solver
                     row.append(f"{ns_per_node_step(p, batch, args.repeats):.1f}")
             rows.append(row)
         print_table("Line solvers [ns per node-step]: auto (dptsv on the last axis, Thomas on the others from "
-                    "2048 lines), lapack (dptsv on every axis), thomas (Thomas on every axis)",
-                    ["plant", "M=1 auto", "M=1 lapack", "M=1 thomas", "M=64 auto", "M=64 lapack",
-                     "M=64 thomas"], rows)
+                    "2048 lines), lapack (dptsv on every axis), thomas (Thomas on every axis), pcr (parallel "
+                    "cyclic reduction on every axis)",
+                    ["plant"] + [f"M={m} {s}" for m in (1, 64) for s in ("auto", "lapack", "thomas", "pcr")], rows)
 
     if args.blocks:
         rows = []
@@ -182,6 +235,17 @@ def main() -> None:
         print_table(f"Batch in blocks [ns per node-step; (speed-up over one piece)]; default block 2^{default} nodes",
                     ["plant", "n_x", "runs", "one piece"]
                     + [f"2^{k}{' (default)' if k == default else ''}" for k in BLOCK_SIZES], rows)
+
+    if args.device != "cpu":
+        xp = array_module(args.device)
+        rows = []
+        for case in DEVICE_CASES:
+            rows.append(device_row(*case, xp, args.repeats))
+            print(" | ".join(rows[-1]), flush=True)
+        print_table(f"Batched steps on {args.device} [ns per node-step]: one CPU core vs the device with the "
+                    "state's round trip (--device cuda) and resident on the device; max |device - CPU| / "
+                    "max |step change|", ["plant", "n_x", "runs", "CPU", "device (round trip)", "speed-up",
+                                          "device (resident)", "speed-up", "difference"], rows)
 
 
 if __name__ == "__main__":

@@ -17,11 +17,16 @@ process (so its peak resident memory is its own) and measures, in one run:
     OPENBLAS_NUM_THREADS=1 python bench/bench_scale.py             # every row (long: hours)
     python bench/bench_scale.py --rows slab:1600 plate:128          # chosen rows
     python bench/bench_scale.py --rows block:24 --block-nodes 0 default   # batch in one piece vs blocks
+    python bench/bench_scale.py --device cuda --rows plate:1000 block:100  # 10^6 states on a GPU (CuPy)
 
 `--block-nodes` runs every row once per value: the built-in plants' `block_nodes` (the batch is
 stepped in blocks of that many nodes, `sep_plant.plants.blocks`; 0: in one piece; default: the
 plants' own), and ends with the design, plant-step and Monte Carlo times of each value relative
 to the first.
+
+`--device cuda` steps every row's plant on the GPU (`sep_plant.device`: the state crosses the bus
+each step; "plant steps" then include the transfers). The 10^6-state rows plate:1000 and
+block:100 run only when named in `--rows` (on one CPU core they would take days).
 """
 from __future__ import annotations
 
@@ -45,7 +50,10 @@ ROWS = {                       # name -> (scenario file or None for the referenc
     "plate:256": ("plate.yaml", {"nodes": [256, 256]}),
     "block:24": ("block.yaml", {"nodes": [24, 24, 24]}),
     "block:32": ("block.yaml", {"nodes": [32, 32, 32]}),
+    "plate:1000": ("plate.yaml", {"nodes": [1000, 1000]}),        # 10^6 states: --rows only (GPU)
+    "block:100": ("block.yaml", {"nodes": [100, 100, 100]}),
 }
+DEFAULT_ROWS = [r for r in ROWS if r not in ("plate:1000", "block:100")]
 QUICK = ("slab:100", "slab:1600", "plate:64")
 COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "plant_step_s",
            "design/plant_steps", "n_r", "r_f", "peak_rss_mb", "file_mb", "mc_s_per_100", "in_band",
@@ -56,7 +64,8 @@ def block_label(value: str) -> str:
     return "one piece" if value == "0" else ("blocks" if value == "default" else f"blocks of {value}")
 
 
-def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "default") -> dict:
+def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "default",
+            device: str = "cpu") -> dict:
     """Measure one row (in this process)."""
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -64,13 +73,15 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
     from sep_control.design import DesignSettings, run_design
     from sep_control.montecarlo import simulate
     from sep_estimator.design_file import save_design
+    from sep_plant.device import on_device
     from sep_plant.protocol import nominal_states
     from sep_plant.scenario import load_scenario
 
     file, changes = ROWS[name]
     scen = load_scenario(REPO / "sep_plant" / "scenarios" / file if file else None).with_plant(**changes)
     plant, problem = scen.plant, scen.problem
-    if block_nodes != "default":
+    plant = on_device(plant, device)
+    if block_nodes != "default":           # on cuda: the blocks sent to the device
         plant.block_nodes = int(block_nodes) or 1 << 62
     spent = [0.0]
     step = plant.step
@@ -109,7 +120,7 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
             "design/plant_steps": t_design / plant_s, "n_r": int(design.rom.dims.max()),
             "r_f": int(getattr(G, "rank", G.n)), "file_mb": file_mb, "mc_s_per_100": t_mc,
             "in_band": mc.summary["in_band"], "design/rollout": t_design / rollout, "mc100/rollout": t_mc / rollout,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "device": device}
 
 
 def main() -> int:
@@ -123,15 +134,17 @@ def main() -> int:
     ap.add_argument("--block-nodes", nargs="+", default=["default"], metavar="N",
                     help="run each row once per value: nodes per block of the plants' batched step "
                          "(0: the batch in one piece; default: the plants' own)")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="where the plants step (cuda: CuPy on a GPU, see sep_plant.device)")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     for v in args.block_nodes:
         if v != "default" and not v.isdigit():
             ap.error(f"--block-nodes: expected a number of nodes or 'default', got {v!r}")
     if args.row:
-        print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0])))
+        print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0], args.device)))
         return 0
-    names = args.rows or (list(QUICK) if args.quick else list(ROWS))
+    names = args.rows or (list(QUICK) if args.quick else DEFAULT_ROWS)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator",
                                                                                 "sep_control")))
     rows = {}
@@ -141,7 +154,8 @@ def main() -> int:
             label = f"{name} {block_label(value)}" if compare else name
             t0 = time.perf_counter()
             proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs),
-                                   "--block-nodes", value] + (["--dask", args.dask] if args.dask else []),
+                                   "--block-nodes", value, "--device", args.device]
+                                  + (["--dask", args.dask] if args.dask else []),
                                   env=env, capture_output=True, text=True)
             if proc.returncode != 0:
                 print(f"{label}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
@@ -150,7 +164,7 @@ def main() -> int:
             print(f"{label}: {time.perf_counter() - t0:.0f} s", flush=True)
     from sep_control.metrics import format_table
 
-    print("\nOne run per row, one BLAS thread, this machine; ratios measured in the same run")
+    print(f"\nOne run per row, one BLAS thread, this machine, plants on {args.device}; ratios measured in the same run")
     print(format_table(rows, COLUMNS))
     if compare:
         first = block_label(args.block_nodes[0])

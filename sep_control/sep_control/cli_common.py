@@ -33,6 +33,17 @@ def add_memory_budget(parser: argparse.ArgumentParser) -> None:
                              "larger batches are split; None: a quarter of the free memory")
 
 
+def add_device(parser: argparse.ArgumentParser) -> None:
+    from sep_plant.device import DEVICES
+
+    parser.add_argument("--device", choices=DEVICES, default="cpu",
+                        help="where the plant's batched steps run: cpu (numpy) or cuda (CuPy on an NVIDIA GPU: the "
+                             "steps of the experiments, the EnKF, the rollouts and the Monte Carlo; the design's own "
+                             "work stays on the CPU; on --dask each worker steps on its current CUDA device: one GPU per worker via "
+                             "CUDA_VISIBLE_DEVICES or dask-cuda). Needs CuPy and a "
+                             "device-capable plant (the built-in ones); results equal the CPU's to round-off")
+
+
 def add_dask(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dask", metavar="WHERE", default=None,
                         help="run the experiment and Monte Carlo batches on Dask: local (a LocalCluster, one "
@@ -92,13 +103,24 @@ def design_or_exit(path: str, scenario: Scenario | None = None) -> Design:
         fail(f"{exc}")
 
 
-def plant_or_exit(scenario: Scenario, where: str = "scenario"):
-    """Build and check the scenario's plant (exit 2 with the plant's problems)."""
+def plant_or_exit(scenario: Scenario, where: str = "scenario", device: str = "cpu"):
+    """Build and check the scenario's plant (exit 2 with the plant's problems), stepping on
+    `device` (`sep_plant.device`; exit 2 when it is not available or the plant cannot go there)."""
     from sep_plant.conformance import check_plant
+    from sep_plant.device import DeviceError, on_device
 
     try:
         plant = scenario.plant
         check_plant(plant, scenario.problem.channels("u_init", int(plant.n_u)), name=scenario.plant_type)
     except (ScenarioError, PlantError) as exc:
         fail(f"{where}: {exc}")
+    try:
+        plant = on_device(plant, device)
+    except DeviceError as exc:
+        fail(str(exc))
+    if device != "cpu":                     # the device's step too: a plant may break only there
+        try:
+            check_plant(plant, scenario.problem.channels("u_init", int(plant.n_u)), name=scenario.plant_type)
+        except PlantError as exc:
+            fail(f"{where}, on --device {device}: {exc}")
     return plant

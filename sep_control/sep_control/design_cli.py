@@ -8,8 +8,8 @@ import time
 
 from sep_estimator.design_file import save_design
 
-from .cli_common import (Formatter, add_dask, add_memory_budget, add_threads, blas_threads, engine_or_exit, fail,
-                         memory_budget_or_exit, plant_or_exit, scenario_or_exit)
+from .cli_common import (Formatter, add_dask, add_device, add_memory_budget, add_threads, blas_threads,
+                         engine_or_exit, fail, memory_budget_or_exit, plant_or_exit, scenario_or_exit)
 from .design import DesignSettings, run_design
 
 DESCRIPTION = """\
@@ -97,6 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_threads(p)
     add_memory_budget(p)
     add_dask(p)
+    add_device(p)
     return p
 
 
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TypeError) as exc:
         fail(str(exc))
     log = (lambda msg: print(msg, file=sys.stderr)) if not args.quiet else (lambda msg: None)
-    plant = plant_or_exit(scenario, args.scenario or "reference scenario")
+    plant = plant_or_exit(scenario, args.scenario or "reference scenario", device=args.device)
     log(f"design: scenario {args.scenario or '(reference)'}: plant {scenario.plant_type}, n_x = {plant.n_x}, "
         f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
         f"{plant.n_y} outputs")

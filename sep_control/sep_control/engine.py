@@ -49,22 +49,26 @@ class TaskError(RuntimeError):
 
 
 # ----------------------------------------------------------------------------- plants on workers
-def plant_spec(plant: Any) -> tuple[str, str]:
-    """Plain data that rebuilds `plant` on a worker: (type name, configuration as JSON), the
-    plant part of a scenario."""
+def plant_spec(plant: Any) -> tuple[str, str, str]:
+    """Plain data that rebuilds `plant` on a worker: (type name, configuration as JSON, device),
+    the plant part of a scenario and where it steps (`sep_plant.device`: a worker of a
+    `--device cuda` run steps on its own GPU)."""
+    from sep_plant.device import DevicePlant
     from sep_plant.plants import type_name_of
     from sep_plant.scenario import plain_config
 
-    return type_name_of(plant), json.dumps(plain_config(plant.config()), sort_keys=True)
+    device = plant.device if isinstance(plant, DevicePlant) else "cpu"
+    return type_name_of(plant), json.dumps(plain_config(plant.config()), sort_keys=True), device
 
 
 @functools.lru_cache(maxsize=8)
-def worker_plant(spec: tuple[str, str]) -> Any:
+def worker_plant(spec: tuple[str, str, str]) -> Any:
     """The plant of `spec`, built once per process (construction may factor matrices)."""
+    from sep_plant.device import on_device
     from sep_plant.plants import make_plant
 
-    type_name, config = spec
-    return make_plant(type_name, json.loads(config))
+    type_name, config, device = spec
+    return on_device(make_plant(type_name, json.loads(config)), device)
 
 
 def local_plant(plant: Any) -> Any:
@@ -122,7 +126,7 @@ class DaskEngine(InProcess):
     name = "dask"
     local = False
 
-    def ship(self, plant: Any) -> tuple[str, str]:
+    def ship(self, plant: Any) -> tuple[str, str, str]:
         return plant_spec(plant)
 
     def __init__(self, client, cluster=None):

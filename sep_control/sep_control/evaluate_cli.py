@@ -11,8 +11,8 @@ import numpy as np
 from sep_estimator.ltv import sensed_nodes
 
 from . import figures
-from .cli_common import (Formatter, add_dask, add_memory_budget, add_threads, blas_threads, design_or_exit,
-                         engine_or_exit, fail, memory_budget_or_exit, plant_or_exit)
+from .cli_common import (Formatter, add_dask, add_device, add_memory_budget, add_threads, blas_threads,
+                         design_or_exit, engine_or_exit, fail, memory_budget_or_exit, plant_or_exit)
 from .design import DesignSettings, identify_rom, with_rom
 from .metrics import CONTROLLERS, format_table, write_json
 from .montecarlo import portable, simulate
@@ -60,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_threads(p)
     add_memory_budget(p)
     add_dask(p)
+    add_device(p)
     return p
 
 
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         fail(f"--runs must be >= 1, got {args.runs}")
     budget = memory_budget_or_exit(args.memory_budget)
     design = design_or_exit(args.design)
-    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
+    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)", device=args.device)
     lo, hi = design.problem.limits(design.info.n_u)
     limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
     controllers = list(args.controllers) if args.controllers else \

@@ -23,6 +23,7 @@ import numpy as np
 from sep_estimator.design_file import Design
 from sep_estimator.ltv import LQG
 from sep_estimator.tvkf import KalmanFilter
+from sep_plant.device import base_plant
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import Plant, clip_inputs
 
@@ -92,7 +93,7 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     law = {"open_loop": "open", "rom_mpc": "mpc"}.get(controller, "lqr")
     shared = dict(plant=engine.ship(plant), design=design if in_process else portable(design), lqg=lqg,
                   law=law, seed=seed, mpc=dict(mpc or {}))
-    labels = [f"plant {type(plant).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
+    labels = [f"plant {type(base_plant(plant)).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
               for c in chunks]
     parts = engine.map(_mc_chunk, chunks, shared, labels, f"Monte Carlo {controller}",
                        show_progress=show_progress and len(chunks) > 1)

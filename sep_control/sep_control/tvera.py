@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sep_estimator.ltv import LTVModel, PODFieldMap
+from sep_plant.device import base_plant
 from sep_plant.protocol import Plant, noise_channels, rollout
 
 from .basis import IncrementalBasis, truncate
@@ -162,7 +163,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
                   n_chunks=len(plan))
     tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
-    labels = [f"plant {type(plant).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
+    labels = [f"plant {type(base_plant(plant)).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
               f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
     parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
                        show_progress=show_progress and not in_process)

@@ -10,7 +10,8 @@ import numpy as np
 
 from sep_plant.protocol import Plant, fields, nominal_states, outputs
 
-from .cli_common import Formatter, add_dask, add_threads, blas_threads, design_or_exit, engine_or_exit, fail, plant_or_exit
+from .cli_common import (Formatter, add_dask, add_device, add_threads, blas_threads, design_or_exit,
+                         engine_or_exit, fail, plant_or_exit)
 from .tvera import impulse_experiments
 
 DESCRIPTION = """\
@@ -36,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="PATH")
     add_threads(p)
     add_dask(p)
+    add_device(p)
     return p
 
 
@@ -44,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.lags < 1 or not args.amplitude > 0:
         fail("--lags must be >= 1 and --amplitude > 0")
     design = design_or_exit(args.design)
-    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)")
+    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)", device=args.device)
     with blas_threads(args.threads), engine_or_exit(args.dask, log=print) as engine:
         out = validate(plant, design, args.lags, args.amplitude, args.seed, engine)
     for key, val in out.items():

@@ -32,7 +32,9 @@ class _Abort(Exception):
 
 
 def _label(plant: Any) -> str:
-    cls = type(plant)
+    from .device import base_plant
+
+    cls = type(base_plant(plant))
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
@@ -152,7 +154,9 @@ def _config(plant: Any, out: list[str]) -> None:
         out.append(f"config() must be plain JSON data (numbers, strings, lists, dicts): {exc}")
         return
     try:
-        again = type(plant)(**cfg).config()
+        from .device import base_plant
+
+        again = type(base_plant(plant))(**cfg).config()        # a DevicePlant: the plant it steps
     except Exception as exc:  # noqa: BLE001
         out.append(f"type(plant)(**config()) raised {type(exc).__name__}: {exc} (config() must hold "
                    "exactly the constructor's keys)")

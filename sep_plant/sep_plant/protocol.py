@@ -39,6 +39,10 @@ Optional attributes (defaults in brackets)::
                                             (M, n_w) and enters f as the plant decides; the
                                             design then identifies the ROM's noise input map
                                             B_w,k from impulses on w as well (W -> B_w W B_w')
+    device_capable   bool  [False]          step() also accepts the arrays of a numpy-compatible
+                                            GPU module (CuPy) and returns that module's arrays,
+                                            never converting to numpy: `--device cuda` may step
+                                            it on a GPU (`sep_plant.device`)
 
 State arrays must be copyable and restartable: a state is a float64 array; sep copies rows of
 it (nominal snapshots) and later starts experiments from those copies, so `step` must depend on

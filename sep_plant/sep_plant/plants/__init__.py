@@ -107,8 +107,11 @@ def make_plant(type_name: str, config: Mapping[str, Any] | None = None):
 
 
 def type_name_of(plant: Any) -> str:
-    """The type string that rebuilds `plant`: its built-in or entry-point name, else module:Class."""
-    cls = type(plant)
+    """The type string that rebuilds `plant`: its built-in or entry-point name, else module:Class
+    (of the plant a `sep_plant.device.DevicePlant` wraps)."""
+    from ..device import base_plant
+
+    cls = type(base_plant(plant))
     target = f"{cls.__module__}:{cls.__qualname__}"
     for name, tgt in available().items():
         if tgt == target:

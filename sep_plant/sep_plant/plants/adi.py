@@ -53,6 +53,9 @@ system, and all of them are solved at once, with no loop over runs or lines:
 * "thomas": the Thomas algorithm vectorized over all lines of all runs, in place along a
   non-contiguous axis (a Python loop over the n_a points of a line, 9 numpy operations on the
   M N / n_a other points, which are contiguous blocks; no transposes, no pivoting).
+* "pcr": parallel cyclic reduction (`solve_pcr`), log2(n_a) whole-array levels, any array
+  module: what a GPU state (CuPy) is solved with, since LAPACK runs on the host only ("auto" and
+  "lapack" mean "pcr" there). On the CPU 2-4x slower than the default (O(n log n) work).
 * "auto" (default): dptsv along the last axis, and along the others while the lines are few
   (M N / n_a < THOMAS_MIN_LINES = 2048), Thomas from there on. Measured (one core, ns per
   node-step, all-dptsv / all-Thomas): the crossover is near 1500-2000 lines (50^2 x 8 runs,
@@ -64,7 +67,8 @@ system, and all of them are solved at once, with no loop over runs or lines:
 
 Cost of one step per node (d axes): the explicit F(T_k) ~5 passes per axis, each factor's
 coefficients 3 passes, the weighted right-hand side 1-2, the dptsv solve ~10-13 ns; no loop over
-runs or over lines anywhere. Pure numpy/scipy.
+runs or over lines anywhere. Pure numpy/scipy; every function also runs on a numpy-compatible GPU
+module (`backend.namespace` of the state).
 """
 from __future__ import annotations
 
@@ -74,10 +78,12 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 from scipy.linalg import lapack
 
+from .backend import DeviceConstants, namespace
+
 #: face names in axis order: axis a has faces FACES[2a] (low) and FACES[2a + 1] (high)
 FACES = ("x_min", "x_max", "y_min", "y_max", "z_min", "z_max")
 
-SOLVERS = ("auto", "lapack", "thomas")
+SOLVERS = ("auto", "lapack", "thomas", "pcr")
 
 #: "auto": Thomas along a non-contiguous axis from this many lines (M N / n_a) on; below it,
 #: numpy's per-call overhead of the n_a-step sweep costs more than dptsv's transposes
@@ -129,6 +135,7 @@ class Grid:
         self.size = int(np.prod(self.shape))
         self.h = tuple(a.h for a in self.axes)
         self.cell_volume = float(np.prod(self.h))      # h_1 ... h_d [m^d]
+        self.device = DeviceConstants()                  # the axes' weights on a GPU module
 
     def weights(self) -> np.ndarray:
         """Quadrature weights w (shape): sum_i w_i f_i * cell_volume ~ integral of f over the box
@@ -195,12 +202,13 @@ def _lines(x: np.ndarray | float, axis: int, contiguous: bool) -> np.ndarray | f
     """View (or contiguous copy) of a batch field (M, *shape) with grid axis `axis` last."""
     if np.ndim(x) == 0:
         return x
-    v = np.moveaxis(x, axis + 1, -1)
-    return np.ascontiguousarray(v) if contiguous else v
+    xp = namespace(x)
+    v = xp.moveaxis(x, axis + 1, -1)
+    return xp.ascontiguousarray(v) if contiguous else v
 
 
 def _unlines(x: np.ndarray, axis: int) -> np.ndarray:
-    return np.moveaxis(x, -1, axis + 1)
+    return namespace(x).moveaxis(x, -1, axis + 1)
 
 
 class AxisOperator:
@@ -217,11 +225,12 @@ class AxisOperator:
 
     def __init__(self, K: np.ndarray | float, like: np.ndarray, h: float, lo: Held | None, hi: Held | None):
         half = 0.5 / (h * h)
-        c = np.empty_like(like)
+        xp = self.xp = namespace(like)
+        c = xp.empty_like(like)
         if np.ndim(K) == 0:
             c[..., :-1] = 2.0 * half * float(K)
         else:
-            np.add(K[..., 1:], K[..., :-1], out=c[..., :-1])
+            xp.add(K[..., 1:], K[..., :-1], out=c[..., :-1])
             c[..., :-1] *= half
         c[..., -1] = 0.0
         self.c = c
@@ -233,10 +242,10 @@ class AxisOperator:
 
     def apply(self, T: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """out += A_a T (..., n), held values included; a new array when out is None. 4 passes."""
-        q = np.subtract(T[..., 1:], T[..., :-1])
+        q = self.xp.subtract(T[..., 1:], T[..., :-1])
         q *= self.c[..., :-1]                                             # c_{i+1/2} (T_{i+1} - T_i)
         if out is None:
-            out = np.zeros_like(self.c)
+            out = self.xp.zeros_like(self.c)
         out[..., :-1] += q
         out[..., 1:] -= q
         if self.lo is None:
@@ -258,8 +267,9 @@ class AxisOperator:
         and W (D - dt A_a) is symmetric positive definite (D > 0, diagonally dominant): the
         right-hand side is multiplied by w and the solve needs no pivoting. 3 passes.
         """
-        off = np.multiply(self.c, -dt)                                    # -dt c_{i+1/2}
-        diag = np.subtract(w * D, off, out=np.empty_like(off))
+        xp = self.xp
+        off = xp.multiply(self.c, -dt)                                    # -dt c_{i+1/2}
+        diag = xp.subtract(w * D, off, out=xp.empty_like(off))
         diag[..., 1:] -= off[..., :-1]                                   # w D + dt (c_{i-1/2} + c_{i+1/2})
         if self.lo is not None:
             diag[..., 0] += dt * self.c_lo
@@ -287,30 +297,87 @@ def solve_thomas(diag: np.ndarray, off: np.ndarray, rhs: np.ndarray) -> np.ndarr
     """The same systems by the Thomas algorithm, vectorized over the leading axes (any strides:
     a moveaxis view of a C array, whose slices [..., i] are contiguous blocks, is the fast
     case). No pivoting (positive definite). Cost: 9 numpy operations per point of a line."""
+    xp = namespace(rhs)
     n = rhs.shape[-1]
-    cp = np.empty_like(rhs)                               # rhs's memory layout: slices [..., i] stay blocks
-    dp = np.empty_like(rhs)
-    m = np.empty(cp.shape[:-1])
-    t = np.empty_like(m)
-    np.divide(1.0, diag[..., 0], out=m)
-    np.multiply(off[..., 0], m, out=cp[..., 0])
-    np.multiply(rhs[..., 0], m, out=dp[..., 0])
+    cp = xp.empty_like(rhs)                               # rhs's memory layout: slices [..., i] stay blocks
+    dp = xp.empty_like(rhs)
+    m = xp.empty(cp.shape[:-1])
+    t = xp.empty_like(m)
+    xp.divide(1.0, diag[..., 0], out=m)
+    xp.multiply(off[..., 0], m, out=cp[..., 0])
+    xp.multiply(rhs[..., 0], m, out=dp[..., 0])
     for i in range(1, n):
         a = off[..., i - 1]
-        np.multiply(a, cp[..., i - 1], out=t)            # m = 1 / (b_i - a_i c'_{i-1})
-        np.subtract(diag[..., i], t, out=t)
-        np.divide(1.0, t, out=m)
-        np.multiply(off[..., i], m, out=cp[..., i])       # c'_i = c_i m
-        np.multiply(a, dp[..., i - 1], out=t)             # d'_i = (d_i - a_i d'_{i-1}) m
-        np.subtract(rhs[..., i], t, out=t)
-        np.multiply(t, m, out=dp[..., i])
+        xp.multiply(a, cp[..., i - 1], out=t)            # m = 1 / (b_i - a_i c'_{i-1})
+        xp.subtract(diag[..., i], t, out=t)
+        xp.divide(1.0, t, out=m)
+        xp.multiply(off[..., i], m, out=cp[..., i])       # c'_i = c_i m
+        xp.multiply(a, dp[..., i - 1], out=t)             # d'_i = (d_i - a_i d'_{i-1}) m
+        xp.subtract(rhs[..., i], t, out=t)
+        xp.multiply(t, m, out=dp[..., i])
     for i in range(n - 2, -1, -1):                        # x_i = d'_i - c'_i x_{i+1}
-        np.multiply(cp[..., i], dp[..., i + 1], out=t)
-        np.subtract(dp[..., i], t, out=dp[..., i])
-    if not np.all(np.isfinite(dp[..., 0])):
+        xp.multiply(cp[..., i], dp[..., i + 1], out=t)
+        xp.subtract(dp[..., i], t, out=dp[..., i])
+    _check_finite(xp, dp[..., 0])
+    return dp
+
+
+def solve_pcr(sub: np.ndarray, diag: np.ndarray, sup: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Tridiagonal systems along the last axis by parallel cyclic reduction, on any array module.
+
+    Row i of each line: sub_i x_{i-1} + diag_i x_i + sup_i x_{i+1} = rhs_i (sub[..., 0] and
+    sup[..., -1] are ignored: the lines are uncoupled). Level s = 1, 2, 4, ... eliminates the
+    couplings at distance s from every row at once::
+
+        alpha_i = -a_i / b_{i-s},  gamma_i = -c_i / b_{i+s}      (0 where i -+ s is off the line)
+        a_i <- alpha_i a_{i-s},  c_i <- gamma_i c_{i+s}
+        b_i <- b_i + alpha_i c_{i-s} + gamma_i a_{i+s},  d_i <- d_i + alpha_i d_{i-s} + gamma_i d_{i+s}
+
+    until s >= n, where every row is decoupled: x = d / b. ceil(log2 n) levels of ~14 whole-array
+    operations: O(n log n) work, but no loop over the points of a line, which is what a GPU
+    needs (Thomas makes n dependent passes; LAPACK runs on the host only). No pivoting: the
+    plants' systems are diagonally dominant, which every level preserves. Inputs are not
+    modified; any strides.
+    """
+    xp = namespace(rhs, diag)
+    n = rhs.shape[-1]
+    a = xp.array(sub, copy=True)
+    c = xp.array(sup, copy=True)
+    a[..., 0] = 0.0
+    c[..., -1] = 0.0
+    b = xp.array(diag, copy=True)
+    d = xp.array(rhs, copy=True)
+    s = 1
+    while s < n:
+        alpha = -a[..., s:] / b[..., :-s]                  # rows s..n-1 against row i - s
+        gamma = -c[..., :-s] / b[..., s:]                  # rows 0..n-s-1 against row i + s
+        a2 = xp.zeros_like(a)
+        c2 = xp.zeros_like(c)
+        a2[..., s:] = alpha * a[..., :-s]
+        c2[..., :-s] = gamma * c[..., s:]
+        b[..., s:] += alpha * c[..., :-s]                  # old c, a: a2, c2 are new arrays
+        b[..., :-s] += gamma * a[..., s:]
+        d2 = xp.array(d, copy=True)
+        d2[..., s:] += alpha * d[..., :-s]
+        d2[..., :-s] += gamma * d[..., s:]
+        a, c, d = a2, c2, d2
+        s *= 2
+    x = d / b
+    _check_finite(xp, x[..., 0])
+    return x
+
+
+def _check_finite(xp, x) -> None:
+    if not bool(xp.all(xp.isfinite(x))):
         raise FloatingPointError("tridiagonal line solve gave non-finite values: non-finite state "
                                  "or input, or a non-positive conductivity?")
-    return dp
+
+
+def _solve_symmetric_pcr(diag: np.ndarray, off: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """The symmetric systems of `AxisOperator.system` (off[..., i] couples i and i+1) by PCR."""
+    sub = namespace(off).empty_like(off)
+    sub[..., 1:] = off[..., :-1]
+    return solve_pcr(sub, diag, off, rhs)
 
 
 def _use_lapack(solver: str, axis: int, grid: Grid, batch: int) -> bool:
@@ -318,6 +385,14 @@ def _use_lapack(solver: str, axis: int, grid: Grid, batch: int) -> bool:
     if solver != "auto":
         return solver == "lapack"
     return axis == grid.ndim - 1 or batch * grid.size // grid.shape[axis] < THOMAS_MIN_LINES
+
+
+def _line_solver(solver: str, xp) -> str:
+    """The solver a step uses: as asked on numpy; off the host (no LAPACK) "thomas" as asked,
+    everything else parallel cyclic reduction."""
+    if xp is np:
+        return solver
+    return "thomas" if solver == "thomas" else "pcr"
 
 
 # ------------------------------------------------------------------------------ steps
@@ -334,13 +409,14 @@ def _conductivity(K: Conductivity, T: np.ndarray, Tl: np.ndarray, axis: int,
         return K(Tl)
     if np.ndim(K) == 0:
         return float(K)
-    return _lines(np.broadcast_to(K, T.shape), axis, contiguous)
+    xp = namespace(T)
+    return _lines(xp.broadcast_to(K if xp is np else xp.asarray(K), T.shape), axis, contiguous)
 
 
 def diffusion(grid: Grid, T: np.ndarray, K: Conductivity, held: Mapping[str, Held]) -> np.ndarray:
     """sum_a A_a(T) T for a batch T (M, *shape): the flux-form diffusion (K: see Conductivity)."""
     faces = held_faces(grid, held)
-    out = np.zeros(T.shape)
+    out = namespace(T).zeros_like(T, dtype=float)
     for a in range(grid.ndim):
         Tl = _lines(T, a, contiguous=False)
         op = AxisOperator(_conductivity(K, T, Tl, a, False), Tl, grid.h[a], *faces[a])
@@ -362,11 +438,13 @@ def douglas_step(grid: Grid, T: np.ndarray, K: Conductivity, held: Mapping[str, 
     """
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+    xp = namespace(T)
+    solver = _line_solver(solver, xp)
     faces = held_faces(grid, held)
     D = 1.0 + dt * lam if np.ndim(lam) else 1.0 + dt * float(lam)
     use_lapack = [_use_lapack(solver, a, grid, T.shape[0]) for a in range(grid.ndim)]
     ops = []
-    rhs = np.zeros(T.shape)
+    rhs = xp.zeros_like(T, dtype=float)
     rhs += g                                                              # F(T_k) = g + sum_a A_a T
     for a in range(grid.ndim):
         Tl = _lines(T, a, contiguous=use_lapack[a])
@@ -376,13 +454,14 @@ def douglas_step(grid: Grid, T: np.ndarray, K: Conductivity, held: Mapping[str, 
     rhs *= dt
     delta = rhs
     for a, op in enumerate(ops):
-        w = grid.axes[a].weights()
+        w = grid.device.get(xp, f"w{a}", grid.axes[a].weights)
         rl = _lines(delta, a, contiguous=use_lapack[a])          # our own array (or a copy): scaled in place
         if a > 0:                                          # W D Delta_{a-1}; a = 0: W dt F(T_k)
             rl *= _lines(D, a, contiguous=False) if np.ndim(D) else D
         rl *= w
         diag, off = op.system(_lines(D, a, contiguous=False), dt, w)
-        solve = solve_lapack if use_lapack[a] else solve_thomas
+        solve = (solve_lapack if use_lapack[a] else
+                 _solve_symmetric_pcr if solver == "pcr" else solve_thomas)
         delta = _unlines(solve(diag, off, rl), a)
     return T + delta
 
@@ -394,7 +473,7 @@ def axes_for(shape: Sequence[int], lengths: Sequence[float], held: Mapping[str, 
 
 
 __all__ = ["Axis", "AxisOperator", "FACES", "Grid", "Held", "SOLVERS", "axes_for", "diffusion",
-           "douglas_step", "held_faces", "solve_lapack", "solve_thomas"]
+           "douglas_step", "held_faces", "solve_lapack", "solve_pcr", "solve_thomas"]
 
 
 def rk4(rhs, x: np.ndarray, u: np.ndarray, horizon: float, h: float) -> np.ndarray:

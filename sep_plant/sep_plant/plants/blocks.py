@@ -7,13 +7,16 @@ memory and costs 1.4-2.3x as much per node (measured with `bench/bench_plants.py
 So `step_in_blocks` cuts the batch into blocks of at most `BLOCK_NODES` nodes (runs x n_x) and
 steps them one after another into one output array. Runs are independent, so the result is that
 of the whole batch in one piece to round-off (bitwise where the line solver is the same).
-Pure numpy: no ROS import.
+On a GPU (a CuPy batch) the blocks are the device plant's (`sep_plant.device`, 2^24 nodes): there
+a step's cost is kernel launches, not caches. Pure numpy: no ROS import.
 """
 from __future__ import annotations
 
 from typing import Callable
 
 import numpy as np
+
+from .backend import namespace
 
 #: nodes (runs x n_x) per block; see the module docstring and bench/bench_plants.py --blocks
 BLOCK_NODES = 1 << 17
@@ -35,7 +38,7 @@ def step_in_blocks(step: Callable[[np.ndarray, np.ndarray], np.ndarray], X: np.n
     if M <= b:
         return step(X, S)
     first = step(X[:b], S[:b])
-    out = np.empty((M,) + first.shape[1:], dtype=first.dtype)
+    out = namespace(first).empty((M,) + first.shape[1:], dtype=first.dtype)
     out[:b] = first
     for i in range(b, M, b):
         out[i:i + b] = step(X[i:i + b], S[i:i + b])

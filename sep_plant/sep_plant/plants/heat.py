@@ -67,6 +67,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from . import adi, blocks, keys
+from .backend import DeviceConstants, namespace
 
 #: T_K = (T + offset) * scale for each temperature unit
 UNITS: dict[str, tuple[float, float]] = {"K": (0.0, 1.0), "C": (273.15, 1.0), "F": (459.67, 5.0 / 9.0)}
@@ -85,7 +86,10 @@ class GridPlant:
 
     field_is_state = True
     noise_on_inputs = True
-    #: line solver of `adi.douglas_step` ("auto", "lapack" or "thomas"; same results to round-off)
+    #: step() accepts CuPy arrays and steps them on their GPU (`sep_plant.device`)
+    device_capable = True
+    #: line solver of `adi.douglas_step` ("auto", "lapack", "thomas" or "pcr"; same results to
+    #: round-off; on a GPU array module "auto" and "lapack" are "pcr")
     solver = "auto"
     #: a batch is stepped in blocks of at most this many nodes (`blocks.step_in_blocks`)
     block_nodes = blocks.BLOCK_NODES
@@ -135,17 +139,20 @@ class GridPlant:
     # ------------------------------------------------------------- helpers
     def _batch(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, bool]:
         """States (M, n_x), the source sum_j b_j (u_j + w_j) as (M, *shape), and whether x was 1-D."""
+        xp = namespace(x, u, w)
         single = np.ndim(x) == 1
-        X = np.atleast_2d(np.asarray(x, dtype=float))
-        U = np.atleast_2d(np.asarray(u, dtype=float))
+        X = xp.atleast_2d(xp.asarray(x, dtype=float))
+        U = xp.atleast_2d(xp.asarray(u, dtype=float))
         if w is not None:
-            U = U + np.atleast_2d(np.asarray(w, dtype=float))
+            U = U + xp.atleast_2d(xp.asarray(w, dtype=float))
         M = X.shape[0]
         if X.shape[1] != self.n_x or U.shape[-1] != self.n_u or U.shape[0] not in (1, M):
             raise ValueError(f"step: expected states (*, {self.n_x}) and inputs (*, {self.n_u}), "
                              f"got {X.shape} and {U.shape}")
-        src = U @ self._B.T                                                # (M or 1, n_x)
-        src = np.broadcast_to(src, (M, self.n_x)).reshape((M,) + self.grid.shape)
+        if "_device" not in self.__dict__:
+            self._device = DeviceConstants()                               # device copies of _B
+        src = U @ self._device.get(xp, "B", lambda: self._B).T            # (M or 1, n_x)
+        src = xp.broadcast_to(src, (M, self.n_x)).reshape((M,) + self.grid.shape)
         return X, src, single
 
     def _step(self, T: np.ndarray, src: np.ndarray) -> np.ndarray:

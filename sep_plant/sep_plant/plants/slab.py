@@ -23,7 +23,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.linalg import lapack
 
-from . import blocks, keys
+from . import adi, blocks, keys
+from .backend import DeviceConstants, namespace
 
 
 class SlabPlant:
@@ -33,6 +34,8 @@ class SlabPlant:
     field_unit = "F"
     field_is_state = True
     noise_on_inputs = True
+    #: step() accepts CuPy arrays and steps them on their GPU (`sep_plant.device`)
+    device_capable = True
     #: a batch is stepped in blocks of at most this many nodes (`blocks.step_in_blocks`)
     block_nodes = blocks.BLOCK_NODES
 
@@ -73,6 +76,7 @@ class SlabPlant:
         self._b_dt = self.dt * self.heater_profiles()                     # dt b_j(x_i), (n_x, n_u)
         self._c_scale = self.dt * self.k0 / self.h**2                     # dt k0 / h^2
         self._diag0 = 1.0 + self.dt * self.eta
+        self._device = DeviceConstants()
 
     # ------------------------------------------------------------- description
     def config(self) -> dict[str, Any]:
@@ -109,34 +113,41 @@ class SlabPlant:
 
     def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Advance one step: x_{k+1} = f(x_k, u_k + w_k) for every run of the batch."""
-        single = x.ndim == 1
-        X = np.atleast_2d(x)
-        U = np.atleast_2d(u)
+        xp = namespace(x, u, w)
+        single = np.ndim(x) == 1
+        X = xp.atleast_2d(xp.asarray(x))
+        U = xp.atleast_2d(xp.asarray(u))
         if w is not None:
-            U = U + np.atleast_2d(w)
+            U = U + xp.atleast_2d(xp.asarray(w))
         M, n = X.shape
         if n != self.n_x or U.shape[-1] != self.n_u:
             raise ValueError(f"step: expected states (*, {self.n_x}) and inputs (*, {self.n_u}), "
                              f"got {X.shape} and {U.shape}")
         if U.shape[0] != M:
-            U = np.broadcast_to(U, (M, self.n_u))
+            U = xp.broadcast_to(U, (M, self.n_u))
         out = blocks.step_in_blocks(self._step, X, U, self.block_nodes)
         return out[0] if single else out
 
     def _step(self, X: np.ndarray, U: np.ndarray) -> np.ndarray:
-        """One backward-Euler step of the runs X (M, n_x) under inputs U (M, n_u): one gtsv call."""
+        """One backward-Euler step of the runs X (M, n_x) under inputs U (M, n_u): one gtsv call
+        (numpy), or parallel cyclic reduction on another array module (`adi.solve_pcr`)."""
+        xp = namespace(X)
         M, n = X.shape
+        space = self._device.get(xp, "space", lambda: self._space)
+        b_dt = self._device.get(xp, "b_dt", lambda: self._b_dt)
         # c_i = dt K(x_i, T_i) / h^2
-        c = self._c_scale * (1.0 + self.beta * (X - self.t_ref) / self.t_scale) * self._space
+        c = self._c_scale * (1.0 + self.beta * (X - self.t_ref) / self.t_scale) * space
         d = self._diag0 + 2.0 * c
         du = -c.copy()
         du[:, 0] *= 2.0               # ghost node: row 0 is (2 T_1 - 2 T_0) / h^2
         du[:, -1] = 0.0               # no coupling between runs
+        rhs = X + U @ b_dt.T
+        rhs[:, -1] += c[:, -1] * self.t_right
+        if xp is not np:
+            return adi.solve_pcr(-c, d, du, rhs)           # row i: -c_i T_{i-1} + d_i T_i + du_i T_{i+1}
         dl = np.empty_like(c)
         dl[:, :-1] = -c[:, 1:]
         dl[:, -1] = 0.0
-        rhs = X + U @ self._b_dt.T
-        rhs[:, -1] += c[:, -1] * self.t_right
         _, _, _, sol, info = lapack.dgtsv(dl.ravel()[:-1], d.ravel(), du.ravel()[:-1], rhs.ravel(),
                                           overwrite_dl=1, overwrite_d=1, overwrite_du=1, overwrite_b=1)
         if info != 0:

@@ -1,0 +1,157 @@
+"""Where a plant's batched steps run: `cpu` (numpy, the default) or `cuda` (CuPy on an NVIDIA GPU).
+
+`on_device(plant, "cuda")` returns a `DevicePlant`: the same plant (every attribute and method
+is the plant's own) whose `step` copies the batch to the GPU, steps it there and copies the
+result back. Everything that calls `plant.step` (the TV-ERA impulse experiments, the sensitivity
+experiments, the EnKF belief, the rollouts, the Monte Carlo) then runs its plant steps on the
+GPU without a change, and the design's own work (POD updates, Hankel SVDs, Riccati passes) stays
+on the host. What a step costs on the device is the state's round trip over the bus (16 bytes per
+node-step, about 0.3-0.6 ns at 25-50 GB/s) plus the step itself; what it saves is the plant's
+20-120 ns per node-step on one CPU core (README, `bench/bench_plants.py`).
+
+A plant may be stepped on a GPU when it says so (`device_capable = True`): its `step` must accept
+arrays of any numpy-compatible module and never turn them into numpy arrays; the built-in
+plants do (`sep_plant.plants.backend`). A batch goes to the device a block of up to
+`DEVICE_BLOCK_NODES` nodes at a time (upload, step, download into one host array), so the GPU
+holds one block's state and temporaries (about 160 bytes per node: 2.7 GB at 2^24 nodes), whatever
+the batch; the CPU's blocks of 2^17 nodes would be all kernel launches there.
+
+Pure numpy: no ROS import; CuPy is imported only for `cuda`.
+"""
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+
+from .plants.backend import to_host
+
+DEVICES = ("cpu", "cuda")
+
+#: nodes (runs x n_x) per block on a GPU: 2^24 float64 = 128 MB per state-sized temporary
+DEVICE_BLOCK_NODES = 1 << 24
+
+CUPY_HINT = ("install CuPy for your CUDA version (pip install cupy-cuda12x, or cupy-cuda13x; "
+             "https://docs.cupy.dev/en/stable/install.html)")
+
+
+class DeviceError(RuntimeError):
+    """The device asked for is not available, or the plant cannot run there (says what to do)."""
+
+
+def array_module(device: str):
+    """The array module of `device`: numpy for "cpu", cupy for "cuda" (checked to see a GPU)."""
+    if device == "cpu":
+        return np
+    if device != "cuda":
+        raise DeviceError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    try:
+        import cupy
+    except ImportError as exc:
+        raise DeviceError(f"--device cuda needs CuPy, which is not installed ({exc}): {CUPY_HINT}") from None
+    try:
+        count = int(cupy.cuda.runtime.getDeviceCount())
+    except Exception as exc:        # CUDARuntimeError: no driver, no device
+        raise DeviceError(f"--device cuda: CuPy finds no usable CUDA device ({exc}); run on a machine "
+                          "with an NVIDIA GPU and driver, or use --device cpu") from None
+    if count < 1:
+        raise DeviceError("--device cuda: CuPy finds no CUDA device; use --device cpu")
+    return cupy
+
+
+class DevicePlant:
+    """A device-capable plant whose batched steps run on the array module `xp` (host arrays in
+    and out; see the module docstring). Every other attribute is the wrapped plant's."""
+
+    _OWN = ("_plant", "xp", "device", "block_nodes")
+
+    def __init__(self, plant: Any, xp, name: str, block_nodes: int = DEVICE_BLOCK_NODES):
+        if not getattr(plant, "device_capable", False):
+            raise DeviceError(f"plant {type(plant).__name__} steps on the CPU only: a plant stepped on a GPU "
+                              "must accept CuPy arrays in step() and declare device_capable = True "
+                              "(the built-in plants do); use --device cpu")
+        if int(block_nodes) < 1:
+            raise ValueError(f"block_nodes must be >= 1, got {block_nodes}")
+        plant = copy.copy(plant)                    # its own block size; the caller's plant is untouched
+        if hasattr(plant, "block_nodes"):
+            plant.block_nodes = int(block_nodes)    # a device block is stepped whole
+        object.__setattr__(self, "_plant", plant)
+        object.__setattr__(self, "xp", xp)
+        object.__setattr__(self, "device", name)
+        object.__setattr__(self, "block_nodes", int(block_nodes))
+
+    @property
+    def plant(self) -> Any:
+        """The wrapped plant (stepping numpy arrays on the CPU)."""
+        return self._plant
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") or name in self._OWN:
+            raise AttributeError(name)
+        return getattr(self._plant, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """The wrapper's own names and methods (e.g. a timing wrapper of `step`) stay here; any
+        other attribute (`solver`, ...) is the plant's."""
+        if name == "block_nodes" and hasattr(self._plant, "block_nodes"):
+            self._plant.block_nodes = int(value)    # a device block is stepped whole
+        if name in self._OWN or hasattr(type(self), name):
+            object.__setattr__(self, name, value)
+        else:
+            setattr(self._plant, name, value)
+
+    def __delattr__(self, name: str) -> None:
+        if name in self.__dict__:
+            object.__delattr__(self, name)
+        else:
+            delattr(self._plant, name)
+
+    def __reduce__(self):                           # a module does not pickle: rebuild on the device
+        return (on_device, (self._plant, self.device))
+
+    def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """x_{k+1} = f(x_k, u_k + w_k), stepped on the device a block of runs at a time; a new
+        host array."""
+        xp = self.xp
+        X = np.asarray(x, dtype=float)
+        single = X.ndim == 1
+        X = np.atleast_2d(X)
+        U = np.atleast_2d(np.asarray(u, dtype=float))
+        W = None if w is None else np.atleast_2d(np.asarray(w, dtype=float))
+        M = X.shape[0]
+        b = max(1, self.block_nodes // max(1, X.shape[1]))
+
+        def rows(A, i, j):                          # inputs given once for every run stay one row
+            return A if A is None or A.shape[0] == 1 else A[i:j]
+
+        if M <= b:
+            out = to_host(self._plant.step(xp.asarray(X), xp.asarray(U), None if W is None else xp.asarray(W)))
+            return out[0] if single else out
+        out = np.empty_like(X)
+        for i in range(0, M, b):
+            j = min(M, i + b)
+            Wb = rows(W, i, j)
+            out[i:j] = to_host(self._plant.step(xp.asarray(X[i:j]), xp.asarray(rows(U, i, j)),
+                                                None if Wb is None else xp.asarray(Wb)))
+        return out
+
+    def __repr__(self) -> str:
+        return f"DevicePlant({self._plant!r}, device={self.device!r})"
+
+
+def on_device(plant: Any, device: str = "cpu", xp=None) -> Any:
+    """`plant` itself for "cpu"; a `DevicePlant` stepping on `device` otherwise (`xp`: the array
+    module, for tests; default `array_module(device)`)."""
+    if device == "cpu" and xp is None:
+        return plant
+    return DevicePlant(plant, array_module(device) if xp is None else xp, device)
+
+
+def base_plant(plant: Any) -> Any:
+    """The plant a `DevicePlant` wraps (the plant itself otherwise): what is shipped and described."""
+    return plant.plant if isinstance(plant, DevicePlant) else plant
+
+
+__all__ = ["DEVICES", "DEVICE_BLOCK_NODES", "DeviceError", "DevicePlant", "array_module", "base_plant",
+           "on_device"]
