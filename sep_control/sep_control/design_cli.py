@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     plant = plant_or_exit(scenario, args.scenario or "reference scenario", device=args.device)
     log(f"design: scenario {args.scenario or '(reference)'}: plant {scenario.plant_type}, n_x = {plant.n_x}, "
         f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
-        f"{plant.n_y} outputs")
+        f"{plant.n_y} outputs, plant steps on {args.device}")
     t0 = time.perf_counter()
     with blas_threads(args.threads), engine_or_exit(args.dask, log=lambda m: print(m, file=sys.stderr)) as engine:
         design = run_design(plant, scenario.problem, settings, show_progress=not args.quiet, log=log, engine=engine)
