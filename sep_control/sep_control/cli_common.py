@@ -39,9 +39,9 @@ def add_device(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", choices=DEVICES, default="cpu",
                         help="where the plant's batched steps run: cpu (numpy) or cuda (CuPy on an NVIDIA GPU: the "
                              "steps of the experiments, the EnKF, the rollouts and the Monte Carlo; the design's own "
-                             "work stays on the CPU; on --dask each worker steps on its current CUDA device: one GPU per worker via "
-                             "CUDA_VISIBLE_DEVICES or dask-cuda). Needs CuPy and a "
-                             "device-capable plant (the built-in ones); results equal the CPU's to round-off")
+                             "work stays on the CPU; on --dask each worker steps on its current CUDA device, one GPU "
+                             "per worker via CUDA_VISIBLE_DEVICES or dask-cuda). Needs CuPy and a device-capable "
+                             "plant (the built-in ones); results equal the CPU's to round-off")
 
 
 def add_dask(parser: argparse.ArgumentParser) -> None:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from .plants.backend import to_host
+from .plants.blocks import step_in_blocks
 
 DEVICES = ("cpu", "cuda")
 
@@ -119,22 +120,16 @@ class DevicePlant:
         X = np.atleast_2d(X)
         U = np.atleast_2d(np.asarray(u, dtype=float))
         W = None if w is None else np.atleast_2d(np.asarray(w, dtype=float))
-        M = X.shape[0]
-        b = max(1, self.block_nodes // max(1, X.shape[1]))
 
-        def rows(A, i, j):                          # inputs given once for every run stay one row
-            return A if A is None or A.shape[0] == 1 else A[i:j]
+        def upload(A, i, j):                        # inputs given once for every run stay one row
+            return None if A is None else xp.asarray(A if A.shape[0] == 1 else A[i:j])
 
-        if M <= b:
-            out = to_host(self._plant.step(xp.asarray(X), xp.asarray(U), None if W is None else xp.asarray(W)))
-            return out[0] if single else out
-        out = np.empty_like(X)
-        for i in range(0, M, b):
-            j = min(M, i + b)
-            Wb = rows(W, i, j)
-            out[i:j] = to_host(self._plant.step(xp.asarray(X[i:j]), xp.asarray(rows(U, i, j)),
-                                                None if Wb is None else xp.asarray(Wb)))
-        return out
+        def block(Xb: np.ndarray, runs: np.ndarray) -> np.ndarray:
+            i, j = int(runs[0]), int(runs[-1]) + 1
+            return to_host(self._plant.step(xp.asarray(Xb), upload(U, i, j), upload(W, i, j)))
+
+        out = step_in_blocks(block, X, np.arange(X.shape[0]), self.block_nodes)
+        return out[0] if single else out
 
     def __repr__(self) -> str:
         return f"DevicePlant({self._plant!r}, device={self.device!r})"

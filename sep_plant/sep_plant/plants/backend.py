@@ -34,10 +34,6 @@ def namespace(*arrays: Any):
     return np
 
 
-def is_numpy(xp) -> bool:
-    return xp is np
-
-
 def to_host(a: Any) -> np.ndarray:
     """A numpy copy of a device array (`.get()`, CuPy's explicit transfer); numpy passes through."""
     if isinstance(a, np.ndarray):
@@ -67,4 +63,4 @@ class DeviceConstants:
         return {"_cache": {}}
 
 
-__all__ = ["DeviceConstants", "is_numpy", "namespace", "to_host"]
+__all__ = ["DeviceConstants", "namespace", "to_host"]

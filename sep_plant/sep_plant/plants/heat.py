@@ -104,6 +104,7 @@ class GridPlant:
         self.n_u, self.n_y = n_u, n_y
         self.input_names = tuple(f"{input_prefix}_{j}" for j in range(n_u))
         self.output_names = tuple(f"sensor_{j}" for j in range(n_y))
+        self._device = DeviceConstants()                                   # device copies of _B
 
     # ------------------------------------------------------------- protocol
     def field_coordinates(self) -> np.ndarray:
@@ -149,8 +150,6 @@ class GridPlant:
         if X.shape[1] != self.n_x or U.shape[-1] != self.n_u or U.shape[0] not in (1, M):
             raise ValueError(f"step: expected states (*, {self.n_x}) and inputs (*, {self.n_u}), "
                              f"got {X.shape} and {U.shape}")
-        if "_device" not in self.__dict__:
-            self._device = DeviceConstants()                               # device copies of _B
         src = U @ self._device.get(xp, "B", lambda: self._B).T            # (M or 1, n_x)
         src = xp.broadcast_to(src, (M, self.n_x)).reshape((M,) + self.grid.shape)
         return X, src, single
