@@ -18,11 +18,17 @@ process (so its peak resident memory is its own) and measures, in one run:
     python bench/bench_scale.py --rows slab:1600 plate:128          # chosen rows
     python bench/bench_scale.py --rows block:24 --block-nodes 0 default   # batch in one piece vs blocks
     python bench/bench_scale.py --device cuda --rows plate:1000 block:100  # 10^6 states on a GPU (CuPy)
+    python bench/bench_scale.py --quick --against /tmp/sep-0.6      # this tree vs another checkout
 
 `--block-nodes` runs every row once per value: the built-in plants' `block_nodes` (the batch is
 stepped in blocks of that many nodes, `sep_plant.plants.blocks`; 0: in one piece; default: the
 plants' own), and ends with the design, plant-step and Monte Carlo times of each value relative
 to the first.
+
+`--against DIR` runs every row twice, alternating, in the same run: with the sep packages of
+another checkout DIR (sep >= 0.6, e.g. `git worktree add /tmp/sep-0.6 <commit>`) and with this
+tree's, the harness being this script both times; it ends with the ratios of this tree to DIR
+(design time, plant steps, run-steps, peak memory) and the nominal cost's relative difference.
 
 `--device cuda` steps every row's plant on the GPU (`sep_plant.device`: the state crosses the bus
 each step; "plant steps" then include the transfers). The 10^6-state rows plate:1000 and
@@ -56,8 +62,9 @@ ROWS = {                       # name -> (scenario file or None for the referenc
 DEFAULT_ROWS = [r for r in ROWS if r not in ("plate:1000", "block:100")]
 QUICK = ("slab:100", "slab:1600", "plate:64")
 COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "plant_step_s",
-           "design/plant_steps", "n_r", "r_f", "peak_rss_mb", "file_mb", "mc_s_per_100", "in_band",
-           "design/rollout", "mc100/rollout"]
+           "design/plant_steps", "run_steps_k", "ns/node-step", "n_r", "r_f", "peak_rss_mb", "file_mb",
+           "mc_s_per_100", "in_band", "design/rollout", "mc100/rollout"]
+AGAINST = ("design_s", "plant_step_s", "run_steps_k", "peak_rss_mb", "mc_s_per_100")
 
 
 def block_label(value: str) -> str:
@@ -83,13 +90,14 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
     plant = on_device(plant, device)
     if block_nodes != "default":           # on cuda: the blocks sent to the device
         plant.block_nodes = int(block_nodes) or 1 << 62
-    spent = [0.0]
+    spent = [0.0, 0]
     step = plant.step
 
-    def timed_step(*a, **kw):              # the plant's own work, measured from outside
+    def timed_step(X, *a, **kw):           # the plant's own work, measured from outside
         t0 = time.perf_counter()
-        out = step(*a, **kw)
+        out = step(X, *a, **kw)
         spent[0] += time.perf_counter() - t0
+        spent[1] += X.shape[0]              # run-steps
         return out
 
     from sep_control.engine import open_engine
@@ -105,7 +113,7 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
         design = run_design(plant, problem, DesignSettings.for_scenario(scen), show_progress=False,
                             log=lambda m: None, engine=engine)
         t_design = time.perf_counter() - t0
-        plant_s = spent[0]
+        plant_s, run_steps = spent
         del plant.step
         with tempfile.TemporaryDirectory() as tmp:
             path = save_design(Path(tmp) / "d.npz", design)
@@ -117,9 +125,12 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
     G = design.rom.G
     return {"n_x": plant.n_x, "rollout_s": rollout, "design_s": t_design, "optimize_s": tm["optimize_s"],
             "identify_s": tm["identify_s"], "gains_s": tm["gains_s"], "plant_step_s": plant_s,
-            "design/plant_steps": t_design / plant_s, "n_r": int(design.rom.dims.max()),
+            "design/plant_steps": t_design / plant_s, "run_steps_k": run_steps / 1e3,
+            "ns/node-step": 1e9 * plant_s / (run_steps * plant.n_x), "n_r": int(design.rom.dims.max()),
             "r_f": int(getattr(G, "rank", G.n)), "file_mb": file_mb, "mc_s_per_100": t_mc,
-            "in_band": mc.summary["in_band"], "design/rollout": t_design / rollout, "mc100/rollout": t_mc / rollout,
+            "in_band": mc.summary["in_band"], "mc_cost": mc.summary["cost_mean"],
+            "J_nominal": design.meta["optimizer"]["nominal_cost"],
+            "design/rollout": t_design / rollout, "mc100/rollout": t_mc / rollout,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "device": device}
 
 
@@ -136,6 +147,9 @@ def main() -> int:
                          "(0: the batch in one piece; default: the plants' own)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                     help="where the plants step (cuda: CuPy on a GPU, see sep_plant.device)")
+    ap.add_argument("--against", metavar="DIR",
+                    help="also run every row with the sep packages of the checkout DIR (alternating) and "
+                         "print this tree's ratios to it")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     for v in args.block_nodes:
@@ -145,23 +159,27 @@ def main() -> int:
         print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0], args.device)))
         return 0
     names = args.rows or (list(QUICK) if args.quick else DEFAULT_ROWS)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator",
-                                                                                "sep_control")))
+    trees = ([(f"@{Path(args.against).name}", Path(args.against).resolve())] if args.against else []) + [("", REPO)]
+    if args.against and not (trees[0][1] / "sep_control" / "sep_control").is_dir():
+        ap.error(f"--against: {args.against} is not a sep checkout (no sep_control/sep_control)")
     rows = {}
     compare = len(args.block_nodes) > 1
     for name in names:
         for value in args.block_nodes:
-            label = f"{name} {block_label(value)}" if compare else name
-            t0 = time.perf_counter()
-            proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs),
-                                   "--block-nodes", value, "--device", args.device]
-                                  + (["--dask", args.dask] if args.dask else []),
-                                  env=env, capture_output=True, text=True)
-            if proc.returncode != 0:
-                print(f"{label}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
-                continue
-            rows[label] = json.loads(proc.stdout.strip().splitlines()[-1])
-            print(f"{label}: {time.perf_counter() - t0:.0f} s", flush=True)
+            for tag, root in trees:              # alternating: load drifts hit both alike
+                label = (f"{name} {block_label(value)}" if compare else name) + (f" {tag}" if tag else "")
+                env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+                    str(root / p) for p in ("sep_plant", "sep_estimator", "sep_control")))
+                t0 = time.perf_counter()
+                proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs),
+                                       "--block-nodes", value, "--device", args.device]
+                                      + (["--dask", args.dask] if args.dask else []),
+                                      env=env, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    print(f"{label}: failed ({proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}", flush=True)
+                    continue
+                rows[label] = json.loads(proc.stdout.strip().splitlines()[-1])
+                print(f"{label}: {time.perf_counter() - t0:.0f} s", flush=True)
     from sep_control.metrics import format_table
 
     print(f"\nOne run per row, one BLAS thread, this machine, plants on {args.device}; ratios measured in the same run")
@@ -178,6 +196,18 @@ def main() -> int:
                         f"{k} / {first}": row[k] / base[k] for k in ("design_s", "plant_step_s", "mc_s_per_100")}
         print(f"\nRelative to {first} (same run)")
         print(format_table(ratios, [f"{k} / {first}" for k in ("design_s", "plant_step_s", "mc_s_per_100")]))
+    if args.against:
+        tag = trees[0][0]
+        ratios = {}
+        for label, row in rows.items():
+            base = rows.get(f"{label} {tag}")
+            if base is None:
+                continue
+            ratios[label] = {f"{k} / {tag}": row[k] / base[k] for k in AGAINST}
+            ratios[label]["J_nominal rel. diff"] = abs(row["J_nominal"] - base["J_nominal"]) / base["J_nominal"]
+            ratios[label]["mc_cost rel. diff"] = abs(row["mc_cost"] - base["mc_cost"]) / base["mc_cost"]
+        print(f"\nThis tree relative to {args.against} (same run, alternating)")
+        print(format_table(ratios, [f"{k} / {tag}" for k in AGAINST] + ["J_nominal rel. diff", "mc_cost rel. diff"]))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
     return 0

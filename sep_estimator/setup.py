@@ -20,7 +20,7 @@ data_files = [
 
 setup(
     name=package_name,
-    version='0.6.0',
+    version='0.7.0',
     packages=find_packages(exclude=['test']),
     data_files=data_files,
     install_requires=['setuptools'],

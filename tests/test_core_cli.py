@@ -63,6 +63,18 @@ def test_design_prints_a_summary(tiny, tmp_path, capsys):
     assert (tmp_path / "x.npz").is_file()
 
 
+def test_design_flags_reach_the_settings(tiny, tmp_path):
+    scen, _, _ = tiny
+    out = tmp_path / "rom.npz"
+    rc = design_cli.main(["--scenario", str(scen), "--out", str(out), "--no-belief", "--no-coarse-proposals",
+                          "--jacobian", "rom", "--tol", "1e-6"] + FAST)
+    assert rc == 0
+    meta = load_design(out).meta
+    assert meta["settings"]["coarse_proposals"] is False and meta["settings"]["belief"] is False
+    assert meta["settings"]["tol"] == 1e-6
+    assert "rom (proposal)" not in meta["optimizer"]["linearizations"]
+
+
 @pytest.mark.parametrize("text,needle", [
     ("n_x: 20\nbogus_key: 1\n", "bogus_key"),
     ("plant: {type: slab, n_x: 20}\nbogus_key: 1\n", "bogus_key"),

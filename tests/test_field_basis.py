@@ -128,6 +128,26 @@ def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_gri
         assert np.abs(G.matrix(k) - Gf).max() <= 1e-6 * np.abs(Gf).max()
 
 
+def test_a_block_inside_the_span_adds_nothing_and_needs_no_svd(monkeypatch):
+    """Once the basis holds the responses, a block whose residual's Frobenius norm is below
+    tol * scale (a bound on every singular value) is projected only: no SVD, no new direction."""
+    import sep_control.basis as basis_mod
+
+    rng = np.random.default_rng(5)
+    X = low_rank(rng, 300, 40, 6)
+    b = IncrementalBasis(300, 1e-10)
+    b.add(X[:, :20].T)
+    assert b.rank == 6
+    svds = []
+    orig = np.linalg.svd
+    monkeypatch.setattr(basis_mod.np.linalg, "svd", lambda *a, **k: svds.append(1) or orig(*a, **k))
+    C = b.add(X[:, 20:].T)
+    assert svds == [] and b.rank == 6
+    np.testing.assert_allclose(C @ b.phi.T, X[:, 20:].T, atol=1e-10 * np.abs(X).max())
+    b.add(rng.standard_normal((3, 300)))              # new directions: the SVD runs, the basis grows
+    assert svds == [1] and b.rank == 9
+
+
 def test_basis_rejects_wrong_length():
     with pytest.raises(ValueError, match="length"):
         IncrementalBasis(5).add(np.zeros((2, 4)))

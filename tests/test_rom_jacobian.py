@@ -64,16 +64,20 @@ def test_the_design_reuses_the_optimizers_last_identification():
     """With the ROM Jacobian the mean-only optimizer ends identified at its optimum; the
     belief-space refinement takes that model as a chord; the design identifies once more, at
     the final input (or reuses the model when the input did not move)."""
-    from sep_control.design import DesignSettings, run_design
+    from sep_control.design import PROPOSAL_ROM, DesignSettings, run_design
     from sep_control.tvera import SCHEMES
 
     from sep_control.optimize import SAME_INPUT_RTOL
 
     st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False, relinearize_rtol=SAME_INPUT_RTOL)
     d = run_design(P, S, st, show_progress=False, log=lambda m: None)
-    runs_per_impulse = SCHEMES[st.impulse_scheme]          # central (default): 2, forward: 1
-    assert d.meta["optimizer"]["experiments"] == \
-        (d.meta["optimizer"]["iterations"] + 1) * runs_per_impulse * S.n_steps * N_U
+    lins = d.meta["optimizer"]["linearizations"]
+    # far from the optimum coarse proposal models (forward: one run per impulse), near it the
+    # design's own (central: two), identified at every iterate (relinearize_rtol 1e-6)
+    assert lins[0] == "rom (proposal)" and lins[-1] == "rom" and "rom (kept)" not in lins
+    runs = {"rom (proposal)": SCHEMES[PROPOSAL_ROM["scheme"]], "rom": SCHEMES[st.impulse_scheme]}
+    assert d.meta["optimizer"]["experiments"] == sum(runs[k] for k in lins) * S.n_steps * N_U
+    assert len(lins) == d.meta["optimizer"]["iterations"] + 1
     assert d.meta["timings"]["identify_s"] < 0.05          # reused, not identified again
     assert d.meta["validation"]["markov_rel_error"] < 1e-5       # (n_r = 16, p = q = 8)
     assert d.meta["optimizer"]["identification_reused"]
@@ -147,3 +151,112 @@ def test_auto_picks_the_cheaper_jacobian():
     assert st.resolved_jacobian(250) == "rom" and st.resolved_jacobian(80) == "sensitivity"
     assert st.resolved_jacobian(150) == "rom" and st.resolved_jacobian(149) == "sensitivity"
     assert DesignSettings(jacobian="sensitivity").resolved_jacobian(250) == "sensitivity"
+
+
+def test_predicted_change_is_the_gauss_newton_model_of_both_jacobians():
+    """predicted_change(dU) is the quadratic model 2 J'r dU + dU' J'J dU: the ROM's Riccati-free
+    forward pass equals the dense form of the same Jacobian, and near a Gauss-Newton step the
+    sensitivity model predicts the true change of the cost."""
+    from sep_control.metrics import nominal_cost
+    from sep_control.optimize import RomLinearization, SensitivityLinearization
+    from sep_control.tvera import identify
+
+    rng = np.random.default_rng(3)
+    U = np.full((S.n_steps, N_U), 0.2) + 0.02 * rng.standard_normal((S.n_steps, N_U))
+    X = nominal_rollout(P, U)
+    F = P.field(X)
+    ne = rom_normal_equations(P, U, OBJ, F, **ROM)
+    rom = RomLinearization(identify(P, U, **ROM), OBJ, F, U)
+    dense = SensitivityLinearization(ne, U.shape)
+    for dU in (rom.step(1e-3), 1e-3 * rng.standard_normal(U.shape)):
+        assert rom.predicted_change(dU) == pytest.approx(dense.predicted_change(dU), rel=1e-8)
+    sens = SensitivityLinearization(sensitivity_normal_equations(P, U, X, OBJ, eps=1e-6), U.shape)
+    dU = 1e-2 * sens.step(1e-3)                   # a short step: the model's error is O(|dU|^3)
+    J0 = nominal_cost(F, U, OBJ)
+    actual = nominal_cost(P.field(nominal_rollout(P, U + dU)), U + dU, OBJ) - J0
+    assert actual < 0 and sens.predicted_change(dU) == pytest.approx(actual, rel=1e-3)
+
+
+def test_the_optimizer_stops_when_the_model_predicts_less_than_tol_without_trying(monkeypatch):
+    """Near the optimum the model's prediction is accurate, so a step it predicts to lower the
+    cost by less than tol is not evaluated (for the belief an EnKF run): the optimizer stops."""
+    from sep_control import optimize as opt_mod
+
+    calls = []
+    orig = opt_mod.nominal_states
+    monkeypatch.setattr(opt_mod, "nominal_states", lambda p, u: calls.append(1) or orig(p, u))
+    res = optimize(P, S, show_progress=False)
+    assert res.stop == "the model predicts a decrease below tol"
+    assert len(calls) == res.iterations + 1          # the start and one accepted trial per step
+    assert res.linearizations == ["sensitivity"] * (res.iterations + 1)
+    loose = optimize(P, S, show_progress=False, tol=1e-3)
+    assert loose.iterations < res.iterations and loose.cost == pytest.approx(res.cost, rel=1e-3)
+
+
+def test_auto_switches_from_sensitivity_to_one_identification_near_the_optimum():
+    """'auto' below the crossover: the sensitivity Jacobian while the steps are large, then one
+    TV-ERA identification once a step moved U by 1 % or less; that model proposes the last
+    steps, serves the belief refinement as its chord, and is the design's ROM when the input
+    does not move after it. The optimum is the sensitivity path's to 1e-6."""
+    from sep_control.design import DesignSettings, run_design
+    from sep_control.optimize import NEAR_OPTIMUM
+
+    base = dict(p=8, q=8, n_r=16, belief=False)
+    auto = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
+    sens = run_design(P, S, DesignSettings(**base, jacobian="sensitivity"), show_progress=False,
+                      log=lambda m: None)
+    a, s = auto.meta["optimizer"], sens.meta["optimizer"]
+    assert a["jacobian"] == "sensitivity" and NEAR_OPTIMUM == 1e-2
+    assert a["linearizations"][-1] == "rom" and set(a["linearizations"][:-1]) == {"sensitivity"}
+    assert set(s["linearizations"]) == {"sensitivity"}
+    assert len(a["linearizations"]) <= len(s["linearizations"])
+    assert a["identification_reused"] and auto.meta["timings"]["identify_s"] < 0.05
+    assert a["mean_only_cost"] == pytest.approx(s["mean_only_cost"], rel=1e-6)
+    assert a["nominal_cost"] == pytest.approx(s["nominal_cost"], rel=1e-6)
+    np.testing.assert_allclose(auto.nominal.u, sens.nominal.u, atol=1e-4 * np.abs(sens.nominal.u).max())
+
+
+def test_coarse_proposal_models_reach_the_same_design():
+    """rom Jacobian: the identifications far from the optimum use forward impulses and a 1e-6
+    field basis (about half the runs); the design's ROM is identified with the full settings at
+    the final input. Same optimum to 1e-6 as identifying every model in full."""
+    from sep_control.design import PROPOSAL_ROM, DesignSettings, run_design
+    from sep_control.tvera import SCHEMES
+
+    base = dict(jacobian="rom", p=8, q=8, n_r=16)
+    coarse = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
+    full = run_design(P, S, DesignSettings(**base, coarse_proposals=False), show_progress=False,
+                      log=lambda m: None)
+    c, f = coarse.meta["optimizer"], full.meta["optimizer"]
+    assert PROPOSAL_ROM == {"scheme": "forward", "field_tol": 1e-6}
+    assert "rom (proposal)" in c["linearizations"] and "rom (proposal)" not in f["linearizations"]
+    assert c["experiments"] < f["experiments"]
+    per = {"rom (proposal)": SCHEMES["forward"], "rom": SCHEMES["central"], "rom (kept)": 0}
+    assert c["experiments"] == sum(per[k] for k in c["linearizations"]) * S.n_steps * N_U
+    assert c["mean_only_cost"] == pytest.approx(f["mean_only_cost"], rel=1e-6)
+    assert c["nominal_cost"] == pytest.approx(f["nominal_cost"], rel=1e-6)
+    # the design's ROM is a full identification, never a proposal model
+    assert not c["identification_reused"] or c["linearizations"][-1] == "rom"
+    assert coarse.meta["validation"]["markov_rel_error"] == pytest.approx(
+        full.meta["validation"]["markov_rel_error"], rel=0.05)
+    assert DesignSettings.from_meta({"settings": {}}).coarse_proposals is False   # older files
+
+
+def test_a_belief_refinement_that_takes_no_step_runs_the_enkf_once(monkeypatch):
+    """When its trial raises J_b (the model holds the spread fixed), the refinement stops after
+    one trial, and the design keeps the belief computed at its start (no EnKF run again)."""
+    from sep_control import design as design_mod
+    from sep_control import optimize as opt_mod
+    from sep_control.design import DesignSettings, run_design
+
+    runs = []
+    orig = opt_mod.run_belief
+    monkeypatch.setattr(opt_mod, "run_belief", lambda *a, **k: runs.append(1) or orig(*a, **k))
+    monkeypatch.setattr(design_mod, "run_belief", lambda *a, **k: runs.append(1) or orig(*a, **k))
+    # J_b = 1 at the start, and every trial raises it
+    monkeypatch.setattr(opt_mod, "belief_cost", lambda b, U, obj: 1.0 if len(runs) == 1 else 1.001)
+    d = run_design(P, S, DesignSettings(p=8, q=8, n_r=16), show_progress=False, log=lambda m: None)
+    assert design_mod.BELIEF_TRIALS == 1
+    assert d.meta["optimizer"]["belief_history"] == [1.0]
+    assert len(runs) == 2                               # the start, one trial; none afterwards
+    assert d.nominal.belief_mean.shape == (S.n_steps + 1, P.n_field)

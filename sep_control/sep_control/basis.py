@@ -59,7 +59,9 @@ class IncrementalBasis:
         C2 = E @ phi                     # re-orthogonalize (classical Gram-Schmidt, twice)
         E -= C2 @ phi.T
         C += C2
-        if self.scale == 0.0:
+        if self.scale == 0.0 or np.linalg.norm(E) <= self.tol * self.scale:
+            # every singular value of E is at most its Frobenius norm: nothing to add, and no SVD
+            # (most blocks once the basis holds the responses: 3/4 of them at the reference)
             return C
         U, S, Vt = np.linalg.svd(E, full_matrices=False)
         keep = S > self.tol * self.scale

@@ -41,9 +41,17 @@ from .tvera import FIELD_TOL, SCHEMES, Identification, extend_nominal, identify,
 #: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
 ROM_FROM = 5
 
-#: Levenberg-Marquardt trials per belief-space iteration: each is an EnKF run, and a belief step
-#: the first few trials do not accept means the mean-only optimum is already the belief optimum
-BELIEF_TRIALS = 4
+#: Levenberg-Marquardt trials per belief-space iteration. Each is an EnKF run, and the Gauss-Newton
+#: model of J_b holds the belief's spread fixed: when the first (least damped) trial raises J_b the
+#: spread's own gradient, which the model misses, outweighs the mean's, and more damping does not
+#: fix a missing gradient (plate 64^2: the model predicted -1.6e-5, -1.5e-5, -1.2e-5, -7e-6
+#: relative for lambda 1e-3 .. 6.4e-2, the EnKF gave +1.7e-5, +1.2e-5, +5e-6, +4e-7)
+BELIEF_TRIALS = 1
+
+#: the optimizer's identifications far from the optimum only propose steps (the true objective
+#: accepts them): forward impulses (about half the runs) and a field basis to 1e-6 of the largest
+#: response (the forward differences' round-off stays out of it) serve as well there
+PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6}
 
 
 @dataclass
@@ -67,6 +75,7 @@ class DesignSettings:
     seed: int = 0                   # EnKF random numbers
     tol: float = 1e-7               # stop when an accepted step lowers the cost by less (relative)
     relinearize_rtol: float = 1e-2  # ROM Jacobian: keep the last identification while U moved less (relative)
+    coarse_proposals: bool = True   # ROM Jacobian far from the optimum: forward impulses, coarser field basis
     memory_budget: int | None = None  # bytes for a batch of experiments (None: a quarter of the free memory)
     chunks: int = 4                 # impulse experiments in this many chunks of start steps (tasks)
     limit_margin: float = 0.0       # keep this many closed-loop input stds inside u_min/u_max (0: none)
@@ -138,9 +147,11 @@ class DesignSettings:
     def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
         """The settings recorded in a design file's metadata (unknown keys ignored; files older
         than the chunked experiments ran them as one chunk, older than `relinearize_rtol`
-        identified again after every step, and older than `field_map_tol` truncated the field map
-        at the field basis' tolerance)."""
+        identified again after every step, older than `field_map_tol` truncated the field map
+        at the field basis' tolerance, and older than `coarse_proposals` identified every model
+        with the full settings)."""
         recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, "field_map_tol": FIELD_TOL,
+                    "coarse_proposals": False,
                     **meta.get("settings", {})}
         return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
 
@@ -205,6 +216,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
         "optimizer": {"method": st.method, "jacobian": nom["jacobian"], "mean_only_cost": nom["mean_only_cost"],
                       "mean_only_history": opt.history, "belief_history": nom["belief_history"],
                       "iterations": opt.iterations, "experiments": opt.experiments,
+                      "linearizations": opt.linearizations, "stop": opt.stop,
                       "belief_experiments": last.experiments if st.belief else 0,
                       "identification_reused": nom["reused"], "nominal_cost": float(nominal_cost(F_nom, U, obj)),
                       "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
@@ -235,9 +247,10 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
     jacobian = st.resolved_jacobian_for(plant, problem.n_steps)
     opt = optimize(plant, problem, U0=U0, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
-                   jacobian=jacobian, rom=rom, bounds=bounds, relinearize_rtol=st.relinearize_rtol)
-    log(f"mean-only {st.method} ({jacobian} Jacobian): J = {opt.cost:.6g} after {opt.iterations} iterations "
-        f"({opt.experiments} experiments, {opt.seconds:.2f} s)")
+                   jacobian=jacobian, rom=rom, bounds=bounds, relinearize_rtol=st.relinearize_rtol,
+                   rom_near_optimum=st.jacobian == "auto", rom_proposal=PROPOSAL_ROM if st.coarse_proposals else None)
+    log(f"mean-only {st.method} ({', '.join(opt.linearizations)} Jacobians): J = {opt.cost:.6g} after "
+        f"{opt.iterations} iterations ({opt.experiments} experiments, {opt.seconds:.2f} s; stopped: {opt.stop})")
     U, belief_hist, last = opt.U, [], opt
     if st.belief:
         # the belief refinement moves U by ~1e-4 relative and its Jacobian is the nominal's to first
@@ -248,7 +261,7 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
                         tol=st.tol, eps=st.fd_eps, members=st.ensemble, seed=st.seed, show_progress=show_progress,
                         jacobian="rom", rom=rom, reuse=opt, chord=True, max_trials=BELIEF_TRIALS, bounds=bounds)
         log(f"belief-space gn: J_b = {bopt.history[0]:.8g} -> {bopt.cost:.8g} "
-            f"({bopt.iterations} iterations, {bopt.seconds:.2f} s)")
+            f"({bopt.iterations} iterations, {bopt.seconds:.2f} s; stopped: {bopt.stop})")
         U, belief_hist, last = bopt.U, bopt.history, bopt
     timings["optimize_s"] = timings.get("optimize_s", 0.0) + time.perf_counter() - t0
     belief = last.belief if last.belief is not None else run_belief(plant, U, problem, st.ensemble, st.seed,
@@ -264,7 +277,9 @@ def _rom_and_gains(plant: Plant, problem: Problem, st: DesignSettings, nom: dict
     U, last = nom["U"], nom["last"]
     t0 = time.perf_counter()
     # the optimizer's last identification is the design's ROM only when made at this very input
-    reused = last.identification is not None and same_input(last.identification.U, U)
+    # with the design's own settings (not a coarse proposal model)
+    reused = last.identification is not None and same_input(last.identification.U, U) \
+        and last.identification.made_with(st.impulse_scheme)
     ident = last.identification if reused else identify_rom(plant, U, st, show_progress, engine)
     if reused and not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],

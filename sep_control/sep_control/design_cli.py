@@ -38,14 +38,18 @@ SETTINGS_OPTIONS = (
      "dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration (see --relinearize-rtol), the "
      "step solved on it by a Riccati pass (its last identification is the design's ROM when made at the "
      "final input); auto = rom when N + 1 > 5 (p + q), "
-     "where it is measured faster, or when the sensitivity batch would not fit the memory budget"),
+     "where it is measured faster, or when the sensitivity batch would not fit the memory budget, else "
+     "sensitivity until a step moves the input by 1 %% or less and rom from there (one identification "
+     "near the optimum, which the belief refinement and the design reuse)"),
     ("--relinearize-rtol", "relinearize_rtol", dict(type=float),
      "rom Jacobian: keep the last identification for the next step while the input moved by less than "
      "this, relative (max |dU| / max |U|, at most 0.1; near the optimum the steps move U by 1e-3 and less). The "
      "design's ROM is always identified at the final input (afresh, or the optimizer's last model when "
      "made there); 1e-6 identifies after every step (the earlier behaviour)"),
     ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
-    ("--tol", "tol", dict(type=float), "stop when an accepted step lowers the cost by less than this, relative"),
+    ("--tol", "tol", dict(type=float),
+     "stop when the Gauss-Newton model predicts, or an accepted trial achieves, a decrease of the cost by less "
+     "than this, relative (that step is not taken)"),
     ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha"),
     ("--belief-iter", "belief_iter", dict(type=int), "belief-space GN iterations"),
     ("--ensemble", "ensemble", dict(type=int), "EnKF members (even)"),
@@ -92,6 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"{text} (default: the scenario's design section, else {default})", **kind)
     p.add_argument("--no-belief", dest="belief", action="store_false", default=argparse.SUPPRESS,
                    help="skip the belief-space refinement (mean-only nominal)")
+    p.add_argument("--no-coarse-proposals", dest="coarse_proposals", action="store_false",
+                   default=argparse.SUPPRESS,
+                   help="rom Jacobian: identify every model with the full settings; by default the "
+                        "identifications far from the optimum, which only propose Gauss-Newton steps, use "
+                        "forward impulses and a field basis to 1e-6 (about half the plant steps), and the "
+                        "ones near it and the design's ROM the full ones")
     p.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_threads(p)
@@ -104,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     scenario = scenario_or_exit(args.scenario)
-    given = {key: getattr(args, key) for key in [k for _, k, _, _ in SETTINGS_OPTIONS] + ["belief"]
+    given = {key: getattr(args, key) for key in [k for _, k, _, _ in SETTINGS_OPTIONS] + ["belief", "coarse_proposals"]
              if hasattr(args, key)}
     try:
         settings = DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),

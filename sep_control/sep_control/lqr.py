@@ -79,7 +79,7 @@ def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap
     U, S, _ = np.linalg.svd(np.concatenate(list(gL), axis=1), full_matrices=False)
     r = int(np.count_nonzero(S > tol * S[0])) if S.size and S[0] > 0 else 0
     Ur = U[:, :max(r, 1)] if G.rank else U[:, :0]
-    return PODFieldMap(np.ascontiguousarray(G.Phi @ Ur), np.ascontiguousarray(np.einsum("rs,krn->ksn", Ur, G.g)))
+    return PODFieldMap(np.ascontiguousarray(G.Phi @ Ur), np.ascontiguousarray(np.matmul(Ur.T, G.g)))
 
 
 def design_lqg(model: LTVModel, problem: Problem, name: str = "rom_lqg", map_tol: float | None = None) -> LQG:
