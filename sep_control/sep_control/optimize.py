@@ -333,7 +333,7 @@ class OptimizationResult:
     objective: str = "nominal"
     identification: object = None          # ROM path: the last TV-ERA model (at or near the final U)
     belief: EnKFResult | None = None       # belief objective: the belief at the final U
-    linearizations: list[str] = field(default_factory=list)  # "sensitivity", "rom", "rom (kept)" in order
+    linearizations: list[str] = field(default_factory=list)  # "sensitivity", "rom", "rom (proposal)", "rom (kept)"
     stop: str = ""                         # why it stopped
 
 
@@ -360,10 +360,10 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     `NEAR_OPTIMUM`): they only propose steps, which the true objective accepts,
     while the ones near the optimum, which the belief refinement and the design reuse, keep
     `rom`. Stops after
-    `max_iter` iterations, when the Gauss-Newton model predicts a decrease below `tol` relative
-    for the next step (the trial is not evaluated), or when an accepted trial lowers the objective
-    by less than `tol` relative (such a step is not taken: it keeps the last linearization at the
-    final input). `stop` says which. Every
+    `max_iter` iterations, when an accepted trial lowers the objective by less than `tol` relative
+    (such a step is not taken: it keeps the last linearization at the final input), or, for the
+    belief objective (gn), when the Gauss-Newton model predicts a decrease below `tol` relative
+    for the next step (that trial, an EnKF run, is not evaluated). `stop` says which. Every
     step is accepted on the true objective, whichever Jacobian proposed it. With the ROM
     Jacobian the result carries its last identification (`identification`: at the final input,
     or within `relinearize_rtol` of it), and `reuse` (an earlier result) starts from it; `chord` keeps the
@@ -438,11 +438,16 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     lin = linearize(U, X, field_for_residual)
     bar = progress(range(max_iter), desc=f"optimize[{method},{objective}]", enabled=show_progress)
 
+    # belief objective: a trial the Gauss-Newton model predicts to lower J_b by less than tol is
+    # not evaluated (an EnKF run). The nominal objective evaluates every trial (one rollout): an
+    # inexact model (a ROM Jacobian, Burgers: Markov error 2.5e-4) can predict less than tol where
+    # the true cost still falls by more (stopping there left Burgers' optimum 2e-5 higher)
+    predict_stop = method == "gn" and objective == "belief"
+
     def attempt(lin, lam: float, alpha: float):
         """Up to max_trials damped steps from U: ("accepted", ...) with the first the true objective
-        accepts, ("converged", ...) when the Gauss-Newton model predicts a decrease below tol
-        relative (the trial is not evaluated: near the optimum the model's prediction is accurate,
-        and an evaluation costs a rollout or, for the belief, an EnKF run), else ("rejected", ...)."""
+        accepts, ("converged", ...) when `predict_stop` and the Gauss-Newton model predicts a
+        decrease below tol relative (the trial is not evaluated), else ("rejected", ...)."""
         frozen = active_bounds(U, lin.gradient(), lo, hi) if bounded else None
         for _ in range(max_trials):
             if method == "gn":
@@ -452,7 +457,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
                 if frozen is not None:
                     dU[frozen] = 0.0
             U_try = np.clip(U + dU, lo, hi)
-            if method == "gn" and 0.0 <= -lin.predicted_change(U_try - U) < tol * J:
+            if predict_stop and 0.0 <= -lin.predicted_change(U_try - U) < tol * J:
                 return "converged", lam, alpha, None
             J_try, X_try, f_try = evaluate(U_try)
             if np.isfinite(J_try) and J_try < J:

@@ -96,10 +96,14 @@ class Identification:
     U: np.ndarray           # (N, n_u) the nominal input it was identified around
     scheme: str = "central"  # the impulse scheme it was identified with
     field_tol: float = FIELD_TOL  # the field basis' relative tolerance
+    p: int = 0              # Hankel block rows and columns it was identified with
+    q: int = 0
 
-    def made_with(self, scheme: str, field_tol: float | None = None) -> bool:
+    def made_with(self, scheme: str, field_tol: float | None = None, p: int | None = None,
+                  q: int | None = None) -> bool:
         """Whether it was identified with these settings (a coarse proposal model is not)."""
-        return self.scheme == scheme and self.field_tol == (FIELD_TOL if field_tol is None else field_tol)
+        return (self.scheme == scheme and self.field_tol == (FIELD_TOL if field_tol is None else field_tol)
+                and (p is None or self.p == p) and (q is None or self.q == q))
 
 
 def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
@@ -316,7 +320,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
                                memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
-    return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float), scheme, ftol)
+    return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float), scheme, ftol, p, q)
 
 
 def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:
