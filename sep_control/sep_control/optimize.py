@@ -301,10 +301,13 @@ class RomLinearization:
         return 2.0 * g
 
 
-#: an accepted step that moved U by at most this (max |dU| / max |U|) marks the optimum's
-#: neighbourhood: the Gauss-Newton steps after it move U by 1e-3 and less (every shipped scenario),
-#: so a model identified there is the one the belief refinement and the design go on with
+#: an accepted step that moved U by at most NEAR_OPTIMUM (max |dU| / max |U|) or lowered the cost
+#: by at most NEAR_DECREASE (relative) marks the optimum's neighbourhood: the Gauss-Newton steps
+#: after it move U by 1e-3 and less, or lower the cost by 1e-5 and less (every shipped scenario;
+#: Allen-Cahn's weakly weighted inputs, r_u = 1e-5, still move by percents there), so a model
+#: identified there is the one the belief refinement and the design go on with
 NEAR_OPTIMUM = 1e-2
+NEAR_DECREASE = 1e-3
 
 #: relative damping of an input held at an active bound in the ROM step (see RomLinearization.step)
 FREEZE = 1e10
@@ -352,12 +355,13 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     and backtracking). `jacobian` ``sensitivity`` (N n_u impulse-sensitivity experiments) or
     ``rom`` (a TV-ERA model identified at the iterates, settings `rom` passed to `identify`;
     the step is then an LQ problem on the ROM, `RomLinearization`); with `rom_near_optimum` the
-    sensitivity Jacobian serves until an accepted step moves U by at most `NEAR_OPTIMUM`, and the
+    sensitivity Jacobian serves until an accepted step reaches the optimum's neighbourhood (it
+    moves U by at most `NEAR_OPTIMUM` or lowers the objective by at most `NEAR_DECREASE`), and the
     ROM one from there on (one identification near the optimum, which the belief refinement and
     the design reuse, instead of N n_u more sensitivity runs). `rom_proposal` (settings that
     override `rom`, e.g. forward impulses and a coarser field basis) serves the identifications
-    made far from the optimum (the first, and those after a step that moved U by more than
-    `NEAR_OPTIMUM`): they only propose steps, which the true objective accepts,
+    made far from the optimum (the first, and those after a step outside that neighbourhood):
+    they only propose steps, which the true objective accepts,
     while the ones near the optimum, which the belief refinement and the design reuse, keep
     `rom`. Stops after
     `max_iter` iterations, when an accepted trial lowers the objective by less than `tol` relative
@@ -412,7 +416,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
     identified = [reuse.identification] if reuse is not None and reuse.identification is not None else []
 
     mode = [jacobian]      # "sensitivity" switches to "rom" near the optimum (rom_near_optimum)
-    moved = [np.inf]       # how far the last accepted step moved U (max |dU| / max |U|)
+    settled = [False]      # the last accepted step was in the optimum's neighbourhood
 
     def linearize(Uc: np.ndarray, Xc: np.ndarray, residual: np.ndarray, rtol: float = relinearize_rtol):
         if mode[0] == "rom":
@@ -420,7 +424,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
             if near:
                 ident = near[0]                       # identified at (or within rtol of) this input
             else:
-                far = rom_proposal is not None and not (moved[0] <= NEAR_OPTIMUM)
+                far = rom_proposal is not None and not settled[0]
                 ident = identify(plant, Uc, **{**(rom or {}), **(rom_proposal if far else {})})
                 identified[:] = [ident]
                 result.experiments += ident.data.experiments
@@ -470,7 +474,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
         if outcome == "rejected" and lin.identification is not None and not chord \
                 and not same_input(lin.identification.U, U):
             # every trial failed on a model kept from an earlier input: once more on one made here
-            moved[0] = 0.0
+            settled[0] = True
             lin = linearize(U, X, field_for_residual, SAME_INPUT_RTOL)
             outcome, lam_next, alpha_next, trial = attempt(lin, lam, alpha)
         lam, alpha = lam_next, alpha_next
@@ -486,7 +490,8 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
             # refinement and the design reuse) at the final input
             result.stop = "the step lowered the objective by less than tol (not taken)"
             break
-        moved[0] = float(np.max(np.abs(U_try - U))) / max(float(np.max(np.abs(U))), 1e-12)
+        moved = float(np.max(np.abs(U_try - U))) / max(float(np.max(np.abs(U))), 1e-12)
+        settled[0] = moved <= NEAR_OPTIMUM or rel <= NEAR_DECREASE
         U, J, X, field_for_residual = U_try, J_try, X_try, f_try
         last_belief["b"] = last_belief.get("try")
         lam, alpha = max(lam / 3.0, 1e-9), alpha * 1.2
@@ -497,7 +502,7 @@ def optimize(plant: Plant, problem: Problem, U0: np.ndarray | None = None, metho
         if it == max_iter - 1 and lin.identification is None:
             result.stop = f"max_iter = {max_iter}"
             break
-        if rom_near_optimum and lin.identification is None and moved[0] <= NEAR_OPTIMUM:
+        if rom_near_optimum and lin.identification is None and settled[0]:
             mode[0] = "rom"     # near the optimum: TV-ERA once, here, instead of N n_u sensitivity runs
         lin = linearize(U, X, field_for_residual)   # ROM path at the end too: the design reuses it
         if it == max_iter - 1:
