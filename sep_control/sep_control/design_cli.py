@@ -39,8 +39,8 @@ SETTINGS_OPTIONS = (
      "step solved on it by a Riccati pass (its last identification is the design's ROM when made at the "
      "final input); auto = rom when N + 1 > 5 (p + q), "
      "where it is measured faster, or when the sensitivity batch would not fit the memory budget, else "
-     "sensitivity until a step moves the input by 1 %% or less and rom from there (one identification "
-     "near the optimum, which the belief refinement and the design reuse)"),
+     "sensitivity until a step moves the input by 1 %% or less or lowers the cost by 1e-3 or less, and rom "
+     "from there (one identification near the optimum, which the belief refinement and the design reuse)"),
     ("--relinearize-rtol", "relinearize_rtol", dict(type=float),
      "rom Jacobian: keep the last identification for the next step while the input moved by less than "
      "this, relative (max |dU| / max |U|, at most 0.1; near the optimum the steps move U by 1e-3 and less). The "
