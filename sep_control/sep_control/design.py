@@ -250,7 +250,8 @@ def _nominal(plant: Plant, problem: Problem, st: DesignSettings, show_progress: 
     opt = optimize(plant, problem, U0=U0, method=st.method, objective="nominal", max_iter=st.max_iter, tol=st.tol,
                    eps=st.fd_eps, step_size=st.step_size, show_progress=show_progress,
                    jacobian=jacobian, rom=rom, bounds=bounds, relinearize_rtol=st.relinearize_rtol,
-                   rom_near_optimum=st.jacobian == "auto", rom_proposal=PROPOSAL_ROM if st.coarse_proposals else None)
+                   rom_near_optimum=st.jacobian == "auto",
+                   rom_proposal=PROPOSAL_ROM if st.coarse_proposals else None)
     log(f"mean-only {st.method} ({', '.join(opt.linearizations)} Jacobians): J = {opt.cost:.6g} after "
         f"{opt.iterations} iterations ({opt.experiments} experiments, {opt.seconds:.2f} s; stopped: {opt.stop})")
     U, belief_hist, last = opt.U, [], opt
