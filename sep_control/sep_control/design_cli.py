@@ -48,8 +48,8 @@ SETTINGS_OPTIONS = (
      "made there); 1e-6 identifies after every step (the earlier behaviour)"),
     ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
     ("--tol", "tol", dict(type=float),
-     "stop when the Gauss-Newton model predicts, or an accepted trial achieves, a decrease of the cost by less "
-     "than this, relative (that step is not taken)"),
+     "stop when an accepted trial lowers the cost by less than this, relative (that step is not taken); the "
+     "belief refinement also stops, without the trial's EnKF run, when the Gauss-Newton model predicts less"),
     ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha"),
     ("--belief-iter", "belief_iter", dict(type=int), "belief-space GN iterations"),
     ("--ensemble", "ensemble", dict(type=int), "EnKF members (even)"),
