@@ -33,8 +33,8 @@ SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep
 
 def bench_analysis(n_bags: int, work: Path, grid: tuple[int, ...]) -> None:
     from bag_synth import fake_design, grid_episode, synthetic_episode, write_bag
-    from sep_control.analyze import aggregate, analyze
-    from sep_control.report import write_report
+    from sep_control.bags.analysis import aggregate, analyze
+    from sep_control.bags.report import write_report
     from sep_estimator.design_file import save_design
     from sep_plant.scenario import reference
 
@@ -88,14 +88,14 @@ def _run_episode(work: Path, design: Path, scen: Path | None, rtf: float, record
     try:
         ready = work / f"{tag}_ready"
         if record:
-            start(["sep_control.record_node", "--out", str(work / f"{tag}_bag"), "--final-grace", "0.5",
+            start(["sep_control.ros.record_node", "--out", str(work / f"{tag}_bag"), "--final-grace", "0.5",
                    "--ready-file", str(ready), "--ready-topics", "heat_command", "state_estimate",
                    "field_estimate"], "record")
-        start(["sep_control.lqg_node", "--ros-args", "-p", f"design_file:={design}"], "lqg")
+        start(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design}"], "lqg")
         t0 = time.monotonic()
         while record and not ready.exists() and time.monotonic() - t0 < 60:
             time.sleep(0.05)
-        args = ["sep_plant.plant_node", "--ros-args", "-p", "mode:=realtime", "-p", f"real_time_factor:={rtf}",
+        args = ["sep_plant.ros.plant_node", "--ros-args", "-p", "mode:=realtime", "-p", f"real_time_factor:={rtf}",
                 "-p", f"summary_file:={tag}_plant.json", "-p", f"wait_for_subscribers:={2 if record else 1}",
                 "-p", f"wait_for_field_subscribers:={1 if record else 0}"]
         if scen:
@@ -130,7 +130,7 @@ def bench_recorder(work: Path, design: str | None, rtf: float, repeats: int, rt_
     if design is None:
         import yaml
 
-        from sep_control.design import run_design
+        from sep_control.design.pipeline import run_design
         from sep_estimator.design_file import save_design
 
         s = rt_scenario_of(rt_scenario)
@@ -152,7 +152,7 @@ def bench_recorder(work: Path, design: str | None, rtf: float, repeats: int, rt_
                   f"{sm['deadline_misses']:>15} {1e3 * sm['latency_p50_s']:>10.3f} {1e3 * sm['latency_p99_s']:>10.3f} "
                   f"{sm['wall_s']:>7.2f}")
             if record:
-                from sep_control.analyze import analyze
+                from sep_control.bags.analysis import analyze
 
                 m = analyze(work / f"{tag}_bag", design).metrics
                 print(f"{'':<18} bag: complete={m['complete']} deadline_misses={m['deadline_misses']} "

@@ -24,11 +24,11 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from sep_control.design import DesignSettings, run_design
-from sep_control.engine import open_engine
-from sep_control.metrics import format_table
-from sep_control.montecarlo import simulate
-from sep_control.tvera import impulse_experiments, extend_nominal
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.compute.engine import open_engine
+from sep_control.evaluation.metrics import format_table
+from sep_control.evaluation.montecarlo import simulate
+from sep_control.design.tvera import impulse_experiments, extend_nominal
 from sep_plant.protocol import rollout
 from sep_plant.scenario import reference
 

@@ -20,13 +20,13 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from sep_control.design import DesignSettings, run_design
-from sep_control.metrics import format_table
-from sep_control.montecarlo import simulate
-from sep_control.optimize import (RomLinearization, SensitivityLinearization, objective_of, optimize,
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.evaluation.metrics import format_table
+from sep_control.evaluation.montecarlo import simulate
+from sep_control.design.optimizer import (RomLinearization, SensitivityLinearization, objective_of, optimize,
                                   sensitivity_normal_equations)
-from sep_control.tvera import identify
-from sep_control.oracle import oracle_lqg
+from sep_control.design.tvera import identify
+from sep_control.evaluation.oracle import oracle_lqg
 from sep_plant.protocol import nominal_states
 from sep_plant.scenario import reference
 

@@ -92,7 +92,7 @@ def make_core(plant, r_f: int, n_steps: int, rng: np.random.Generator):
 
 def bench_row(n_side: int, r_f: int, reps: int, n_steps: int, dt: float, rng) -> tuple[dict, dict, dict]:
     from rclpy.serialization import serialize_message
-    from sep_plant import contract as c
+    from sep_plant.ros import contract as c
     from sep_plant.plants.heat import HeatPlate
 
     plant = HeatPlate(nodes=(n_side, n_side))
@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from threadpoolctl import threadpool_limits
-    from sep_control.metrics import format_table
+    from sep_control.evaluation.metrics import format_table
     from sep_plant.scenario import load_scenario
 
     dt = float(load_scenario(REPO / "sep_plant" / "scenarios" / "plate.yaml").plant_config["dt"])

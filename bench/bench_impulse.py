@@ -25,11 +25,11 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from sep_control.design import DesignSettings, run_design
-from sep_control.metrics import format_table
-from sep_control.montecarlo import simulate
-from sep_control.oracle import oracle_lqg
-from sep_control.tvera import identify
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.evaluation.metrics import format_table
+from sep_control.evaluation.montecarlo import simulate
+from sep_control.evaluation.oracle import oracle_lqg
+from sep_control.design.tvera import identify
 from sep_plant.scenario import reference
 
 VARIANTS = {"central 1e-2": ("central", 1e-2), "forward 1e-2": ("forward", 1e-2),

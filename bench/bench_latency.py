@@ -59,8 +59,8 @@ def pong_main(executor: str) -> int:
     import rclpy
     from rclpy.node import Node
 
-    from sep_plant import contract as c
-    from sep_plant.node_util import make_executor
+    from sep_plant.ros import contract as c
+    from sep_plant.ros.base import make_executor
 
     rclpy.init()
     node = Node('pong')
@@ -90,8 +90,8 @@ def ping_pong(n: int, env: dict, executor: str, period: float = 0.0) -> dict:
     import rclpy
     from rclpy.node import Node
 
-    from sep_plant import contract as c
-    from sep_plant.node_util import make_executor
+    from sep_plant.ros import contract as c
+    from sep_plant.ros.base import make_executor
 
     pong = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), '--pong', executor],
                             env=env, start_new_session=True)
@@ -136,11 +136,11 @@ def loop_round_trip(design_file: Path, scenario_file: Path | None, env: dict, mo
                     tmp: Path, executor: str) -> dict:
     summary = tmp / f'plant_{mode}_{executor}.json'
     scen = ['-p', f'scenario_file:={scenario_file}'] if scenario_file else []
-    lqg = subprocess.Popen([sys.executable, '-m', 'sep_control.lqg_node', '--executor', executor, '--ros-args',
+    lqg = subprocess.Popen([sys.executable, '-m', 'sep_control.ros.lqg_node', '--executor', executor, '--ros-args',
                             '-p', f'design_file:={design_file}'], env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        rc = subprocess.run([sys.executable, '-m', 'sep_plant.plant_node', '--executor', executor,
+        rc = subprocess.run([sys.executable, '-m', 'sep_plant.ros.plant_node', '--executor', executor,
                              '--summary-json', str(summary),
                              '--ros-args', *scen, '-p', f'mode:={mode}', '-p', 'real_time_factor:=10.0',
                              '-p', 'publish_field:=true'], env=env, capture_output=True, text=True,
@@ -161,9 +161,9 @@ def loop_round_trip(design_file: Path, scenario_file: Path | None, env: dict, mo
 def compute_per_step(design, repeats: int = 20) -> dict:
     """Per-step compute of the estimator core + LQR law ('core'), and with the messages the lqg
     builds (command, estimate, field cloud) ('node')."""
-    from sep_control.lqr import command
+    from sep_control.design.gains import command
     from sep_estimator.estimator_core import EstimatorCore
-    from sep_plant import contract as c
+    from sep_plant.ros import contract as c
 
     info, nom, K = design.info, design.nominal, design.lqg.K
     N = design.n_steps
@@ -198,8 +198,8 @@ def compute_mpc(design, plant, runs: int = 10, horizon: int = 20) -> dict:
     """Per-step time of the feedback law alone on closed-loop estimates (plant + KF, one run at a
     time, the online path): the clipped LQR law vs the ROM-MPC's `command` (its steps without an
     active limit and those that solve a QP separately)."""
-    from sep_control.lqr import command
-    from sep_control.mpc import RomMPC
+    from sep_control.design.gains import command
+    from sep_control.control.mpc import RomMPC
     from sep_estimator.estimator_core import EstimatorCore
     from sep_plant.noise import noise_sequences
 
@@ -269,7 +269,7 @@ def main(argv=None) -> int:
         design_file = args.design
         design = load_design(design_file, expect_scenario=scenario)
     else:
-        from sep_control.design import run_design
+        from sep_control.design.pipeline import run_design
         t0 = time.perf_counter()
         design = run_design(scenario.plant, scenario.problem, show_progress=False, log=lambda m: None)
         design_file = save_design(tmp / 'design.npz', design)
@@ -287,7 +287,7 @@ def main(argv=None) -> int:
                                                             tmp, 'events')
     res['ping_pong_events_after'] = ping_pong(args.pings, env, 'events')
     res['compute'] = compute_threads(design)
-    from sep_control.design import run_design
+    from sep_control.design.pipeline import run_design
     lim = scenario.replace(u_min=args.mpc_limits[0], u_max=args.mpc_limits[1])
     limited = run_design(lim.plant, lim.problem, show_progress=False, log=lambda m: None)
     from threadpoolctl import threadpool_limits

@@ -22,10 +22,10 @@ from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
-from sep_control import figures
-from sep_control.design import DesignSettings, run_design
-from sep_control.metrics import format_table
-from sep_control.montecarlo import simulate
+from sep_control.evaluation import figures
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.evaluation.metrics import format_table
+from sep_control.evaluation.montecarlo import simulate
 from sep_plant.scenario import load_scenario
 
 COLUMNS = ["cost_mean", "in_band", "mean_dev_end", "cost/LQG", "mpc_qp_share", "mpc_fallbacks", "mpc_qp_p50_s",

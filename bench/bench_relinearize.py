@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from sep_control.design import DesignSettings, run_design
-from sep_control.montecarlo import simulate
-from sep_control.optimize import SAME_INPUT_RTOL
-from sep_control.oracle import oracle_lqg
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.evaluation.montecarlo import simulate
+from sep_control.design.optimizer import SAME_INPUT_RTOL
+from sep_control.evaluation.oracle import oracle_lqg
 from sep_plant.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent

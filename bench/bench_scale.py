@@ -77,8 +77,8 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
     import numpy as np
     from threadpoolctl import threadpool_limits
 
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.montecarlo import simulate
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.evaluation.montecarlo import simulate
     from sep_estimator.design_file import save_design
     from sep_plant.device import on_device
     from sep_plant.protocol import nominal_states
@@ -100,7 +100,7 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
         spent[1] += X.shape[0]              # run-steps
         return out
 
-    from sep_control.engine import open_engine
+    from sep_control.compute.engine import open_engine
 
     with threadpool_limits(1), open_engine(dask) as engine:
         U0 = problem.u_start(plant.n_u)
@@ -180,7 +180,7 @@ def main() -> int:
                     continue
                 rows[label] = json.loads(proc.stdout.strip().splitlines()[-1])
                 print(f"{label}: {time.perf_counter() - t0:.0f} s", flush=True)
-    from sep_control.metrics import format_table
+    from sep_control.evaluation.metrics import format_table
 
     print(f"\nOne run per row, one BLAS thread, this machine, plants on {args.device}; ratios measured in the same run")
     print(format_table(rows, COLUMNS))

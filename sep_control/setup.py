@@ -36,14 +36,14 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            'lqr = sep_control.lqr_node:main',
-            'lqg = sep_control.lqg_node:main',
-            'design = sep_control.design_cli:main',
-            'evaluate = sep_control.evaluate_cli:main',
-            'validate = sep_control.validate_cli:main',
-            'record = sep_control.record_node:main',
-            'analyze = sep_control.analyze_cli:main',
-            'demo = sep_control.demo:main',
+            'lqr = sep_control.ros.lqr_node:main',
+            'lqg = sep_control.ros.lqg_node:main',
+            'design = sep_control.cli.design:main',
+            'evaluate = sep_control.cli.evaluate:main',
+            'validate = sep_control.cli.validate:main',
+            'record = sep_control.ros.record_node:main',
+            'analyze = sep_control.cli.analyze:main',
+            'demo = sep_control.cli.demo:main',
         ],
     },
 )

@@ -33,7 +33,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            'estimator = sep_estimator.estimator_node:main',
+            'estimator = sep_estimator.ros.estimator_node:main',
         ],
     },
 )

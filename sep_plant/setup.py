@@ -36,7 +36,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            'plant = sep_plant.plant_node:main',
+            'plant = sep_plant.ros.plant_node:main',
         ],
     },
 )

@@ -199,7 +199,7 @@ def cloud(ns: int, field_name: str, xyz: np.ndarray, values: np.ndarray, std: np
 
 
 def image(ns: int, values: np.ndarray, grid_shape: tuple[int, ...]) -> bytes:
-    """A 32FC1 sensor_msgs/Image of a grid field (as `sep_plant.contract.field_image`)."""
+    """A 32FC1 sensor_msgs/Image of a grid field (as `sep_plant.ros.contract.field_image`)."""
     img = T.image_of_field(values, grid_shape)
     h, w = img.shape
     msg = TS.types[T.IMAGE](header=_header(ns), height=h, width=w, encoding="32FC1", is_bigendian=0, step=4 * w,

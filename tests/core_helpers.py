@@ -168,7 +168,7 @@ def cached_design(scenario: Scenario, **settings):
     """run_design(scenario, DesignSettings(**settings)), computed once per test process."""
     from threadpoolctl import threadpool_limits
 
-    from sep_control.design import DesignSettings, run_design
+    from sep_control.design.pipeline import DesignSettings, run_design
 
     # one BLAS thread, as the CLI does by default: many small matrices, 2 cores
     with threadpool_limits(limits=1):
@@ -180,7 +180,7 @@ def cached_design(scenario: Scenario, **settings):
 def cached_oracle(scenario: Scenario, **settings):
     from threadpoolctl import threadpool_limits
 
-    from sep_control.oracle import oracle_lqg
+    from sep_control.evaluation.oracle import oracle_lqg
 
     design = cached_design(scenario, **settings)
     with threadpool_limits(limits=1):

@@ -118,7 +118,7 @@ class Probe:
         from rclpy.node import Node
         from rclpy.signals import SignalHandlerOptions
 
-        from sep_plant import contract as c
+        from sep_plant.ros import contract as c
 
         self.c = c
         self.ctx = rclpy.Context()
@@ -243,7 +243,7 @@ class Probe:
 def field_matrix(probe: Probe, topic: str, dt: float, n_steps: int, key: str = 'temperature', column: int | None = None):
     """(N+1, n_field) array of a field topic's channel `key` (or channel number `column`) by step
     (NaN rows for missing steps)."""
-    from sep_plant.contract import parse_field_cloud
+    from sep_plant.ros.contract import parse_field_cloud
     msgs = probe.by_step(topic, dt)
     rows = []
     for k in range(n_steps + 1):
@@ -295,7 +295,7 @@ def make_case(root: Path, name: str, yaml_text: str | None = None, settings: dic
     """A case from a scenario YAML text, or from sep 0.1's flat slab keys."""
     import yaml
 
-    from sep_control.design import DesignSettings, run_design
+    from sep_control.design.pipeline import DesignSettings, run_design
     from sep_estimator.design_file import save_design
     from sep_plant.scenario import load_scenario
 

@@ -13,11 +13,11 @@ import pytest
 
 from bag_synth import (LAT_CMD_NS, LAT_EST_NS, fake_design, grid_episode, legacy_episode, small_scenario,
                        synthetic_episode, write_bag)
-from sep_control import metrics as M
-from sep_control.analyze import AnalysisError, aggregate, analyze
-from sep_control.analyze_cli import main as cli
-from sep_control.bag_io import BagError
-from sep_control.report import render_image_frame, write_report
+from sep_control.evaluation import metrics as M
+from sep_control.bags.analysis import AnalysisError, aggregate, analyze
+from sep_control.cli.analyze import main as cli
+from sep_control.bags.bag_io import BagError
+from sep_control.bags.report import render_image_frame, write_report
 from sep_estimator.design_file import save_design
 from sep_plant import topics as T
 
@@ -148,7 +148,7 @@ def test_cli_missing_topics_reported(setup, tmp_path, capsys):
 
 def _run_cli(*args):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep_control")))
-    return subprocess.run([sys.executable, "-m", "sep_control.analyze_cli", *map(str, args)], env=env,
+    return subprocess.run([sys.executable, "-m", "sep_control.cli.analyze", *map(str, args)], env=env,
                           capture_output=True, text=True, timeout=120)
 
 
@@ -227,7 +227,7 @@ def test_grid_plant_bag_analysed_with_heat_maps(grid, tmp_path):
     k1 = eps[0].scenario.problem.window[1]
     assert f"field_image at k = {k1}" in md and "grid 6 x 5" in md and "target field" in md
     # the field figure is the 2 x 3 map panel (closed loop, nominal, difference), not lines
-    from sep_control.figures import pyplot
+    from sep_control.evaluation.figures import pyplot
 
     assert pyplot().imread(out / "field.png").shape[1] > 1.2 * pyplot().imread(out / "inputs.png").shape[1]
     agg = aggregate(bags, dpath)
@@ -246,7 +246,7 @@ def test_grid_3d_report(tmp_path):
 
 def test_render_image_frame_is_the_published_image(grid, tmp_path):
     """The frame as a viewer shows the 32FC1 image: row 0 on top, grey from min to max."""
-    from sep_control.figures import pyplot
+    from sep_control.evaluation.figures import pyplot
 
     d, eps, bags, _ = grid
     rep = analyze(bags[1])

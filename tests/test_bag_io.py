@@ -11,7 +11,7 @@ import pytest
 
 from bag_synth import (LAT_CMD_NS, T0_NS, episode_messages, grid_episode, legacy_episode, small_scenario,
                        synthetic_episode, write_bag, write_messages)
-from sep_control.bag_io import BagError, read_episode, read_raw, repair_bag
+from sep_control.bags.bag_io import BagError, read_episode, read_raw, repair_bag
 from sep_plant import topics as T
 
 
@@ -253,8 +253,8 @@ def test_real_sep01_bag_read_and_analysed():
     read with today's API with and without sep 0.1's design file (format v1); the recorded
     field/inputs/measurements are the old plant's trajectory file exactly, and today's metrics are
     those sep 0.1's own `analyze` and `demo` wrote for this bag."""
-    from sep_control import metrics as M
-    from sep_control.analyze import analyze
+    from sep_control.evaluation import metrics as M
+    from sep_control.bags.analysis import analyze
     from sep_estimator.design_file import load_design
     from sep_plant.scenario import load_scenario
 

@@ -4,7 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from sep_control import design_cli, evaluate_cli
+from sep_control.cli import design as design_cli
+
+from sep_control.cli import evaluate as evaluate_cli
 from sep_estimator.design_file import load_design
 from sep_plant.scenario import load_scenario
 

@@ -479,7 +479,7 @@ def test_a_loaded_design_with_a_new_rom_saves_and_loads(tmp_path):
 def test_version_1_file_of_sep01_is_read(tmp_path):
     """A design file written by sep 0.1 (format version 1, flat slab scenario, T_nom) loads as the
     same design: same arrays under the new names, same scenario, and the same closed loop."""
-    from sep_control.montecarlo import simulate
+    from sep_control.evaluation.montecarlo import simulate
 
     d = load_design(V1_FILE)
     assert d.meta["upgraded_from_version"] == 1 and d.scenario.plant_type == "slab"

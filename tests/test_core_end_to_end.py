@@ -4,9 +4,9 @@ import pytest
 
 from core_helpers import cached_design, cached_oracle, coarse_scenario
 from core_helpers import one_blas_thread  # noqa: F401  (fixture)
-from sep_control.metrics import in_band, nominal_cost
-from sep_control.montecarlo import simulate
-from sep_control.tvera import markov_relative_error
+from sep_control.evaluation.metrics import in_band, nominal_cost
+from sep_control.evaluation.montecarlo import simulate
+from sep_control.design.tvera import markov_relative_error
 from sep_plant.protocol import nominal_states
 from sep_plant.scenario import reference as reference_scenario
 
@@ -132,8 +132,8 @@ def test_reference_rom_matches_long_impulse_experiments(reference):
     """Re-running the identification reproduces the stored ROM and its recorded Markov error,
     and the ROM predicts impulse responses far beyond the identification lags (p + q = 30):
     lags up to 80 steps (20 s), relative error <= 1e-6 (DESIGN.md: "far below 1e-6")."""
-    from sep_control.design import DesignSettings, identify_rom
-    from sep_control.tvera import impulse_experiments
+    from sep_control.design.pipeline import DesignSettings, identify_rom
+    from sep_control.design.tvera import impulse_experiments
 
     d, _ = reference
     st = DesignSettings.from_meta(d.meta)

@@ -4,8 +4,8 @@ import pytest
 
 from core_helpers import coarse_scenario, flat
 from core_helpers import one_blas_thread  # noqa: F401  (fixture)
-from sep_control.metrics import nominal_cost
-from sep_control.optimize import (belief_cost, objective_of, optimize, run_belief,
+from sep_control.evaluation.metrics import nominal_cost
+from sep_control.design.optimizer import (belief_cost, objective_of, optimize, run_belief,
                                   sensitivity_normal_equations)
 from sep_plant.protocol import nominal_states
 
@@ -195,7 +195,7 @@ def test_belief_members_stepped_in_memory_batches_equal_one_batch(small):
     """The EnKF's forecast steps go in batches that fit the memory budget: the same belief."""
     from unittest import mock
 
-    from sep_control import optimize as opt
+    from sep_control.design import optimizer as opt
 
     s, sim = small
     U = np.full((s.n_steps, sim.n_u), 0.3)

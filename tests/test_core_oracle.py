@@ -4,7 +4,7 @@ import pytest
 
 from core_helpers import (Slab, cached_design, cached_oracle, coarse_scenario, conductivity, d2_matrix,  # noqa: F401
                           dense_jacobians, dense_step, one_blas_thread)
-from sep_control.oracle import full_order_model, rom_lqg
+from sep_control.evaluation.oracle import full_order_model, rom_lqg
 from sep_estimator.ltv import IdentityFieldMap
 from sep_plant.protocol import nominal_states as nominal_rollout
 

@@ -4,7 +4,7 @@ import pytest
 from scipy.linalg import solve_discrete_are
 
 from core_helpers import ltv_system, stable_matrix
-from sep_control.lqr import command, output_weights, tv_lqr
+from sep_control.design.gains import command, output_weights, tv_lqr
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, field_std
 from sep_estimator.tvkf import (KalmanFilter, kalman_gains, schedule_from_posteriors,
                                 open_loop_covariance)

@@ -273,7 +273,7 @@ def test_shipped_scenarios_load_and_their_plants_conform(path):
     """Every scenario file we ship loads, builds a plant that passes the protocol checks at its
     full size, resolves its problem on that plant (target, window), survives a JSON round trip
     (as in a design file), and its `design:` section gives valid design settings."""
-    from sep_control.design import DesignSettings
+    from sep_control.design.pipeline import DesignSettings
     from sep_plant.conformance import check_plant
 
     scen = load_scenario(path)

@@ -4,7 +4,7 @@ import pytest
 
 from core_helpers import coarse_scenario, ltv_system
 from core_helpers import one_blas_thread  # noqa: F401  (fixture)
-from sep_control.tvera import MarkovData, extend_nominal, impulse_experiments, tv_era
+from sep_control.design.tvera import MarkovData, extend_nominal, impulse_experiments, tv_era
 from sep_plant.protocol import nominal_states as nominal_rollout
 
 N_ORDER, N_U, N_Y, N_F, N = 6, 2, 2, 8, 40

@@ -11,10 +11,11 @@ import pytest
 
 from core_helpers import flat
 from dask_plants import KillsWorkerOnce, RaisesOnWorker
-from sep_control import design_cli, tvera
-from sep_control.design import DesignSettings, run_design
-from sep_control.engine import EngineError, InProcess, TaskError, open_engine, parse_dask
-from sep_control.montecarlo import simulate
+from sep_control.cli import design as design_cli
+from sep_control.design import tvera
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.compute.engine import EngineError, InProcess, TaskError, open_engine, parse_dask
+from sep_control.evaluation.montecarlo import simulate
 
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
 FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1)
@@ -156,7 +157,9 @@ def test_evaluate_and_validate_clis_on_a_cluster_match_in_process(tmp_path, caps
     """`evaluate --dask local:2` and `validate --dask local:2` print what they print in-process."""
     import json
 
-    from sep_control import evaluate_cli, validate_cli
+    from sep_control.cli import evaluate as evaluate_cli
+
+    from sep_control.cli import validate as validate_cli
 
     scen = tmp_path / "small.yaml"
     scen.write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))

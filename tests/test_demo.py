@@ -6,7 +6,7 @@ import os
 import pytest
 
 from node_harness import launcher, small_case  # noqa: F401
-from sep_control.metrics import JSON_KEYS
+from sep_control.evaluation.metrics import JSON_KEYS
 
 pytestmark = pytest.mark.ros
 

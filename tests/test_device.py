@@ -159,8 +159,8 @@ def test_a_plant_that_claims_the_device_but_breaks_there_fails_the_conformance_c
 def test_design_and_monte_carlo_on_the_device_equal_the_cpu_ones(one_blas_thread):
     """Every plant step of the design (sensitivity and TV-ERA experiments, EnKF belief, rollouts)
     and of the Monte Carlo through the emulated device: the same design to round-off."""
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.montecarlo import simulate
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.evaluation.montecarlo import simulate
 
     s = coarse_scenario(20, 40)
     st = DesignSettings(p=5, q=5, n_r=8, ensemble=20)
@@ -180,7 +180,7 @@ def test_design_and_monte_carlo_on_the_device_equal_the_cpu_ones(one_blas_thread
 
 
 def test_dask_workers_rebuild_the_plant_on_its_device():
-    from sep_control.engine import plant_spec, worker_plant
+    from sep_control.compute.engine import plant_spec, worker_plant
 
     cpu = make_plant("slab", PLANTS["slab"])
     dev = DevicePlant(cpu, guard, "cuda")
@@ -192,7 +192,7 @@ def test_dask_workers_rebuild_the_plant_on_its_device():
 # ------------------------------------------------------------------------------ the command line
 @pytest.mark.skipif(_cupy_usable(), reason="CuPy and a GPU are present: the refusal cannot be shown")
 def test_device_cuda_without_cupy_or_gpu_exits_2_saying_what_to_install(tmp_path, capsys):
-    from sep_control.design_cli import main
+    from sep_control.cli.design import main
 
     with pytest.raises(SystemExit) as exc:
         main(["--out", str(tmp_path / "d.npz"), "--device", "cuda", "--quiet"])

@@ -1,10 +1,10 @@
-"""The streamed field basis (sep_control.basis) and the POD field map (sep_estimator.ltv):
+"""The streamed field basis (sep_control.design.basis) and the POD field map (sep_estimator.ltv):
 snapshots in, an orthonormal basis and coefficients out, the field map G_k = Phi g_k behaving
 exactly like the dense one it replaces."""
 import numpy as np
 import pytest
 
-from sep_control.basis import IncrementalBasis, truncate
+from sep_control.design.basis import IncrementalBasis, truncate
 from sep_estimator.ltv import (AUTO_FLOAT32_BYTES, DenseFieldMap, Float32Reconstruction, PODFieldMap, in_precision,
                                resolve_precision)
 
@@ -110,7 +110,7 @@ def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_gri
     n_field r_f + N r_f n_r), and equals the field map of a near-exact basis (tolerance 1e-13) to
     the basis' tolerance."""
     from core_helpers import flat
-    from sep_control import tvera
+    from sep_control.design import tvera
 
     ranks = []
     for n_x in (400, 1600):
@@ -131,7 +131,7 @@ def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_gri
 def test_a_block_inside_the_span_adds_nothing_and_needs_no_svd(monkeypatch):
     """Once the basis holds the responses, a block whose residual's Frobenius norm is below
     tol * scale (a bound on every singular value) is projected only: no SVD, no new direction."""
-    import sep_control.basis as basis_mod
+    import sep_control.design.basis as basis_mod
 
     rng = np.random.default_rng(5)
     X = low_rank(rng, 300, 40, 6)
@@ -158,7 +158,7 @@ def test_experiments_split_by_a_memory_budget_give_the_same_data():
     from unittest import mock
 
     from core_helpers import flat
-    from sep_control import tvera
+    from sep_control.design import tvera
 
     s = flat(n_x=30, n_steps=20, k_band=12, lqr_k_switch=10)
     U = np.full((20, 5), 0.2)
@@ -176,7 +176,7 @@ def test_chunk_bases_merge_to_the_one_chunk_basis():
     chunk keeps its own small directions (as unit vectors they had doubled the rank), and the
     merged basis reproduces every chunk's field responses to the basis' tolerance."""
     from core_helpers import flat
-    from sep_control import tvera
+    from sep_control.design import tvera
 
     s = flat(n_x=800, n_steps=40, k_band=24, lqr_k_switch=19)
     U = np.full((40, 5), 0.2) + 0.01 * np.random.default_rng(3).standard_normal((40, 5))
@@ -228,7 +228,7 @@ def test_merge_streams_coefficients_like_add():
 def test_compressed_field_map_drops_only_what_the_state_spread_does_not_reach():
     """compress_field_map: with X_k = L_k L_k', every |(G_k - G_k') L_k|_2 <= tol sigma_1 of
     [g_0 L_0 ... g_N L_N]; Phi' stays orthonormal; the directions the spread reaches are kept."""
-    from sep_control.lqr import compress_field_map
+    from sep_control.design.gains import compress_field_map
 
     rng = np.random.default_rng(4)
     n_f, r_f, n, N1 = 400, 30, 6, 9
@@ -260,8 +260,8 @@ def test_design_compresses_its_field_map_and_keeps_its_gains():
     """The design's field map is the identification's compressed at field_map_tol; the LQR and
     Kalman gains are those of the uncompressed model, the field std that of the compressed map."""
     from core_helpers import cached_design, coarse_scenario
-    from sep_control.design import DesignSettings, identify_rom
-    from sep_control.lqr import FIELD_MAP_TOL, design_lqg
+    from sep_control.design.pipeline import DesignSettings, identify_rom
+    from sep_control.design.gains import FIELD_MAP_TOL, design_lqg
     from sep_estimator.ltv import field_std_schedule
 
     scen = coarse_scenario(20, 40)

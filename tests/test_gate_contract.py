@@ -1,5 +1,5 @@
 """Unit tests of the pure message gate (sep_plant.gate) and the topic contract's message
-builders/parsers (sep_plant.contract: stamps, fixed PointCloud2 layout, diagnostics)."""
+builders/parsers (sep_plant.ros.contract: stamps, fixed PointCloud2 layout, diagnostics)."""
 import math
 
 import numpy as np
@@ -87,7 +87,7 @@ def test_gate_module_is_pure():
 
 
 # ------------------------------------------------------------------------ contract
-c = pytest.importorskip('sep_plant.contract')
+c = pytest.importorskip('sep_plant.ros.contract')
 
 
 def test_stamps_are_integer_nanoseconds_without_drift():

@@ -1,5 +1,5 @@
 """Acceptance: a lockstep closed-loop episode over topics reproduces the offline closed-loop
-simulation (`sep_control.montecarlo.simulate`, same seed and run) to 1e-9 F over the whole
+simulation (`sep_control.evaluation.montecarlo.simulate`, same seed and run) to 1e-9 F over the whole
 trajectory; plant + lqg (two processes) and plant + estimator + lqr (three processes)."""
 import json
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from node_harness import field_matrix, joint_matrix, launcher, probe, reference_case, small_case  # noqa: F401
-from sep_control.montecarlo import simulate
-from sep_plant import contract as c
+from sep_control.evaluation.montecarlo import simulate
+from sep_plant.ros import contract as c
 
 pytestmark = pytest.mark.ros
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core_helpers import flat
-from sep_control.metrics import MetricsAccumulator, summarize
+from sep_control.evaluation.metrics import MetricsAccumulator, summarize
 from sep_plant.problem import Objective
 
 
@@ -35,8 +35,8 @@ def test_accumulator_equals_summarize_on_random_trajectories(window):
 
 
 def test_monte_carlo_keeps_only_requested_trajectories(tmp_path):
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.montecarlo import simulate
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.evaluation.montecarlo import simulate
 
     s = flat(n_x=20, n_steps=40, k_band=24, lqr_k_switch=19)
     d = run_design(s.plant, s.problem, DesignSettings(belief=False, ensemble=20, p=5, q=5, n_r=10),
@@ -53,19 +53,19 @@ def test_monte_carlo_keeps_only_requested_trajectories(tmp_path):
 
 def test_monte_carlo_in_batches_gives_the_same_runs(tmp_path):
     """A memory budget that fits a few runs at a time: same runs, same metrics."""
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.montecarlo import simulate
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.evaluation.montecarlo import simulate
 
     s = flat(n_x=20, n_steps=40, k_band=24, lqr_k_switch=19)
     d = run_design(s.plant, s.problem, DesignSettings(belief=False, ensemble=20, p=5, q=5, n_r=10),
                    show_progress=False, log=lambda m: None)
     whole = simulate(s.plant, d, "rom_lqg", 3, 13)
     small = simulate(s.plant, d, "rom_lqg", 3, 13, memory_budget=256 << 20)
-    from sep_control import budget
+    from sep_control.compute import budget
     tiny = budget.runs_per_batch(20, 20, 256 << 20)
     assert tiny > 13          # (the real budget fits them all; force batches of 4 below)
     import unittest.mock as mock
-    with mock.patch("sep_control.montecarlo.runs_per_batch", return_value=4):
+    with mock.patch("sep_control.evaluation.montecarlo.runs_per_batch", return_value=4):
         chunked = simulate(s.plant, d, "rom_lqg", 3, 13)
     for r in (small, chunked):
         np.testing.assert_allclose(r.F, whole.F, rtol=0, atol=1e-10)

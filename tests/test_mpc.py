@@ -1,4 +1,4 @@
-"""The box-constrained ROM-MPC (sep_control.mpc) and the limit-aware nominal.
+"""The box-constrained ROM-MPC (sep_control.control.mpc) and the limit-aware nominal.
 
 * with no active bound the MPC is the TV-LQR law (the unconstrained path and the QP path);
 * with active bounds its move is the box-constrained QP's optimum (checked against L-BFGS-B),
@@ -17,11 +17,11 @@ from scipy.optimize import minimize
 
 from core_helpers import flat
 from node_harness import joint_matrix, launcher, make_case, probe  # noqa: F401
-from sep_control.design import DesignSettings, run_design, tightened_limits
-from sep_control.lqr import input_spread
-from sep_control.montecarlo import simulate
-from sep_control.mpc import RomMPC
-from sep_plant import contract as c
+from sep_control.design.pipeline import DesignSettings, run_design, tightened_limits
+from sep_control.design.gains import input_spread
+from sep_control.evaluation.montecarlo import simulate
+from sep_control.control.mpc import RomMPC
+from sep_plant.ros import contract as c
 
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
 LIMITS = dict(u_min=0.0, u_max=0.6)

@@ -10,7 +10,7 @@ import pytest
 from node_harness import (field_matrix, joint_matrix, launcher, probe, reference_case,  # noqa: F401
                           small_case)
 from sep_estimator.tvkf import KalmanFilter
-from sep_plant import contract as c
+from sep_plant.ros import contract as c
 from sep_plant.scenario import scenario_payload
 
 

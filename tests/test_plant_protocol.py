@@ -69,7 +69,7 @@ def test_not_a_plant_at_all():
 def test_design_refuses_a_broken_plant_before_any_experiment():
     import time
 
-    from sep_control.design import run_design
+    from sep_control.design.pipeline import run_design
     from sep_plant.problem import Problem
 
     t0 = time.perf_counter()
@@ -80,7 +80,7 @@ def test_design_refuses_a_broken_plant_before_any_experiment():
 
 
 def test_design_cli_names_the_problem_and_exits_2(tmp_path, capsys):
-    from sep_control import design_cli
+    from sep_control.cli import design as design_cli
 
     scen = tmp_path / "broken.yaml"
     scen.write_text("plant: {type: 'broken_plants:RunsInteract'}\nn_steps: 20\ntarget: 1.0\n")
@@ -128,9 +128,9 @@ def test_noise_through_its_own_channels_is_identified_and_filtered():
     """NoisePlant: w enters through two disturbance profiles, not the inputs. The design
     identifies the ROM's noise input map B_w from impulses on w; the Kalman filter then uses
     B_w W B_w' and its 2-sigma coverage is right; the ROM LQG matches the full-order oracle."""
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.montecarlo import simulate
-    from sep_control.oracle import oracle_lqg
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.evaluation.montecarlo import simulate
+    from sep_control.evaluation.oracle import oracle_lqg
     from sep_plant.problem import Problem
 
     plant = bp.NoisePlant(n_x=12)

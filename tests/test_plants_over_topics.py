@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from node_harness import _cached_case, launcher, probe  # noqa: F401
-from sep_plant import contract as c
+from sep_plant.ros import contract as c
 from test_loop_equivalence import check_equivalence, run_episode
 
 pytestmark = pytest.mark.ros
@@ -60,7 +60,7 @@ def plate_case(tmp_path_factory):
 
 
 def test_example_plant_design_evaluate_and_topics(launcher, probe, burgers_case, tmp_path):
-    from sep_control import evaluate_cli
+    from sep_control.cli import evaluate as evaluate_cli
 
     case = burgers_case
     assert case.scenario.plant_type == "burgers" and case.design.info.field_name == "velocity"
@@ -100,12 +100,12 @@ def test_grid_plant_lockstep_over_topics_with_images(launcher, probe, plate_case
             np.testing.assert_array_equal(img, ref[k].reshape(12, 10).astype(np.float32))
 
 
-# Runs a node's main() with sep_plant.contract.field_image (the 32FC1 image builder both the plant
+# Runs a node's main() with sep_plant.ros.contract.field_image (the 32FC1 image builder both the plant
 # and the estimator call) wrapped by a counter, written as JSON at exit: no node exposes a count of
 # the images it built, so the test counts them from outside the library.
 COUNTING_MAIN = """\
 import atexit, importlib, json, sys
-from sep_plant import contract
+from sep_plant.ros import contract
 out, module = sys.argv.pop(1), sys.argv.pop(1)
 calls = [0]
 build = contract.field_image
@@ -138,10 +138,10 @@ def _counted_episode(launcher, case, tmp_path, image_topic, tag):
     pr = Probe(name=f"viewer_{tag}")
     try:
         pr.subscribe(c.FIELD, c.FIELD_ESTIMATE, *([image_topic] if image_topic else []))
-        lqg = start(f"lqg_{tag}", "sep_control.lqg_node",
+        lqg = start(f"lqg_{tag}", "sep_control.ros.lqg_node",
                     {"design_file": case.design_file, "wait_for_scenario_s": 20.0})
         pr.wait_matched(subs=(c.FIELD_ESTIMATE,))
-        plant = start(f"plant_{tag}", "sep_plant.plant_node", {
+        plant = start(f"plant_{tag}", "sep_plant.ros.plant_node", {
             "scenario_file": case.scenario_file, "seed": 1, "run": 0, "mode": "lockstep",
             "wait_for_subscribers": 1, "wait_for_field_subscribers": 1, "command_timeout_s": 20.0})
         assert plant.wait(120) == 0, plant.output()
@@ -179,7 +179,7 @@ def test_grid_images_are_built_only_while_subscribed(launcher, plate_case, tmp_p
 def test_grid_plant_rom_lqg_matches_the_full_order_oracle(plate_case, tmp_path):
     """On a grid small enough for the oracle (12 x 10 = 120 states), the ROM-LQG designed from
     experiments only costs what the LQG on the full-order Jacobians costs (common random numbers)."""
-    from sep_control import evaluate_cli
+    from sep_control.cli import evaluate as evaluate_cli
 
     js = tmp_path / "m.json"
     assert evaluate_cli.main(["--design", str(plate_case.design_file), "--runs", "100", "--json", str(js),

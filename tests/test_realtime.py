@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from node_harness import field_matrix, joint_matrix, launcher, probe, reference_case  # noqa: F401
-from sep_control import metrics
-from sep_control.montecarlo import simulate
-from sep_plant import contract as c
+from sep_control.evaluation import metrics
+from sep_control.evaluation.montecarlo import simulate
+from sep_plant.ros import contract as c
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import fields, rollout
 

@@ -26,7 +26,7 @@ SEED, RUN = 7, 2
 
 @pytest.fixture(scope="module")
 def small_design(tmp_path_factory):
-    from sep_control.design import run_design
+    from sep_control.design.pipeline import run_design
     from sep_estimator.design_file import save_design
     from sep_plant.scenario import load_scenario
 
@@ -50,24 +50,24 @@ def _log(cwd, name):
 
 
 def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design, procs):
-    from sep_control import metrics as M
-    from sep_control import montecarlo
-    from sep_control.analyze import analyze
+    from sep_control.evaluation import metrics as M
+    from sep_control.evaluation import montecarlo
+    from sep_control.bags.analysis import analyze
     from sep_estimator.design_file import load_design
 
     design_path, scen = small_design
-    rec = _popen(["sep_control.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
+    rec = _popen(["sep_control.ros.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
                   "--ready-topics", "heat_command", "state_estimate", "field_estimate", "--max-duration", "120"],
                  tmp_path, "record")
     procs.append(rec)
-    lqg = _popen(["sep_control.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
+    lqg = _popen(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
     procs.append(lqg)
     t0 = time.monotonic()
     while not (tmp_path / "ready").exists():
         assert time.monotonic() - t0 < 60, _log(tmp_path, "record") + _log(tmp_path, "lqg")
         assert rec.poll() is None and lqg.poll() is None, _log(tmp_path, "record") + _log(tmp_path, "lqg")
         time.sleep(0.05)
-    plant = _popen(["sep_plant.plant_node", "--ros-args", "-p", f"scenario_file:={scen}", "-p", f"seed:={SEED}",
+    plant = _popen(["sep_plant.ros.plant_node", "--ros-args", "-p", f"scenario_file:={scen}", "-p", f"seed:={SEED}",
                     "-p", f"run:={RUN}", "-p", "wait_for_subscribers:=2", "-p", "wait_for_field_subscribers:=1",
                     "-p", "trajectory_file:=traj.npz"], tmp_path, "plant")
     procs.append(plant)

@@ -28,7 +28,7 @@ SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep
 
 def start_recorder(out: Path, *args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "sep_control.record_node", "--out", str(out), *args],
+    return subprocess.Popen([sys.executable, "-m", "sep_control.ros.record_node", "--out", str(out), *args],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             stdin=subprocess.DEVNULL)
 
@@ -47,7 +47,7 @@ def ros():
 
 
 def _msg_class(msgtype):
-    from sep_control.record_node import _msg_class
+    from sep_control.ros.record_node import _msg_class
 
     return _msg_class(msgtype)
 
@@ -93,7 +93,7 @@ def stop(proc, sig=signal.SIGINT, timeout=30):
 
 
 def received(bag) -> dict[str, list[bytes]]:
-    from sep_control.bag_io import read_raw
+    from sep_control.bags.bag_io import read_raw
 
     raw = read_raw(bag)
     got: dict[str, list[bytes]] = {}
@@ -224,7 +224,7 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
     assert raw.complete
     for topic in sent:
         assert [deserialize_message(d, JointState) for d in got[topic]] == sent[topic]
-    from sep_control.bag_io import read_episode
+    from sep_control.bags.bag_io import read_episode
 
     e = read_episode(bag)
     assert e.scenario == s and e.info == info
@@ -233,7 +233,7 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
 
 
 def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
-    from sep_control.bag_io import BagError, read_episode
+    from sep_control.bags.bag_io import BagError, read_episode
 
     ep = synthetic_episode(small_scenario(n_steps=30, band_window=(20, 30), lqr_k_switch=10))
     msgs = episode_messages(ep)
@@ -263,7 +263,7 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     for topic in sent:
         assert same_payload(got[topic], sent[topic])
     # repair: a complete bag that rosbags' AnyReader opens
-    from sep_control.bag_io import repair_bag
+    from sep_control.bags.bag_io import repair_bag
 
     fixed = repair_bag(bag, tmp_path / "fixed")
     from rosbags.highlevel import AnyReader
@@ -293,9 +293,9 @@ def test_ready_file_skips_optional_topics_without_publisher(tmp_path, ros, procs
 def test_record_cli_errors(tmp_path):
     env = dict(os.environ, PYTHONPATH=SRC)
     (tmp_path / "exists").mkdir()
-    p = subprocess.run([sys.executable, "-m", "sep_control.record_node", "--out", str(tmp_path / "exists")],
+    p = subprocess.run([sys.executable, "-m", "sep_control.ros.record_node", "--out", str(tmp_path / "exists")],
                        env=env, capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "exists already" in p.stderr and "Traceback" not in p.stderr
-    p = subprocess.run([sys.executable, "-m", "sep_control.record_node", "--help"], env=env,
+    p = subprocess.run([sys.executable, "-m", "sep_control.ros.record_node", "--help"], env=env,
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 0 and "--storage" in p.stdout and "--stop-after-idle" in p.stdout

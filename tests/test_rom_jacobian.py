@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core_helpers import flat
-from sep_control.optimize import (objective_of, optimize, rom_normal_equations,
+from sep_control.design.optimizer import (objective_of, optimize, rom_normal_equations,
                                   sensitivity_normal_equations)
 from sep_plant.protocol import nominal_states as nominal_rollout
 
@@ -46,8 +46,8 @@ def test_unknown_jacobian_refused():
 def test_rom_step_is_the_dense_gauss_newton_solve_without_the_matrix():
     """RomLinearization solves (J'J + lam diag(J'J)) dU = -J'r by a Riccati pass on the ROM:
     the same step as the dense solve of the same Jacobian, its diagonal and gradient too."""
-    from sep_control.optimize import RomLinearization
-    from sep_control.tvera import identify
+    from sep_control.design.optimizer import RomLinearization
+    from sep_control.design.tvera import identify
 
     U = np.full((S.n_steps, N_U), 0.2) + 0.02 * np.random.default_rng(2).standard_normal((S.n_steps, N_U))
     X = nominal_rollout(P, U)
@@ -64,10 +64,10 @@ def test_the_design_reuses_the_optimizers_last_identification():
     """With the ROM Jacobian the mean-only optimizer ends identified at its optimum; the
     belief-space refinement takes that model as a chord; the design identifies once more, at
     the final input (or reuses the model when the input did not move)."""
-    from sep_control.design import PROPOSAL_ROM, DesignSettings, run_design
-    from sep_control.tvera import SCHEMES
+    from sep_control.design.pipeline import PROPOSAL_ROM, DesignSettings, run_design
+    from sep_control.design.tvera import SCHEMES
 
-    from sep_control.optimize import SAME_INPUT_RTOL
+    from sep_control.design.optimizer import SAME_INPUT_RTOL
 
     st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False, relinearize_rtol=SAME_INPUT_RTOL)
     d = run_design(P, S, st, show_progress=False, log=lambda m: None)
@@ -87,9 +87,9 @@ def test_keeping_the_identification_for_small_steps_reaches_the_same_design():
     """relinearize_rtol (default 1e-2): the optimizer keeps its last identification while the
     input moved less than that (the last Gauss-Newton steps), so it identifies fewer times; the
     optimum is the same to 1e-6 and the design's ROM is still identified at the final input."""
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.optimize import SAME_INPUT_RTOL, same_input
-    from sep_control.tvera import identify, markov_relative_error
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.design.optimizer import SAME_INPUT_RTOL, same_input
+    from sep_control.design.tvera import identify, markov_relative_error
 
     base = dict(jacobian="rom", p=8, q=8, n_r=16)
     every = run_design(P, S, DesignSettings(**base, relinearize_rtol=SAME_INPUT_RTOL), show_progress=False,
@@ -106,7 +106,7 @@ def test_keeping_the_identification_for_small_steps_reaches_the_same_design():
     err_kept = markov_relative_error(kept.rom, fresh.data.Y)
     assert err_kept < 1e-5 and err_kept <= 1.01 * markov_relative_error(fresh.model, fresh.data.Y) + 1e-12
     # optimize on its own: the result carries its last identification, near (not at) the final U
-    from sep_control.optimize import optimize
+    from sep_control.design.optimizer import optimize
     res = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM, relinearize_rtol=1e-2)
     ref = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM)
     assert res.experiments < ref.experiments and res.cost == pytest.approx(ref.cost, rel=1e-6)
@@ -117,7 +117,7 @@ def test_a_kept_model_whose_trials_all_fail_is_replaced_by_one_identified_at_U(m
     """A kept identification proposes steps from where it was made; when none of them lowers the
     true objective, the optimizer identifies at the current input and tries again, instead of
     stopping. Forced here: every model used away from its own input proposes uphill steps."""
-    from sep_control import optimize as opt_mod
+    from sep_control.design import optimizer as opt_mod
 
     ref = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM)
     orig = opt_mod.RomLinearization.step
@@ -133,8 +133,8 @@ def test_a_kept_model_whose_trials_all_fail_is_replaced_by_one_identified_at_U(m
 
 
 def test_old_design_files_identified_after_every_step():
-    from sep_control.design import DesignSettings
-    from sep_control.optimize import SAME_INPUT_RTOL
+    from sep_control.design.pipeline import DesignSettings
+    from sep_control.design.optimizer import SAME_INPUT_RTOL
 
     assert DesignSettings.from_meta({"settings": {"n_r": 20}}).relinearize_rtol == SAME_INPUT_RTOL
     assert DesignSettings.from_meta({"settings": {"relinearize_rtol": 0.05}}).relinearize_rtol == 0.05
@@ -144,7 +144,7 @@ def test_old_design_files_identified_after_every_step():
 
 
 def test_auto_picks_the_cheaper_jacobian():
-    from sep_control.design import DesignSettings
+    from sep_control.design.pipeline import DesignSettings
 
     st = DesignSettings()                                   # p = q = 15
     assert st.jacobian == "auto"
@@ -157,9 +157,9 @@ def test_predicted_change_is_the_gauss_newton_model_of_both_jacobians():
     """predicted_change(dU) is the quadratic model 2 J'r dU + dU' J'J dU: the ROM's Riccati-free
     forward pass equals the dense form of the same Jacobian, and near a Gauss-Newton step the
     sensitivity model predicts the true change of the cost."""
-    from sep_control.metrics import nominal_cost
-    from sep_control.optimize import RomLinearization, SensitivityLinearization
-    from sep_control.tvera import identify
+    from sep_control.evaluation.metrics import nominal_cost
+    from sep_control.design.optimizer import RomLinearization, SensitivityLinearization
+    from sep_control.design.tvera import identify
 
     rng = np.random.default_rng(3)
     U = np.full((S.n_steps, N_U), 0.2) + 0.02 * rng.standard_normal((S.n_steps, N_U))
@@ -181,7 +181,7 @@ def test_the_belief_refinement_stops_when_the_model_predicts_less_than_tol_witho
     """Belief objective: a trial that the Gauss-Newton model predicts to lower J_b by less than
     tol is not evaluated (an EnKF run); the refinement stops there. The nominal objective
     evaluates every trial (a rollout): an inexact model may predict too little there."""
-    from sep_control import optimize as opt_mod
+    from sep_control.design import optimizer as opt_mod
 
     mean = optimize(P, S, show_progress=False, jacobian="rom", rom=ROM)
     assert mean.stop == "the step lowered the objective by less than tol (not taken)"
@@ -200,8 +200,8 @@ def test_auto_switches_from_sensitivity_to_one_identification_near_the_optimum()
     TV-ERA identification once a step moved U by 1 % or less; that model proposes the last
     steps, serves the belief refinement as its chord, and is the design's ROM when the input
     does not move after it. The optimum is the sensitivity path's to 1e-6."""
-    from sep_control.design import DesignSettings, run_design
-    from sep_control.optimize import NEAR_OPTIMUM
+    from sep_control.design.pipeline import DesignSettings, run_design
+    from sep_control.design.optimizer import NEAR_OPTIMUM
 
     base = dict(p=8, q=8, n_r=16, belief=False)
     auto = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
@@ -222,8 +222,8 @@ def test_coarse_proposal_models_reach_the_same_design():
     """rom Jacobian: the identifications far from the optimum use forward impulses and a 1e-6
     field basis (about half the runs); the design's ROM is identified with the full settings at
     the final input. Same optimum to 1e-6 as identifying every model in full."""
-    from sep_control.design import PROPOSAL_ROM, DesignSettings, run_design
-    from sep_control.tvera import SCHEMES
+    from sep_control.design.pipeline import PROPOSAL_ROM, DesignSettings, run_design
+    from sep_control.design.tvera import SCHEMES
 
     base = dict(jacobian="rom", p=8, q=8, n_r=16)
     coarse = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
@@ -247,9 +247,9 @@ def test_coarse_proposal_models_reach_the_same_design():
 def test_a_belief_refinement_that_takes_no_step_runs_the_enkf_once(monkeypatch):
     """When its trial raises J_b (the model holds the spread fixed), the refinement stops after
     one trial, and the design keeps the belief computed at its start (no EnKF run again)."""
-    from sep_control import design as design_mod
-    from sep_control import optimize as opt_mod
-    from sep_control.design import DesignSettings, run_design
+    from sep_control.design import pipeline as design_mod
+    from sep_control.design import optimizer as opt_mod
+    from sep_control.design.pipeline import DesignSettings, run_design
 
     runs = []
     orig = opt_mod.run_belief

@@ -44,8 +44,8 @@ from sep_plant.problem import Objective
 from sep_plant.protocol import PlantInfo
 from sep_plant.scenario import Scenario, ScenarioError
 
-from .ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
-from .tvkf import schedule_from_posteriors
+from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
+from sep_estimator.tvkf import schedule_from_posteriors
 
 FORMAT = "sep-design"
 #: 3 (sep 0.4): belief statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64

@@ -30,8 +30,8 @@ import numpy as np
 
 from sep_plant import gate
 
-from .ltv import LQG, in_precision, resolve_precision
-from .tvkf import KalmanFilter
+from sep_estimator.ltv import LQG, in_precision, resolve_precision
+from sep_estimator.tvkf import KalmanFilter
 
 NIS_WINDOW = 50
 

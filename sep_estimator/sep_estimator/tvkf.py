@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .ltv import LQG, KalmanSchedule, LTVModel, prior_covariances
+from sep_estimator.ltv import LQG, KalmanSchedule, LTVModel, prior_covariances
 
 
 def measurement_update(P: np.ndarray, C: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .protocol import REQUIRED_ATTRIBUTES, REQUIRED_METHODS, PlantError, noise_channels
+from sep_plant.protocol import REQUIRED_ATTRIBUTES, REQUIRED_METHODS, PlantError, noise_channels
 
 #: relative tolerance of the batch-vs-one-by-one and noise-on-inputs comparisons (round-off of
 #: a batched solve against single solves; a real difference is many orders larger)
@@ -32,7 +32,7 @@ class _Abort(Exception):
 
 
 def _label(plant: Any) -> str:
-    from .device import base_plant
+    from sep_plant.device import base_plant
 
     cls = type(base_plant(plant))
     return f"{cls.__module__}:{cls.__qualname__}"
@@ -154,7 +154,7 @@ def _config(plant: Any, out: list[str]) -> None:
         out.append(f"config() must be plain JSON data (numbers, strings, lists, dicts): {exc}")
         return
     try:
-        from .device import base_plant
+        from sep_plant.device import base_plant
 
         again = type(base_plant(plant))(**cfg).config()        # a DevicePlant: the plant it steps
     except Exception as exc:  # noqa: BLE001

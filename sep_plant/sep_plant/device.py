@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from .plants.backend import to_host
-from .plants.blocks import step_in_blocks
+from sep_plant.plants.backend import to_host
+from sep_plant.plants.blocks import step_in_blocks
 
 DEVICES = ("cpu", "cuda")
 

@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from . import topics
+from sep_plant import topics
 
 # Rejection categories (counter keys on /diagnostics).
 NON_FINITE = 'non_finite'

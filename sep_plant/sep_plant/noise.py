@@ -12,8 +12,8 @@ from typing import Iterable
 
 import numpy as np
 
-from .problem import Problem
-from .protocol import PlantInfo
+from sep_plant.problem import Problem
+from sep_plant.protocol import PlantInfo
 
 
 def run_generator(seed: int, run: int) -> np.random.Generator:

@@ -33,9 +33,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .plants import PlantConfigError, PlantTypeError, make_plant
-from .problem import Problem, ProblemError
-from .protocol import PlantInfo, noise_channels
+from sep_plant.plants import PlantConfigError, PlantTypeError, make_plant
+from sep_plant.problem import Problem, ProblemError
+from sep_plant.protocol import PlantInfo, noise_channels
 
 FORMAT = "sep-scenario"
 FORMAT_VERSION = 2

@@ -1,5 +1,5 @@
 """The topic contract (DESIGN.md §4) as plain data: one definition for the nodes, the recorder
-and the bag reader. No ROS import; `sep_plant.contract` builds the rclpy side from it.
+and the bag reader. No ROS import; `sep_plant.ros.contract` builds the rclpy side from it.
 
 Topics (relative names resolve in the node's namespace, ``slab`` by default; /clock and
 /diagnostics are absolute):

@@ -4,7 +4,7 @@
 actuators; it meets sep's plant protocol structurally and imports numpy and scipy only. The
 package registers it under the entry-point group ``sep.plants`` as ``burgers``.
 """
-from .plant import BurgersPlant
+from sep_burgers.plant import BurgersPlant
 
 __all__ = ["BurgersPlant"]
 __version__ = "0.1.0"

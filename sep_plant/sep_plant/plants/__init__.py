@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 from typing import Any, Mapping
 
-from .keys import PlantConfigError
+from sep_plant.plants.keys import PlantConfigError
 
 ENTRY_POINT_GROUP = "sep.plants"
 
@@ -109,7 +109,7 @@ def make_plant(type_name: str, config: Mapping[str, Any] | None = None):
 def type_name_of(plant: Any) -> str:
     """The type string that rebuilds `plant`: its built-in or entry-point name, else module:Class
     (of the plant a `sep_plant.device.DevicePlant` wraps)."""
-    from ..device import base_plant
+    from sep_plant.device import base_plant
 
     cls = type(base_plant(plant))
     target = f"{cls.__module__}:{cls.__qualname__}"

@@ -78,7 +78,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 from scipy.linalg import lapack
 
-from .backend import DeviceConstants, namespace
+from sep_plant.plants.backend import DeviceConstants, namespace
 
 #: face names in axis order: axis a has faces FACES[2a] (low) and FACES[2a + 1] (high)
 FACES = ("x_min", "x_max", "y_min", "y_max", "z_min", "z_max")

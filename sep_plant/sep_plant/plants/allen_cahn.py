@@ -56,8 +56,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from . import adi, keys
-from .heat import GridPlant, actuator_profiles, check_lengths, check_nodes
+from sep_plant.plants import adi, keys
+from sep_plant.plants.heat import GridPlant, actuator_profiles, check_lengths, check_nodes
 
 _ACTUATORS = tuple((a, b) for a in (1 / 6, 1 / 2, 5 / 6) for b in (1 / 6, 1 / 2, 5 / 6))
 _SENSORS = ((0.5, 0.5), (0.2, 0.5), (0.8, 0.5), (0.5, 0.2), (0.5, 0.8))

@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from .backend import namespace
+from sep_plant.plants.backend import namespace
 
 #: nodes (runs x n_x) per block; see the module docstring and bench/bench_plants.py --blocks
 BLOCK_NODES = 1 << 17

@@ -66,8 +66,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from . import adi, blocks, keys
-from .backend import DeviceConstants, namespace
+from sep_plant.plants import adi, blocks, keys
+from sep_plant.plants.backend import DeviceConstants, namespace
 
 #: T_K = (T + offset) * scale for each temperature unit
 UNITS: dict[str, tuple[float, float]] = {"K": (0.0, 1.0), "C": (273.15, 1.0), "F": (459.67, 5.0 / 9.0)}

@@ -23,8 +23,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.linalg import lapack
 
-from . import adi, blocks, keys
-from .backend import DeviceConstants, namespace
+from sep_plant.plants import adi, blocks, keys
+from sep_plant.plants.backend import DeviceConstants, namespace
 
 
 class SlabPlant:

@@ -1,0 +1,377 @@
+"""Recorded-bag analysis (Python API): DESIGN.md §3 metrics from rosbag2 bags of the topic graph.
+
+    rep = analyze("episode_bag", design="design.npz")    # one episode
+    rep.metrics["in_band"], rep.episode.F, rep.err ...
+    agg = aggregate(["bag_000", "bag_001", ...], design="design.npz")   # many seeded episodes
+    agg.metrics["cost_mean"], agg.rows                      # like the offline Monte Carlo table
+
+Works for any plant: the objective (target field, weights, band, band window) is the design's
+(`design.objective`, nominal `design.nominal.field`) or, without a design, the bag's scenario
+resolved on the clouds' node coordinates (`Objective.of(scenario.problem, xyz)`).
+
+Definitions (everything computed from the bag alone, plus the design for nominal comparisons):
+
+* cost, in_band, rms, mean_dev_start / mean_dev_end: `sep_control.evaluation.metrics` on the recorded
+  true field (the field cloud) and the inputs the plant applied (heat_applied; the commands
+  when the bag has no heat_applied). For one episode mean_dev_* is max_i |f_k,i - fnom_k,i| at
+  the band window's first and last step.
+* coverage_2sigma: share of node-steps k = 1..N (as `montecarlo.simulate`) with
+  |f_hat - f| <= 2 std (field_estimate vs field); field_nees: mean of ((f_hat - f) / std)^2
+  over node-steps with std > 0 (about 1 for a consistent filter); field_rmse.
+* latency (measurement-to-command): receive time of heat_command k minus receive time of
+  measurement k, both in the recorder's clock (the bag's log time, which the recorder takes
+  from the middleware's reception timestamp), for every k that has both; p50/p99 in seconds.
+  The same for the estimate (state_estimate k - measurement k). Receive times include the
+  recorder's own transport delay, which cancels in the difference up to jitter.
+* episode_wall_s / episode_sim_s: receive-time span and stamp span of the measurements
+  (real-time factor = sim / wall).
+* deadline_misses, rejected_messages: the last /diagnostics values, summed over the status
+  entries (nodes) that report them.
+* controller: rom_lqg or rom_mpc, from the LQR node's /diagnostics (None in bags of sep < 0.3,
+  whose LQR did not report it: those ran the LQR); for rom_mpc also mpc_qp_steps and
+  mpc_fallbacks (QPs solved, steps that fell back to the clipped LQR).
+
+Pure: no rclpy, no matplotlib (figures are in `sep_control.bags.report`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from sep_control.evaluation import metrics as M
+from sep_control.bags.bag_io import BagError, Episode, read_episode
+from sep_plant import topics as T
+from sep_plant.problem import Objective, ProblemError
+from sep_plant.protocol import PlantInfo
+from sep_plant.scenario import Scenario
+
+
+class AnalysisError(RuntimeError):
+    """The bags cannot be analysed as asked (scenario mismatch, inconsistent bags)."""
+
+
+@dataclass
+class EpisodeReport:
+    """Metrics and arrays of one recorded episode."""
+
+    name: str
+    episode: Episode
+    scenario: Scenario | None          # scenario the metrics were computed with
+    design: Any | None                 # sep_estimator.design_file.Design or None
+    objective: Objective | None        # objective of the metrics (None: no scenario or no field)
+    F_nom: np.ndarray | None           # (N+1, n_field) nominal field (from the design)
+    metrics: dict[str, Any]
+    err: np.ndarray                    # (N+1, n_field) F_hat - F (NaN where either is missing)
+    latency_cmd_s: np.ndarray          # per step with both messages
+    latency_est_s: np.ndarray
+    mismatch: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """Applied inputs (commands where the applied ones are missing)."""
+        e = self.episode
+        return np.where(np.isfinite(e.u), e.u, e.u_cmd)
+
+    @property
+    def info(self) -> PlantInfo | None:
+        """The plant's description: the bag's, else the design's."""
+        if self.episode.info is not None:
+            return self.episode.info
+        return self.design.info if self.design is not None else None
+
+    @property
+    def xyz(self) -> np.ndarray | None:
+        """Node coordinates (n_field, 3): the clouds', else the design's when the widths agree."""
+        if self.episode.xyz is not None:
+            return self.episode.xyz
+        d = self.design
+        if d is not None and d.field_xyz.shape[0] == self.episode.n_field:
+            return d.field_xyz
+        return None
+
+
+@dataclass
+class AggregateReport:
+    """Statistics over many episodes (one row per episode plus the pooled metrics)."""
+
+    reports: list[EpisodeReport]
+    scenario: Scenario | None
+    design: Any | None
+    objective: Objective | None
+    metrics: dict[str, Any]
+    rows: dict[str, dict[str, Any]]     # episode name -> its metrics
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def F_runs(self) -> np.ndarray:
+        return np.stack([r.episode.F for r in self.reports])
+
+
+def _load_design(design):
+    """A `Design` from a path (a `Design` or None passes through)."""
+    if design is None or not isinstance(design, (str, Path)):
+        return design
+    from sep_estimator.design_file import load_design
+
+    return load_design(design)
+
+
+def _pct(a: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(a, q)) if a.size else None
+
+
+def check_scenario(ep: Episode, design, allow_mismatch: bool, name: str) -> list[str]:
+    """Where the bag's plant (type, keys, horizon) differs from the design's; raises
+    `AnalysisError` on a difference unless `allow_mismatch`."""
+    if design is None or ep.scenario is None or ep.scenario_source != "bag":
+        return []
+    diff = design.scenario.plant_mismatches(ep.scenario)
+    if diff and not allow_mismatch:
+        raise AnalysisError(f"{name}: the bag was recorded with another scenario than the design file: "
+                            + "; ".join(diff) + ". Use the design file of that plant, or --allow-mismatch "
+                            "to analyse it anyway (nominal comparisons are then skipped where shapes differ)")
+    return diff
+
+
+def _fits(obj: Objective, ep: Episode) -> bool:
+    return obj.n_steps == ep.n_steps and obj.target.shape == (ep.n_field,)
+
+
+def scenario_objective(ep: Episode, notes: list[str]) -> Objective | None:
+    """The objective of the bag's scenario on the clouds' node coordinates (None, noted, when
+    the bag has no scenario or no clouds, or the target does not fit the field)."""
+    if ep.scenario is None:
+        notes.append("no scenario: cost, band and RMS metrics need the scenario (pass --design)")
+        return None
+    if ep.xyz is None:
+        notes.append("no field clouds: the objective's target cannot be placed on the field's nodes")
+        return None
+    try:
+        obj = Objective.of(ep.scenario.problem, ep.xyz)
+    except ProblemError as exc:
+        notes.append(f"the scenario's objective does not fit the recorded field: {exc}")
+        return None
+    return obj if _fits(obj, ep) else None
+
+
+def objective_and_nominal(ep: Episode, design, diff: list[str], notes: list[str]
+                          ) -> tuple[Scenario | None, Objective | None, np.ndarray | None]:
+    """(scenario, objective, nominal field) the metrics use: the design's when it matches the
+    bag, else the bag's own scenario (the design's nominal only where its shape fits)."""
+    if design is not None and not diff:
+        obj = design.objective if _fits(design.objective, ep) else None
+        F_nom = design.nominal.field if design.nominal.field.shape == ep.F.shape else None
+        return design.scenario, obj, F_nom
+    obj = scenario_objective(ep, notes)
+    F_nom = None
+    if design is not None:
+        notes.append("scenario mismatch: " + "; ".join(diff))
+        if design.nominal.field.shape == ep.F.shape:
+            F_nom = design.nominal.field
+    return ep.scenario, obj, F_nom
+
+
+def latencies(ep: Episode) -> tuple[np.ndarray, np.ndarray]:
+    """(command, estimate) latencies [s] per step that has both messages: receive time of
+    heat_command k (state_estimate k) minus that of measurement k."""
+    sr = ep.step_recv_ns
+    meas = sr.get(T.MEASUREMENTS)
+    lat_cmd = lat_est = np.zeros(0)
+    if meas is None:
+        return lat_cmd, lat_est
+    if T.HEAT_COMMAND in sr:
+        d = sr[T.HEAT_COMMAND][:-1] - meas[:-1]
+        lat_cmd = d[np.isfinite(d)] * 1e-9
+    if T.STATE_ESTIMATE in sr:
+        d = sr[T.STATE_ESTIMATE] - meas
+        lat_est = d[np.isfinite(d)] * 1e-9
+    return lat_cmd, lat_est
+
+
+def control_metrics(F: np.ndarray, U: np.ndarray, obj: Objective, F_nom: np.ndarray | None,
+                    notes: list[str]) -> dict[str, Any]:
+    """cost, in_band, rms and mean_dev_start/end of one episode (each only where the field and
+    inputs it needs were recorded)."""
+    out: dict[str, Any] = {}
+    k0, k1 = obj.window
+    if np.all(np.isfinite(F[1:])) and np.all(np.isfinite(U)):
+        out["cost_mean"], out["cost_std"] = float(M.nominal_cost(F, U, obj)), 0.0
+    else:
+        notes.append("cost not computed: field or inputs missing at some step")
+    if np.all(np.isfinite(F[k0:k1 + 1])):
+        out["in_band"] = float(M.in_band(F, obj))
+        out["rms"] = float(M.rms_in_window(F, obj))
+    else:
+        notes.append("in_band/rms not computed: field missing in the band window")
+    if F_nom is not None:
+        for key, k in (("mean_dev_start", k0), ("mean_dev_end", k1)):
+            if np.all(np.isfinite(F[k])):
+                out[key] = M.mean_deviation(F[None], F_nom, k)
+    return out
+
+
+def estimation_metrics(err: np.ndarray, std: np.ndarray) -> dict[str, Any]:
+    """coverage_2sigma, field_nees, field_rmse over the node-steps that have error and std."""
+    ok = np.isfinite(err) & np.isfinite(std)
+    if not ok.any():
+        return {}
+    pos = ok & (std > 0)
+    return {"coverage_2sigma": M.coverage_2sigma(err[ok], std[ok]),
+            "field_nees": float(np.mean((err[pos] / std[pos]) ** 2)) if pos.any() else None,
+            "field_rmse": float(np.sqrt(np.mean(err[ok] ** 2)))}
+
+
+def latency_metrics(lat_cmd: np.ndarray, lat_est: np.ndarray) -> dict[str, Any]:
+    return {"latency_p50_s": _pct(lat_cmd, 50), "latency_p99_s": _pct(lat_cmd, 99),
+            "latency_max_s": float(lat_cmd.max()) if lat_cmd.size else None,
+            "latency_estimate_p50_s": _pct(lat_est, 50), "latency_estimate_p99_s": _pct(lat_est, 99)}
+
+
+def episode_metrics(ep: Episode, obj: Objective | None, F_nom: np.ndarray | None
+                    ) -> tuple[dict[str, Any], list[str], tuple[np.ndarray, np.ndarray]]:
+    """§3 metrics of one episode (None where the bag lacks what a metric needs), notes, and
+    the (command, estimate) latencies."""
+    notes: list[str] = []
+    out: dict[str, Any] = {k: None for k in M.JSON_KEYS}
+    out["n_runs"] = 1
+    U = np.where(np.isfinite(ep.u), ep.u, ep.u_cmd)
+    if obj is not None:
+        if F_nom is not None and F_nom.shape != ep.F.shape:
+            F_nom = None
+        out.update(control_metrics(ep.F, U, obj, F_nom, notes))
+    err = ep.F_hat - ep.F
+    # k >= 1, as the offline Monte Carlo (the initial field is known exactly)
+    out.update(estimation_metrics(err[1:], ep.F_std[1:]))
+    lat_cmd, lat_est = latencies(ep)
+    out.update(latency_metrics(lat_cmd, lat_est))
+    tt = ep.times.get(T.MEASUREMENTS)
+    if tt is not None and tt.recv_ns.size > 1:
+        out["episode_wall_s"] = float((tt.recv_ns[-1] - tt.recv_ns[0]) * 1e-9)
+        out["episode_sim_s"] = float((tt.stamp_ns[-1] - tt.stamp_ns[0]) * 1e-9)
+    ctl = [d.get("controller") for d in ep.diagnostics.values() if d.get("controller")]
+    out["controller"] = {"mpc": "rom_mpc", "lqr": "rom_lqg"}.get(ctl[0], ctl[0]) if ctl else None
+    if out["controller"] == "rom_mpc":
+        for key in ("mpc_qp_steps", "mpc_fallbacks"):
+            out[key] = ep.diag_totals.get(key)
+    out["deadline_misses"] = ep.diag_totals.get("deadline_misses")
+    out["rejected_messages"] = ep.diag_totals.get("rejected_messages")
+    meas = ep.step_recv_ns.get(T.MEASUREMENTS)
+    out["steps_recorded"] = int(np.sum(np.isfinite(meas))) if meas is not None else 0
+    out["complete"] = bool(ep.complete and not ep.missing)
+    return out, notes, (lat_cmd, lat_est)
+
+
+def _episode_name(bag_path: Path, name: str | None) -> str:
+    if name:
+        return name
+    return bag_path.stem if bag_path.is_file() else bag_path.name
+
+
+def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, allow_truncated: bool = False,
+            namespace: str = T.NAMESPACE, name: str | None = None) -> EpisodeReport:
+    """Metrics and arrays of one bag. `design`: a `Design`, a path to a design file, or None
+    (then nominal comparisons are skipped and the objective is the bag's scenario's). A bag of
+    another plant than the design raises `AnalysisError` unless `allow_mismatch`."""
+    design = _load_design(design)
+    bag_path = Path(bag_path)
+    ep = read_episode(bag_path, scenario=design.scenario if design is not None else None,
+                      info=design.info if design is not None else None,
+                      namespace=namespace, allow_truncated=allow_truncated)
+    diff = check_scenario(ep, design, allow_mismatch, str(bag_path))
+    notes = list(ep.notes)
+    scen, obj, F_nom = objective_and_nominal(ep, design, diff, notes)
+    m, mnotes, (lat_cmd, lat_est) = episode_metrics(ep, obj, F_nom)
+    if diff:
+        m["scenario_mismatch"] = diff
+    if ep.missing:
+        notes.append("missing topics: " + ", ".join(ep.missing))
+    return EpisodeReport(name=_episode_name(bag_path, name), episode=ep, scenario=scen, design=design,
+                         objective=obj, F_nom=F_nom, metrics=m, err=ep.F_hat - ep.F, latency_cmd_s=lat_cmd,
+                         latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes)
+
+
+def _unique_rows(reports: Sequence[EpisodeReport]) -> dict[str, dict[str, Any]]:
+    """Episode name -> metrics; repeated names get '#1', '#2', ..."""
+    seen: dict[str, int] = {}
+    rows: dict[str, dict[str, Any]] = {}
+    for r in reports:
+        n = r.name
+        if n in seen:
+            seen[n] += 1
+            n = f"{n}#{seen[n]}"
+        else:
+            seen[n] = 0
+        rows[n] = r.metrics
+    return rows
+
+
+def _check_same_scenario(reports: Sequence[EpisodeReport]) -> None:
+    """Refuse to pool bags of different plants or horizons."""
+    first = reports[0]
+    s = first.scenario
+    for r in reports[1:]:
+        if (r.scenario is None) != (s is None):
+            diff = ["scenario missing"]
+        else:
+            diff = s.plant_mismatches(r.scenario) if s is not None else []
+        if diff:
+            raise AnalysisError(f"{r.episode.path}: recorded with another scenario than {first.episode.path} "
+                                f"({'; '.join(diff)}); aggregate bags of one scenario")
+
+
+def pooled_control_metrics(full: Sequence[EpisodeReport], obj: Objective, F_nom: np.ndarray | None
+                           ) -> dict[str, Any]:
+    """`metrics.summarize` over the complete episodes (cost, band and RMS only without a nominal)."""
+    F_runs = np.stack([r.episode.F for r in full])
+    U_runs = np.stack([r.inputs for r in full])
+    if F_nom is not None and F_nom.shape == F_runs.shape[1:]:
+        return M.summarize(F_runs, U_runs, F_nom, obj)
+    J = M.nominal_cost(F_runs, U_runs, obj)
+    return {"cost_mean": float(np.mean(J)), "cost_std": float(np.std(J)),
+            "in_band": float(np.mean(M.in_band(F_runs, obj))), "rms": float(np.mean(M.rms_in_window(F_runs, obj))),
+            "n_runs": len(full)}
+
+
+def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None, *, allow_mismatch: bool = False,
+              allow_truncated: bool = False, namespace: str = T.NAMESPACE) -> AggregateReport:
+    """Pooled statistics of many episodes, comparable to the offline Monte Carlo table:
+    cost mean/std, in-band fraction, mean RMS and mean-trajectory deviations over the runs
+    (`metrics.summarize`), 2-sigma coverage over all node-steps, latency percentiles over all
+    steps, deadline misses and rejected messages summed over the episodes."""
+    design = _load_design(design)
+    reports = [p if isinstance(p, EpisodeReport) else
+               analyze(p, design, allow_mismatch=allow_mismatch, allow_truncated=allow_truncated, namespace=namespace)
+               for p in paths]
+    if not reports:
+        raise AnalysisError("no bags to aggregate")
+    _check_same_scenario(reports)
+    first = reports[0]
+    obj = first.objective
+    notes: list[str] = []
+    out: dict[str, Any] = {k: None for k in M.JSON_KEYS}
+    out["n_runs"] = len(reports)
+    full = [r for r in reports if obj is not None and r.episode.F.shape == reports[0].episode.F.shape
+            and np.all(np.isfinite(r.episode.F[1:])) and np.all(np.isfinite(r.inputs))]
+    if len(full) < len(reports):
+        notes.append(f"{len(reports) - len(full)} of {len(reports)} episodes lack the field or inputs at some "
+                     "step (or the objective) and are left out of the cost/band statistics")
+    if full:
+        out.update(pooled_control_metrics(full, obj, first.F_nom))
+    out.update(estimation_metrics(np.concatenate([r.err[1:].ravel() for r in reports]),
+                                  np.concatenate([r.episode.F_std[1:].ravel() for r in reports])))
+    out.update(latency_metrics(np.concatenate([r.latency_cmd_s for r in reports]),
+                               np.concatenate([r.latency_est_s for r in reports])))
+    for key in ("deadline_misses", "rejected_messages"):
+        vals = [r.metrics.get(key) for r in reports if r.metrics.get(key) is not None]
+        out[key] = int(sum(vals)) if vals else None
+    out["complete"] = all(r.metrics.get("complete") for r in reports)
+    return AggregateReport(reports=reports, scenario=first.scenario, design=design, objective=obj, metrics=out,
+                           rows=_unique_rows(reports), notes=notes)
+
+
+__all__ = ["AnalysisError", "BagError", "EpisodeReport", "AggregateReport", "analyze", "aggregate",
+           "episode_metrics"]

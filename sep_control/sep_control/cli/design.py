@@ -1,0 +1,171 @@
+"""`design`: the offline design tool (scenario in, design file out)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from sep_estimator.design_file import save_design
+
+from sep_control.cli.common import (Formatter, add_dask, add_device, add_memory_budget, add_threads, blas_threads,
+                         engine_or_exit, fail, memory_budget_or_exit, plant_or_exit, scenario_or_exit)
+from sep_control.design.pipeline import DesignSettings, run_design
+
+DESCRIPTION = """\
+Design a data-driven LQG for a plant (the heat slab by default; any plant of the plant
+protocol through --scenario) from the black-box simulator only:
+  1. optimize the open-loop nominal (Gauss-Newton/LM, its Jacobian from a TV-ERA model or from
+     impulse sensitivities, both from batched experiments; then refine it in belief space with
+     an EnKF belief),
+  2. identify the reduced-order LTV model with TV-ERA (and the field map on a POD basis),
+  3. design the time-varying LQR and Kalman filter on the ROM,
+and write everything to one design file (.npz, read without pickles).
+
+With no --scenario the shipped reference scenario (DESIGN.md §2) is used. The plant is
+checked against the plant protocol first (exit 2 with what to fix).
+Examples: design --out out/design.npz
+          design --scenario sep_plant/scenarios/plate.yaml --out out/plate.npz
+"""
+
+
+#: command-line options of DesignSettings keys: (flags, settings key, type/action, help)
+SETTINGS_OPTIONS = (
+    ("--method", "method", dict(choices=["gn", "gd"]),
+     "optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent"),
+    ("--jacobian", "jacobian", dict(choices=["auto", "sensitivity", "rom"]),
+     "Gauss-Newton Jacobian: sensitivity = N n_u impulse-sensitivity experiments per iteration and a "
+     "dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration (see --relinearize-rtol), the "
+     "step solved on it by a Riccati pass (its last identification is the design's ROM when made at the "
+     "final input); auto = rom when N + 1 > 5 (p + q), "
+     "where it is measured faster, or when the sensitivity batch would not fit the memory budget, else "
+     "sensitivity until a step moves the input by 1 %% or less or lowers the cost by 1e-3 or less, and rom "
+     "from there (one identification near the optimum, which the belief refinement and the design reuse)"),
+    ("--relinearize-rtol", "relinearize_rtol", dict(type=float),
+     "rom Jacobian: keep the last identification for the next step while the input moved by less than "
+     "this, relative (max |dU| / max |U|, at most 0.1; near the optimum the steps move U by 1e-3 and less). The "
+     "design's ROM is always identified at the final input (afresh, or the optimizer's last model when "
+     "made there); 1e-6 identifies after every step (the earlier behaviour)"),
+    ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
+    ("--tol", "tol", dict(type=float),
+     "stop when an accepted trial lowers the cost by less than this, relative (that step is not taken); the "
+     "belief refinement also stops, without the trial's EnKF run, when the Gauss-Newton model predicts less"),
+    ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha"),
+    ("--belief-iter", "belief_iter", dict(type=int), "belief-space GN iterations"),
+    ("--ensemble", "ensemble", dict(type=int), "EnKF members (even)"),
+    ("--n-r", "n_r", dict(type=int), "ROM order cap n_r"),
+    ("--p", "p", dict(type=int), "Hankel block rows (future outputs)"),
+    ("--q", "q", dict(type=int), "Hankel block columns (past inputs)"),
+    ("--sv-tol", "sv_tol", dict(type=float), "relative Hankel singular-value cutoff"),
+    ("--impulse", "impulse", dict(type=float), "impulse amplitude relative to the RMS nominal input"),
+    ("--field-map-tol", "field_map_tol", dict(type=float),
+     "the design's field map G_k = Phi g_k keeps the directions that move the field by more than this times "
+     "its largest spread (the ROM state's covariance with and without the feedback); what is dropped changes the "
+     "reconstructed field and its std by about that much (measured: <= 9.3e-4 of the largest std at 1e-5). The "
+     "gains do not use the map. Smaller keeps more of Phi: a larger file and a slower online reconstruction"),
+    ("--impulse-scheme", "impulse_scheme", dict(choices=["central", "forward"]),
+     "TV-ERA impulse experiments: central = +- pairs (no first-order bias); forward = one run per "
+     "impulse against an unperturbed copy in the same batch (about half the plant steps, a bias "
+     "of O(amplitude): 4e-6 relative in the reference's Markov parameters at --impulse 0.01; a "
+     "smaller amplitude trades the bias for round-off in the field map, see README)"),
+    ("--chunks", "chunks", dict(type=int),
+     "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
+     "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "
+     "tolerance) but never on --dask; use at least twice the cluster's workers"),
+    ("--limit-margin", "limit_margin", dict(type=float),
+     "with input limits: re-optimize the nominal inside u_min + c sigma_u, u_max - c sigma_u (sigma_u: the "
+     "designed LQG's closed-loop input std) so the feedback has room; 0 = none. On the reference with "
+     "u in [0, 0.6] any c that binds costs the band (see README)"),
+    ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin"),
+    ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude"),
+    ("--seed", "seed", dict(type=int), "EnKF random seed"),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="design", description=DESCRIPTION, formatter_class=Formatter)
+    d = DesignSettings()
+    p.add_argument("--scenario", metavar="FILE",
+                   help="scenario YAML: a `plant:` section (type and keys), the problem keys that differ "
+                        "from the defaults (sep 0.1's flat slab files work too) and optionally a `design:` "
+                        "section with this scenario's defaults for the options below")
+    p.add_argument("--out", metavar="DESIGN_FILE", required=True, help="design file to write (.npz)")
+    for flag, key, kind, text in SETTINGS_OPTIONS:
+        default = getattr(d, key)
+        p.add_argument(flag, dest=key, default=argparse.SUPPRESS,
+                       help=f"{text} (default: the scenario's design section, else {default})", **kind)
+    p.add_argument("--no-belief", dest="belief", action="store_false", default=argparse.SUPPRESS,
+                   help="skip the belief-space refinement (mean-only nominal)")
+    p.add_argument("--no-coarse-proposals", dest="coarse_proposals", action="store_false",
+                   default=argparse.SUPPRESS,
+                   help="rom Jacobian: identify every model with the full settings; by default the "
+                        "identifications far from the optimum, which only propose Gauss-Newton steps, use "
+                        "forward impulses and a field basis to 1e-6 (about half the plant steps), and the "
+                        "ones near it and the design's ROM the full ones")
+    p.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_threads(p)
+    add_memory_budget(p)
+    add_dask(p)
+    add_device(p)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    scenario = scenario_or_exit(args.scenario)
+    given = {key: getattr(args, key) for key in [k for _, k, _, _ in SETTINGS_OPTIONS] + ["belief", "coarse_proposals"]
+             if hasattr(args, key)}
+    try:
+        settings = DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),
+                                               **given)
+    except (ValueError, TypeError) as exc:
+        fail(str(exc))
+    log = (lambda msg: print(msg, file=sys.stderr)) if not args.quiet else (lambda msg: None)
+    plant = plant_or_exit(scenario, args.scenario or "reference scenario", device=args.device)
+    log(f"design: scenario {args.scenario or '(reference)'}: plant {scenario.plant_type}, n_x = {plant.n_x}, "
+        f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
+        f"{plant.n_y} outputs, plant steps on {args.device}")
+    t0 = time.perf_counter()
+    with blas_threads(args.threads), engine_or_exit(args.dask, log=lambda m: print(m, file=sys.stderr)) as engine:
+        design = run_design(plant, scenario.problem, settings, show_progress=not args.quiet, log=log, engine=engine)
+    path = save_design(args.out, design)
+    summary = design_summary(design)
+    summary["wall_s"] = time.perf_counter() - t0
+    print(format_summary(summary, str(path)))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(summary, fh, indent=2)
+    return 0
+
+
+def design_summary(design) -> dict:
+    m, info = design.meta, design.info
+    return {
+        "plant": design.scenario.plant_type, "n_x": info.n_x, "n_field": info.n_field,
+        "n_steps": design.n_steps, "n_r": int(design.rom.dims.max()),
+        "nominal_cost": m["optimizer"]["nominal_cost"],
+        "mean_only_cost": m["optimizer"]["mean_only_cost"],
+        "belief_history": m["optimizer"]["belief_history"],
+        "max_dev_in_band_window": m["validation"]["max_dev_in_band_window"],
+        "markov_rel_error": m["validation"]["markov_rel_error"],
+        "timings": m["timings"],
+    }
+
+
+def format_summary(sm: dict, path: str) -> str:
+    t = sm["timings"]
+    lines = [
+        f"design written to {path}",
+        f"  nominal cost J           {sm['nominal_cost']:.6g}  (mean-only optimum {sm['mean_only_cost']:.6g})",
+        f"  nominal max |f - f*|     {sm['max_dev_in_band_window']:.3g} over the band window",
+        f"  ROM order                n_r = {sm['n_r']}",
+        f"  Markov relative error    {sm['markov_rel_error']:.2e}",
+        f"  time                     optimize {t['optimize_s']:.2f} s, identify {t['identify_s']:.2f} s, "
+        f"gains {t['gains_s']:.2f} s, total {t['total_s']:.2f} s",
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

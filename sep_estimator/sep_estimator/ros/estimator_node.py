@@ -1,0 +1,274 @@
+"""`estimator`: the time-varying Kalman filter on the ROM as a ROS 2 node (DESIGN.md §4).
+
+A thin node around `sep_estimator.estimator_core.EstimatorCore` (the filter with its episode
+logic: gaps, restarts, late inputs, NIS); here: parameters, topics, message checks, diagnostics.
+
+Subscribes slab/measurements (y_k), slab/heat_applied (inputs the plant applied at step k),
+slab/heat_command (the commanded inputs, used only when the applied ones are late) and
+slab/scenario (checked against the design file); publishes slab/state_estimate (a_hat_k,
+names a_0..a_{n_r-1}), slab/field_estimate (T_nom_k + G_k a_hat_k with its per-node std, the
+contract PointCloud2; for grid plants also slab/field_estimate_image) and /diagnostics. The
+estimate and field messages are built only while somebody subscribes to them.
+
+Per step: measurement y_k -> ``update(k, y_k - ybar_k)`` (or ``skip(k)`` if the measurement
+is rejected) -> publish the estimate; the time update ``predict(k, u_k - ubar_k)`` runs as
+soon as the applied input of step k arrives, off the measurement-to-command path.
+
+Inputs that arrive late: if y_{k+1} arrives before heat_applied of step k, the filter predicts
+with the commanded input of step k if it has it (in a healthy loop it equals the applied one),
+else with the nominal (du = 0); if the applied input then arrives and differs, the estimate is
+corrected exactly (the correction B_k (du_applied - du_used) passed through the update of step
+k+1) when it arrives within that step, and counted as uncorrected otherwise.
+
+Bad measurements (NaN/Inf, wrong length, unknown names) are rejected and counted, and the
+filter predicts without that update (``skip``), so the LQR still gets an estimate of step k.
+Stale, duplicate or off-grid stamps are rejected and counted without touching the filter.
+Missing steps (a gap) are skipped.  A node that starts (or restarts) mid-episode at step k > 0
+calls ``restart_at(k)`` (estimate = nominal, open-loop covariance) and goes on.
+
+NIS consistency: the normalized innovation squared of every update; its mean over the last 50
+updates is reported with the 99 % interval for a consistent filter (WARN outside it).
+"""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from sep_plant.ros import contract as c
+from sep_plant import gate
+from sep_plant.ros.base import (SampleWindow, StartError, declare, fmt_s, limit_blas_threads, make_executor,
+                                 parse_front, run_node, sim_time_default, steady)
+
+from sep_estimator.estimator_core import EstimatorCore
+from sep_estimator.ltv import FIELD_PRECISIONS
+from sep_estimator.ros.designed_node import DesignedNode, scenario_summary, spin_episode
+
+PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/estimator.yaml):
+  design_file (str, required)      design file written by `design`
+  scenario_file (str, '')          refuse to start unless the design matches this scenario
+  wait_for_scenario_s (float, 0)   wait for the plant's slab/scenario and check it first
+  publish_field_estimate (bool, true)
+  field_precision (str, auto)      float32: the field reconstruction Phi (g_k a_hat) from a float32
+                                   copy of Phi (~1e-7 relative round-off; a half to a third of the
+                                   time on large grids, where the product is memory-bound); float64;
+                                   auto: float32 from a Phi of 8 MB on (65 536 nodes x r_f 16),
+                                   float64 below; messages stay float64
+  exit_at_end (bool, true)         exit 0 after the last step (k = N)
+  diagnostics_period_s (float, 1)  /diagnostics period
+  summary_file (str, '')           end-of-episode summary JSON
+  use_sim_time (bool, true)        time from the plant's /clock"""
+
+class EstimatorNode(DesignedNode):
+    role = 'estimator'
+
+    def __init__(self, design=None, subscribe_command: bool = True, on_estimate=None):
+        super().__init__('estimator', design)
+        node = self.node
+        self.publish_field = declare(node, 'publish_field_estimate', True,
+                                     'publish slab/field_estimate (reconstructed field with std)')
+        self.field_precision = declare(node, 'field_precision', 'auto',
+                                       'field reconstruction arithmetic: float64, float32 (half the memory '
+                                       'traffic on large grids; ~1e-7 relative round-off; messages stay float64), '
+                                       'or auto (float32 from a field basis of 8 MB on)',
+                                       constraints="one of: auto, float64, float32")
+        if self.field_precision not in FIELD_PRECISIONS:
+            raise StartError(f"bad parameter field_precision: {self.field_precision!r}, expected one of "
+                             f"{list(FIELD_PRECISIONS)}")
+        d = self.design
+        nom = d.nominal
+        self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
+        self.sensors = list(self.info.output_names)
+        self.heaters = list(self.info.input_names)
+        self.labels = c.state_labels(d.n_r)
+        self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name)
+        self.on_estimate = on_estimate           # direct hook (lqg): f(k, a_hat (n_r,)) -> None
+        self.rej = gate.RejectionLog()
+        self.compute_s = SampleWindow()
+        self.n_estimates_published = 0
+
+        self.pub_est = node.create_publisher(c.TOPIC_TYPES[c.STATE_ESTIMATE], c.STATE_ESTIMATE, c.LOOP_QOS)
+        self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE], c.FIELD_ESTIMATE, c.FIELD_QOS)
+        self.pub_image = (node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE_IMAGE], c.FIELD_ESTIMATE_IMAGE,
+                                                c.FIELD_QOS) if self.info.grid_shape else None)
+        # heat_applied before measurements: when both are ready, the executor takes them in
+        # creation order, so u_k is used before y_{k+1} is processed
+        self.sub_u = node.create_subscription(c.TOPIC_TYPES[c.HEAT_APPLIED], c.HEAT_APPLIED,
+                                              self._on_applied, c.LOOP_QOS)
+        self.sub_y = node.create_subscription(c.TOPIC_TYPES[c.MEASUREMENTS], c.MEASUREMENTS,
+                                              self._on_measurement, c.LOOP_QOS)
+        self.sub_cmd = (node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND,
+                                                 self._on_command, c.LOOP_QOS)
+                        if subscribe_command else None)
+        self._warm_up()
+        rank = getattr(d.rom.G, 'rank', None)
+        self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
+                      f'field reconstruction {self.core.field_precision}'
+                      f"{' (auto)' if self.field_precision == 'auto' else ''}"
+                      f"{f' on a field basis of rank {rank}' if rank is not None else ''}, "
+                      f'namespace {node.get_namespace()}, use_sim_time '
+                      f"{node.get_parameter('use_sim_time').value}")
+
+    def _warm_up(self) -> None:
+        """Run every per-step code path once on throwaway objects (first calls into numpy,
+        LAPACK and the message type support are slow), so step 0 meets a real-time deadline."""
+        from rclpy.serialization import serialize_message
+
+        d = self.design
+        core = EstimatorCore(d.lqg, d.nominal.u, d.nominal.y, d.nominal.field,
+                             field_precision=self.field_precision)
+        a, _ = core.measurement(0, d.nominal.y[0])
+        lo, hi = d.problem.limits(self.info.n_u)
+        np.clip(d.nominal.u[0] + a @ d.lqg.K[0].T, lo, hi)   # the LQR law's ops
+        f, std = core.field_estimate()
+        core.applied(0, d.nominal.u[0])
+        core.measurement(2, None)                            # gap + skip: the off-schedule paths
+        core.field_estimate()
+        gate.check_vector(self.sensors, d.nominal.y[0], self.sensors)
+        for msg in (c.joint_state(0, self.dt, self.labels, position=a),
+                    c.joint_state(0, self.dt, self.heaters, effort=d.nominal.u[0]),
+                    self.cloud.build(0, self.dt, f, std)):
+            serialize_message(msg)
+
+    # -------------------------------------------------------------- helpers
+    def _step_of(self, msg, what: str, last_step: int) -> int | None:
+        k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
+        if rej is None:
+            rej = gate.check_horizon(k, last_step)
+        if rej is not None:
+            self.reject(what, rej, self.rej)
+            return None
+        return k
+
+    # -------------------------------------------------------------- inputs
+    def _on_measurement(self, msg) -> None:
+        t = steady()
+        k = self._step_of(msg, 'measurement', self.N)
+        if k is None:
+            return
+        y, bad = gate.check_vector(msg.name, msg.position, self.sensors, 'measurement position')
+        restarts = self.core.restarts
+        a, rej = self.core.measurement(k, y)
+        if rej is not None:                    # stale or duplicate: the filter is untouched
+            self.reject('measurement', rej, self.rej, k)
+            return
+        if bad is not None:                    # malformed: the filter skipped the update
+            self.reject('measurement', bad, self.rej, k)
+        if self.core.restarts > restarts:
+            self.log.warning(f'joining the episode at step {k}: restart_at({k}) '
+                             '(estimate = nominal, open-loop covariance)')
+        self.last_k = k
+        self._emit(k, a, t)
+
+    def _emit(self, k: int, a: np.ndarray, t_recv: float) -> None:
+        if self.on_estimate is not None:       # lqg: the command goes out first
+            self.on_estimate(k, a)
+        # everything below is for other processes and viewers: built only when somebody listens
+        if self.pub_est.get_subscription_count() > 0:
+            self.pub_est.publish(c.joint_state(k, self.dt, self.labels, position=a))
+            self.n_estimates_published += 1
+        self.compute_s.append(steady() - t_recv)
+        cloud = self.publish_field and self.pub_field.get_subscription_count() > 0
+        image = self.publish_field and self.pub_image is not None and self.pub_image.get_subscription_count() > 0
+        if cloud or image:
+            f, std = self.core.field_estimate()
+            if cloud:
+                self.pub_field.publish(self.cloud.build(k, self.dt, f, std))
+            if image:
+                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape))
+        self.core.finish_step()
+        if k == self.N:
+            self.done = True
+
+    def _on_applied(self, msg) -> None:
+        j = self._step_of(msg, 'heat_applied', self.N - 1)
+        if j is None:
+            return
+        u, rej = gate.check_vector(msg.name, msg.effort, self.heaters, 'heat_applied effort')
+        if rej is None:
+            rej = self.core.applied(j, u)
+        if rej is not None:
+            self.reject('heat_applied', rej, self.rej, j)
+
+    def _on_command(self, msg) -> None:
+        j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
+        if j is None or not 0 <= j < self.N:
+            return  # the plant gates commands; here they are only a fallback for late inputs
+        u, rej = gate.check_vector(msg.name, msg.effort, self.heaters)
+        if rej is None:
+            self.note_command(j, u)
+
+    def note_command(self, j: int, u: np.ndarray) -> None:
+        """The command of step j (from the LQR in the same process, or heat_command)."""
+        self.core.commanded(j, u)
+
+    # -------------------------------------------------------------- report
+    def health(self) -> c.Health:
+        nis = self.core.nis_stats()
+        comp = self.compute_s.percentiles()
+        level, message = c.OK, 'ok'
+        problems = []
+        if self.rej.total:
+            problems.append(f'{self.rej.total} rejected messages')
+        if nis['nis_consistent'] is False:
+            problems.append(f"NIS mean {nis['nis_recent_mean']:.2f} outside "
+                            f"[{nis['nis_recent_interval_99'][0]:.2f}, {nis['nis_recent_interval_99'][1]:.2f}]")
+        if problems:
+            level, message = c.WARN, '; '.join(problems)
+        return c.Health(name=self.node.get_fully_qualified_name(), hardware_id='sep_estimator',
+                        level=level, message=message, values={
+                            'step': self.last_k, 'n_steps': self.N, **self.core.counters(),
+                            'rejected_messages': self.rej.total,
+                            'rejected_by_reason': self.rej.as_dict(),
+                            'last_rejection': str(self.rej.last or ''),
+                            **nis, 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
+                            'design_file': self.design_file})
+
+    def summary(self, status: str) -> dict:
+        comp = self.compute_s.percentiles()
+        return {'node': 'estimator', 'status': status, 'design_file': self.design_file,
+                'steps': self.last_k, 'n_steps': self.N, **self.core.counters(),
+                'rejected_messages': self.rej.total, 'rejected_by_reason': self.rej.as_dict(),
+                'state_estimates_published': self.n_estimates_published,
+                **self.core.nis_stats(), 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99']}
+
+    def summary_line(self, s: dict) -> str:
+        nis = 'n/a' if s['nis_mean'] is None else f"{s['nis_mean']:.2f} (expected {s['nis_expected']})"
+        return (f"{s['updates']} updates, {s['skipped_updates']} skipped, {s['missing_measurements']} missing, "
+                f"{s['rejected_messages']} rejected, {s['restarts']} restarts, mean NIS {nis}, "
+                f"compute p50 {fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}")
+
+    def publishers(self):
+        return [p for p in (self.pub_est, self.pub_field, self.pub_image, self.pub_diag) if p is not None]
+
+
+class _Process:
+    """One estimator in its own process."""
+
+    def __init__(self, executor: str):
+        self.est = EstimatorNode()
+        self.executor = make_executor(executor)
+        self.executor.add_node(self.est.node)
+
+    def run(self) -> int:
+        rc = spin_episode(self.executor, [self.est])
+        self.finish('completed')
+        return rc
+
+    def finish(self, status: str, error: str | None = None) -> None:
+        self.est.finish(status, error)
+
+    def destroy_node(self) -> None:
+        self.executor.shutdown(timeout_sec=0.1)
+        self.est.destroy_node()
+
+
+def main(argv: list[str] | None = None) -> int:
+    opts, args = parse_front('estimator', 'ROM Kalman filter node (sep_estimator): estimates the '
+                          'slab state and field from slab/measurements.', argv, None, PARAMETERS)
+    limit_blas_threads(1)
+    return run_node(lambda a: _Process(opts.executor), sim_time_default(args), 'estimator')
+
+
+if __name__ == '__main__':
+    sys.exit(main())
