@@ -89,7 +89,7 @@ def _run_episode(work: Path, design: Path, scen: Path | None, rtf: float, record
         ready = work / f"{tag}_ready"
         if record:
             start(["sep_control.ros.record_node", "--out", str(work / f"{tag}_bag"), "--final-grace", "0.5",
-                   "--ready-file", str(ready), "--ready-topics", "heat_command", "state_estimate",
+                   "--ready-file", str(ready), "--ready-topics", "command", "state_estimate",
                    "field_estimate"], "record")
         start(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design}"], "lqg")
         t0 = time.monotonic()

@@ -1,7 +1,7 @@
 """Online cost of the reconstructed field at scale: Phi (g_k a), the field messages (no assertions).
 
-What the estimator node does per step for slab/field_estimate (PointCloud2) and
-slab/field_estimate_image (Image), measured on the product's own code path, without ROS
+What the estimator node does per step for field_estimate (PointCloud2) and
+field_estimate_image (Image), measured on the product's own code path, without ROS
 networking (rclpy message classes and rclpy.serialization only; no rclpy.init, no node):
 
 * mean: `KalmanFilter.field_deviation()` = `PODFieldMap.apply(k, a)` = (a g_k') Phi', the

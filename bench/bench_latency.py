@@ -3,7 +3,7 @@
 Measured in one run, on this machine:
 
 1. bare rclpy ping-pong between two processes: JointState with 5 named float64 values out
-   (the size of slab/measurements), JointState with 5 named values back (slab/heat_command),
+   (the size of measurements), JointState with 5 named values back (command),
    same QoS (reliable, keep-last 10), a SingleThreadedExecutor spin_once loop on the pinging
    side exactly like the plant's;
 2. the measurement-to-command round trip through plant <-> lqg (two processes, lockstep, the
@@ -64,13 +64,13 @@ def pong_main(executor: str) -> int:
 
     rclpy.init()
     node = Node('pong')
-    heaters = [f'heater_{j}' for j in range(5)]
-    pub = node.create_publisher(c.TOPIC_TYPES[c.HEAT_COMMAND], 'bench_pong', c.LOOP_QOS)
+    names = [f'heater_{j}' for j in range(5)]
+    pub = node.create_publisher(c.TOPIC_TYPES[c.COMMAND], 'bench_pong', c.LOOP_QOS)
 
     def on_ping(msg):
-        out = c.TOPIC_TYPES[c.HEAT_COMMAND]()
+        out = c.TOPIC_TYPES[c.COMMAND]()
         out.header = msg.header
-        out.name = heaters
+        out.name = names
         out.effort = np.asarray(msg.position) * 0.5
         pub.publish(out)
 
@@ -102,7 +102,7 @@ def ping_pong(n: int, env: dict, executor: str, period: float = 0.0) -> dict:
         ex.add_node(node)
         got = {}
         pub = node.create_publisher(c.TOPIC_TYPES[c.MEASUREMENTS], 'bench_ping', c.LOOP_QOS)
-        node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], 'bench_pong',
+        node.create_subscription(c.TOPIC_TYPES[c.COMMAND], 'bench_pong',
                                  lambda m: got.__setitem__(c.step_of_stamp(m.header.stamp, 0.25),
                                                            time.perf_counter()), c.LOOP_QOS)
         sensors = [f'sensor_{j}' for j in range(5)]
@@ -171,7 +171,7 @@ def compute_per_step(design, repeats: int = 20) -> dict:
     rng = np.random.default_rng(0)
     y = nom.y + rng.normal(0, 1, (N + 1, info.n_y))
     labels = c.state_labels(design.n_r)
-    heaters = list(info.input_names)
+    names = list(info.input_names)
     cloud = c.CloudBuilder(design.field_xyz, info.field_name)
     core, node = [], []
     for _ in range(repeats):
@@ -183,7 +183,7 @@ def compute_per_step(design, repeats: int = 20) -> dict:
                 if k < N:
                     u = command(nom.u[k], K[k], a, lo, hi)
                     if build_messages:
-                        c.joint_state(k, info.dt, heaters, effort=u)
+                        c.joint_state(k, info.dt, names, effort=u)
                 if build_messages:
                     c.joint_state(k, info.dt, labels, position=a)
                     f, std = est.field_estimate()

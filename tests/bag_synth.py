@@ -30,7 +30,7 @@ from sep_plant.scenario import Scenario, scenario_payload
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T0_NS = 1_700_000_000_000_000_000    # recorder clock origin of the synthetic receive times
-LAT_CMD_NS = 700_000                 # measurement k -> heat_command k (0.7 ms)
+LAT_CMD_NS = 700_000                 # measurement k -> command k (0.7 ms)
 LAT_EST_NS = 300_000                 # measurement k -> state_estimate k / field_estimate k
 
 SMALL_PLANT = {"n_x": 20}
@@ -262,17 +262,17 @@ def episode_messages(ep: SynthEpisode, skip=(), extra_topics=False,
             out.append((name(T.FIELD_ESTIMATE_IMAGE), t + LAT_EST_NS + 2000,
                         image(st(T.FIELD_ESTIMATE_IMAGE, k), ep.F_hat[k], info.grid_shape)))
         if k < N:
-            out.append((name(T.HEAT_COMMAND), t + LAT_CMD_NS,
-                        joint_state(st(T.HEAT_COMMAND, k), info.input_names, effort=ep.u_cmd[k])))
-            out.append((name(T.HEAT_APPLIED), t + LAT_CMD_NS + 50_000,
-                        joint_state(st(T.HEAT_APPLIED, k), info.input_names, effort=ep.u[k])))
+            out.append((name(T.COMMAND), t + LAT_CMD_NS,
+                        joint_state(st(T.COMMAND, k), info.input_names, effort=ep.u_cmd[k])))
+            out.append((name(T.APPLIED_INPUT), t + LAT_CMD_NS + 50_000,
+                        joint_state(st(T.APPLIED_INPUT, k), info.input_names, effort=ep.u[k])))
         if k % 10 == 0 or k == N:
             frac = k / N
             out.append((T.DIAGNOSTICS, t + 900_000,
                         diagnostics(st(T.DIAGNOSTICS, k), {kk: int(round(v * frac)) for kk, v in ep.diag.items()}, k)))
         if extra_topics:
             out.append(("/rosout_like/extra", t + 1, string(f"noise {k}")))
-            out.append(("/slab/unknown", t + 2, string("x")))
+            out.append(("/sep/unknown", t + 2, string("x")))
     return [(tp, ns, bytes(d)) for tp, ns, d in out if tp not in skip]
 
 
@@ -298,7 +298,7 @@ def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topic
     """Write `ep` as a bag; chunk_per_step: close an MCAP chunk after every step (as the
     recorder's periodic flushes do), so a cut file keeps every earlier step."""
     msgs = episode_messages(ep, skip=skip, extra_topics=extra_topics, stamp_shift_ns=stamp_shift_ns)
-    return write_messages(path, msgs, storage, T.topic_name(T.HEAT_APPLIED) if chunk_per_step else None)
+    return write_messages(path, msgs, storage, T.topic_name(T.APPLIED_INPUT) if chunk_per_step else None)
 
 
 def fake_design(ep: SynthEpisode, n_r: int = 4):

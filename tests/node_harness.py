@@ -112,7 +112,7 @@ class Launcher:
 class Probe:
     """An in-process rclpy node (own Context, background spin thread)."""
 
-    def __init__(self, namespace: str = 'slab', name: str = 'probe'):
+    def __init__(self, namespace: str = 'sep', name: str = 'probe'):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
@@ -346,7 +346,7 @@ def launcher(colcon_install, tmp_path):
 def probe():
     probes = []
 
-    def make(namespace='slab', name='probe'):
+    def make(namespace='sep', name='probe'):
         p = Probe(namespace, name)
         probes.append(p)
         return p

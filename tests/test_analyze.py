@@ -135,13 +135,13 @@ def test_cli_many_bags(setup, tmp_path, capsys):
 
 def test_cli_missing_topics_reported(setup, tmp_path, capsys):
     d, eps, bags, dpath = setup
-    bag = write_bag(tmp_path / "partial", eps[0], skip=("/slab/field_estimate", "/diagnostics"))
+    bag = write_bag(tmp_path / "partial", eps[0], skip=("/sep/field_estimate", "/diagnostics"))
     rc = cli([str(bag), "--design", str(dpath), "--out", str(tmp_path / "r")])
     assert rc == 0
     out = capsys.readouterr().out
-    assert "missing topics /slab/field_estimate, /diagnostics" in out
+    assert "missing topics /sep/field_estimate, /diagnostics" in out
     md = (tmp_path / "r" / "report.md").read_text()
-    assert "missing topics /slab/field_estimate, /diagnostics" in md
+    assert "missing topics /sep/field_estimate, /diagnostics" in md
     assert "Estimation error with 2-sigma bounds: not drawn" in md
     assert (tmp_path / "r" / "field.png").is_file()
 
@@ -274,7 +274,7 @@ def test_the_controller_is_named_from_the_lqr_diagnostics(setup, tmp_path):
     N = eps[0].scenario.problem.n_steps
     ns = N * T.dt_ns(eps[0].info.dt)
     msgs.append((T.DIAGNOSTICS, t_last + 1, bytes(diagnostics(ns, {"controller": "mpc", "mpc_qp_steps": 12,
-                                                                    "mpc_fallbacks": 1}, N, name="/slab/lqr"))))
+                                                                    "mpc_fallbacks": 1}, N, name="/sep/lqr"))))
     rep = analyze(write_messages(tmp_path / "mpc_bag", msgs), dpath)
     m = rep.metrics
     assert m["controller"] == "rom_mpc" and m["mpc_qp_steps"] == 12 and m["mpc_fallbacks"] == 1

@@ -37,7 +37,7 @@ def test_roundtrip_exact(tmp_path, ep, storage):
     assert e.field_name == "temperature" and e.images == {}
     assert e.diag_totals == ep.diag
     assert e.diagnostics["plant"]["step"] == str(N)
-    lat = e.step_recv_ns["heat_command"][:-1] - e.step_recv_ns["measurements"][:-1]
+    lat = e.step_recv_ns["command"][:-1] - e.step_recv_ns["measurements"][:-1]
     assert np.all(lat == LAT_CMD_NS)
     tt = e.times["measurements"]
     dt_ns = T.dt_ns(ep.info.dt)
@@ -129,18 +129,18 @@ def test_lone_mcap_file_and_missing_metadata(tmp_path, ep):
 
 
 def test_missing_topics_are_listed_not_raised(tmp_path, ep):
-    bag = write_bag(tmp_path / "bag", ep, skip=("/slab/field_estimate", "/diagnostics", "/slab/heat_applied"))
+    bag = write_bag(tmp_path / "bag", ep, skip=("/sep/field_estimate", "/diagnostics", "/sep/applied_input"))
     e = read_episode(bag)
-    assert e.missing == ["/slab/heat_applied", "/slab/field_estimate", "/diagnostics"]
+    assert e.missing == ["/sep/applied_input", "/sep/field_estimate", "/diagnostics"]
     assert np.all(np.isnan(e.F_hat)) and np.all(np.isnan(e.u))
     assert e.diag_totals == {}
     np.testing.assert_array_equal(e.F, ep.F)
 
 
 def test_missing_scenario_uses_argument_or_infers(tmp_path, ep):
-    bag = write_bag(tmp_path / "bag", ep, skip=("/slab/scenario",))
+    bag = write_bag(tmp_path / "bag", ep, skip=("/sep/scenario",))
     e = read_episode(bag, scenario=ep.scenario, info=ep.info)
-    assert e.scenario_source == "argument" and "/slab/scenario" in e.missing and e.info == ep.info
+    assert e.scenario_source == "argument" and "/sep/scenario" in e.missing and e.info == ep.info
     np.testing.assert_array_equal(e.F, ep.F)
     e = read_episode(bag, scenario=ep.scenario)                 # the description from the scenario's plant
     assert e.scenario_source == "argument" and e.info == ep.info
@@ -155,7 +155,7 @@ def test_missing_scenario_uses_argument_or_infers(tmp_path, ep):
 def test_unknown_extra_topics_ignored(tmp_path, ep):
     bag = write_bag(tmp_path / "bag", ep, extra_topics=True)
     e = read_episode(bag)
-    assert e.ignored_topics == ["/rosout_like/extra", "/slab/unknown"]
+    assert e.ignored_topics == ["/rosout_like/extra", "/sep/unknown"]
     assert not e.missing
     np.testing.assert_array_equal(e.F, ep.F)
 
@@ -190,13 +190,13 @@ def test_truncated_small_chunks_recover_up_to_last_chunk(tmp_path, ep):
         cut.mkdir()
         (cut / "x.mcap").write_bytes(data[: int(len(data) * frac)])
         e = read_episode(cut, allow_truncated=True)
-        ks = e.steps_with("heat_applied")
+        ks = e.steps_with("applied_input")
         assert ks.size >= int(frac * ep.scenario.problem.n_steps) - 2
         np.testing.assert_array_equal(e.F[: ks[-1] + 1], ep.F[: ks[-1] + 1])
         assert not e.complete
     fixed = repair_bag(tmp_path / "cut0.77", tmp_path / "fixed")
     e = read_episode(fixed)
-    assert e.complete and e.steps_with("heat_applied").size >= int(0.77 * ep.scenario.problem.n_steps) - 2
+    assert e.complete and e.steps_with("applied_input").size >= int(0.77 * ep.scenario.problem.n_steps) - 2
 
 
 @pytest.mark.parametrize("damage", ["magic", "garbage_middle", "empty", "not_a_bag", "sqlite_garbage"])
@@ -235,7 +235,7 @@ def test_nonexistent(tmp_path):
 def test_undecodable_message_is_skipped_and_noted(tmp_path, ep):
     msgs = []
     for topic, t, d in episode_messages(ep):
-        if topic == "/slab/heat_command" and d[4:8] == (5).to_bytes(4, "little") and d[8:12] == bytes(4):
+        if topic == "/sep/command" and d[4:8] == (5).to_bytes(4, "little") and d[8:12] == bytes(4):
             d = d[:30]                          # step 5 s: cut payload
         msgs.append((topic, t, d))
     e = read_episode(write_messages(tmp_path / "bag", msgs))
@@ -274,9 +274,9 @@ def test_real_sep01_bag_read_and_analysed():
     assert e.n_steps == 40 and e.dt == 0.25 and (e.info.n_x, e.info.n_u, e.info.n_y, e.info.n_field) == (20, 5, 5, 20)
     assert e.field_name == "temperature" and e.info.grid_shape is None
     assert e.complete and not e.missing and not e.notes and not e.ignored_topics and e.images == {}
-    assert {k: e.counts[k] for k in ("/clock", "measurements", "heat_command", "heat_applied", "state_estimate",
+    assert {k: e.counts[k] for k in ("/clock", "measurements", "command", "applied_input", "state_estimate",
                                       "field_estimate", "field", "scenario")} == \
-        {"/clock": 41, "measurements": 41, "heat_command": 40, "heat_applied": 40, "state_estimate": 41,
+        {"/clock": 41, "measurements": 41, "command": 40, "applied_input": 40, "state_estimate": 41,
          "field_estimate": 41, "field": 41, "scenario": 1}
     np.testing.assert_array_equal(e.F, traj["T"])           # the old plant's true field, bit for bit
     np.testing.assert_array_equal(e.u, traj["U"])

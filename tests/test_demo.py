@@ -83,7 +83,7 @@ def test_demo_grid_plant_scenario_file(launcher, tmp_path):
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     counts = {t['topic_metadata']['name']: t['message_count'] for t in meta['topics_with_message_count']}
     # the recorder subscribed to the grid plant's images: every step's true and estimated frame
-    assert counts.get('/slab/field_image') == 41 and counts.get('/slab/field_estimate_image') == 41, counts
+    assert counts.get('/sep/field_image') == 41 and counts.get('/sep/field_estimate_image') == 41, counts
     report = out / 'report' / 'report.md'
     assert report.is_file() and f'report: {report}' in text, text
     md = report.read_text()

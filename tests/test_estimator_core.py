@@ -102,7 +102,7 @@ def test_gap_and_malformed_measurement_are_skipped(design):
 
 
 def test_late_applied_input_is_corrected_exactly(design):
-    """y_{k+1} before heat_applied of step k: the filter predicts with the command; the applied
+    """y_{k+1} before applied_input of step k: the filter predicts with the command; the applied
     input then differs (a limit clipped it): the estimate becomes exactly the one it would have
     been with the applied input in time."""
     d = design

@@ -99,7 +99,7 @@ def test_stamps_are_integer_nanoseconds_without_drift():
         assert c.step_of_stamp(c.stamp(k, dt), dt) == k
     assert c.step_of_stamp(c.stamp_ns(3, 0.25) + 125_000_000, 0.25) is None
     h = c.header(3, 0.25)
-    assert h.frame_id == 'slab' and (h.stamp.sec, h.stamp.nanosec) == (0, 750_000_000)
+    assert h.frame_id == 'sep' and (h.stamp.sec, h.stamp.nanosec) == (0, 750_000_000)
 
 
 def test_joint_state_builder():
@@ -120,7 +120,7 @@ def test_point_cloud_layout_fixed_and_decodable_without_ros():
     cloud = c.CloudBuilder(xyz, 'temperature')
     m = cloud.build(12, 0.25, T, std)
     assert (m.height, m.width, m.point_step, m.row_step) == (1, 7, 40, 280)
-    assert m.is_dense and not m.is_bigendian and m.header.frame_id == 'slab'
+    assert m.is_dense and not m.is_bigendian and m.header.frame_id == 'sep'
     assert [(f.name, f.offset, f.datatype, f.count) for f in m.fields] == [
         ('x', 0, PointField.FLOAT64, 1), ('y', 8, 8, 1), ('z', 16, 8, 1),
         ('temperature', 24, 8, 1), ('temperature_std', 32, 8, 1)]
@@ -146,11 +146,11 @@ def test_point_cloud_layout_fixed_and_decodable_without_ros():
 
 
 def test_diagnostics_builder():
-    arr = c.diagnostics(c.stamp(3, 0.25), [c.Health(name='/slab/plant', level=c.WARN, message='2 misses',
+    arr = c.diagnostics(c.stamp(3, 0.25), [c.Health(name='/sep/plant', level=c.WARN, message='2 misses',
                                                     values={'deadline_misses': 2, 'ok': True,
                                                             'by': {'stale': 1}, 'x': 0.5})])
     st = arr.status[0]
-    assert st.name == '/slab/plant' and st.message == '2 misses' and c.level_of(st) == c.WARN
+    assert st.name == '/sep/plant' and st.message == '2 misses' and c.level_of(st) == c.WARN
     assert c.diagnostic_values(st) == {'deadline_misses': '2', 'ok': 'true', 'by': '{"stale": 1}', 'x': '0.5'}
 
 
@@ -172,12 +172,12 @@ def test_scenario_roundtrip_and_topic_names():
     s = flat(n_x=20, u_max=5.0)
     assert parse_scenario_payload(c.scenario_msg(scenario_payload(s, s.info)).data) == (s, s.info)
     topics = c.all_topics()
-    assert topics['/slab/measurements'] == 'sensor_msgs/msg/JointState'
-    assert topics['/slab/field'] == 'sensor_msgs/msg/PointCloud2'
-    assert topics['/slab/field_image'] == 'sensor_msgs/msg/Image'
+    assert topics['/sep/measurements'] == 'sensor_msgs/msg/JointState'
+    assert topics['/sep/field'] == 'sensor_msgs/msg/PointCloud2'
+    assert topics['/sep/field_image'] == 'sensor_msgs/msg/Image'
     assert topics['/clock'] == 'rosgraph_msgs/msg/Clock' and '/diagnostics' in topics
-    assert c.topic('heat_command', 'other') == '/other/heat_command'
+    assert c.topic('command', 'other') == '/other/command'
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
     assert c.SCENARIO_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL
     assert all(c.TOPIC_QOS[t].reliability == ReliabilityPolicy.RELIABLE
-               for t in (c.MEASUREMENTS, c.HEAT_COMMAND, c.HEAT_APPLIED, c.STATE_ESTIMATE))
+               for t in (c.MEASUREMENTS, c.COMMAND, c.APPLIED_INPUT, c.STATE_ESTIMATE))

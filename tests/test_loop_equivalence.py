@@ -12,7 +12,7 @@ from sep_plant.ros import contract as c
 
 pytestmark = pytest.mark.ros
 
-TOPICS = (c.FIELD, c.FIELD_ESTIMATE, c.HEAT_APPLIED, c.HEAT_COMMAND, c.MEASUREMENTS, c.STATE_ESTIMATE)
+TOPICS = (c.FIELD, c.FIELD_ESTIMATE, c.APPLIED_INPUT, c.COMMAND, c.MEASUREMENTS, c.STATE_ESTIMATE)
 
 
 def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run: int,
@@ -27,7 +27,7 @@ def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run:
     else:
         controllers = [launcher.start('lqg', params={**ctl, 'summary_file': tmp_path / 'lqg.json'})]
         subscribers = 2
-    pr.wait_matched(subs=(c.FIELD_ESTIMATE, c.STATE_ESTIMATE, c.HEAT_COMMAND))
+    pr.wait_matched(subs=(c.FIELD_ESTIMATE, c.STATE_ESTIMATE, c.COMMAND))
     plant = launcher.start('plant', params={
         'scenario_file': case.scenario_file, 'seed': seed, 'run': run, 'mode': mode,
         'real_time_factor': rtf, 'wait_for_subscribers': subscribers,
@@ -39,8 +39,8 @@ def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run:
     dt, N = case.dt, case.n_steps
     pr.wait_for(lambda: len(pr.by_step(c.FIELD, dt)) == N + 1, 10, 'all field messages')
     pr.wait_for(lambda: len(pr.by_step(c.FIELD_ESTIMATE, dt)) == N + 1, 10, 'all field estimates')
-    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, dt)) == N, 10,
-                f'all heat_applied (have {sorted(pr.by_step(c.HEAT_APPLIED, dt))})')
+    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) == N, 10,
+                f'all applied_input (have {sorted(pr.by_step(c.APPLIED_INPUT, dt))})')
     pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, dt)) == N + 1, 10, 'all measurements')
     summary = json.loads((tmp_path / 'plant.json').read_text())
     return pr, summary
@@ -53,7 +53,7 @@ def check_equivalence(pr, case, seed, run):
     F = field_matrix(pr, c.FIELD, dt, N, column=3)
     F_hat = field_matrix(pr, c.FIELD_ESTIMATE, dt, N, column=3)
     F_std = field_matrix(pr, c.FIELD_ESTIMATE, dt, N, column=4)
-    U = joint_matrix(pr, c.HEAT_APPLIED, dt, N, 'effort')
+    U = joint_matrix(pr, c.APPLIED_INPUT, dt, N, 'effort')
     Y = joint_matrix(pr, c.MEASUREMENTS, dt, N + 1, 'position')
     err = np.max(np.abs(F - ref.F[0]))
     assert err <= 1e-9, f'max |f_topics - f_offline| = {err:.3e}'

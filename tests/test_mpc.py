@@ -145,7 +145,7 @@ def test_tightened_limits_meet_in_the_middle_when_they_cross():
 @pytest.mark.ros
 def test_lockstep_mpc_over_topics_equals_offline(launcher, probe, tmp_path):
     case = make_case(tmp_path, "limited", settings=FAST, **SMALL, **LIMITS)
-    pr = probe().subscribe(c.HEAT_APPLIED, c.DIAGNOSTICS)
+    pr = probe().subscribe(c.APPLIED_INPUT, c.DIAGNOSTICS)
     lqg = launcher.start('lqg', params={'design_file': case.design_file, 'wait_for_scenario_s': 20.0,
                                         'summary_file': tmp_path / 'lqg.json', 'controller': 'mpc',
                                         'mpc_horizon': 6})

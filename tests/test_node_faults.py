@@ -34,13 +34,13 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
     untouched."""
     d = small_case.design
     s = d.info
-    pr = probe().subscribe(c.HEAT_COMMAND, c.STATE_ESTIMATE, c.DIAGNOSTICS)
+    pr = probe().subscribe(c.COMMAND, c.STATE_ESTIMATE, c.DIAGNOSTICS)
     pr.publish(c.SCENARIO, scenario_msg(small_case))
     lqg = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0,
                                         'exit_at_end': False})
     pr.publisher(c.MEASUREMENTS)
-    pr.publisher(c.HEAT_APPLIED)
-    pr.wait_matched(subs=(c.HEAT_COMMAND, c.STATE_ESTIMATE), pubs=(c.MEASUREMENTS, c.HEAT_APPLIED))
+    pr.publisher(c.APPLIED_INPUT)
+    pr.wait_matched(subs=(c.COMMAND, c.STATE_ESTIMATE), pubs=(c.MEASUREMENTS, c.APPLIED_INPUT))
 
     names = list(s.output_names)
     kf = KalmanFilter(d.lqg)
@@ -60,12 +60,12 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
         return np.asarray(m.position)
 
     def command(k):
-        m = pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(k), 10, f'command {k}')
+        m = pr.wait_for(lambda: pr.by_step(c.COMMAND, s.dt).get(k), 10, f'command {k}')
         return np.asarray(m.effort)
 
     def apply(k):
         u = command(k)
-        pr.publish(c.HEAT_APPLIED, c.joint_state(k, s.dt, list(s.input_names), effort=u))
+        pr.publish(c.APPLIED_INPUT, c.joint_state(k, s.dt, list(s.input_names), effort=u))
         return u
 
     def rejections():
@@ -124,18 +124,18 @@ def test_bad_measurements_rejected_counted_and_filter_predicts(launcher, probe, 
 def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case):
     d = small_case.design
     s = d.info
-    pr = probe().subscribe(c.HEAT_COMMAND, c.DIAGNOSTICS)
+    pr = probe().subscribe(c.COMMAND, c.DIAGNOSTICS)
     pr.publish(c.SCENARIO, scenario_msg(small_case))
     lqr = launcher.start('lqr', params={'design_file': small_case.design_file, 'estimate_timeout_s': 0.3,
                                         'wait_for_scenario_s': 20.0, 'exit_at_end': False})
     pr.publisher(c.MEASUREMENTS)
     pr.publisher(c.STATE_ESTIMATE)
-    pr.wait_matched(subs=(c.HEAT_COMMAND,), pubs=(c.MEASUREMENTS, c.STATE_ESTIMATE))
+    pr.wait_matched(subs=(c.COMMAND,), pubs=(c.MEASUREMENTS, c.STATE_ESTIMATE))
     labels = c.state_labels(d.n_r)
     y = d.nominal.y
 
     def cmd(k, timeout=10):
-        return pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(k), timeout, f'command {k}')
+        return pr.wait_for(lambda: pr.by_step(c.COMMAND, s.dt).get(k), timeout, f'command {k}')
 
     # step 0: measurement, no estimate -> nominal after ~0.3 s
     t0 = time.monotonic()
@@ -161,20 +161,20 @@ def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case)
     assert st['_level'] == c.WARN and 'nominal fallback' in st['_message']
     assert int(st['rejected_messages']) == 1
     assert 'no state estimate of step 0' in lqr.output()
-    assert len(pr.by_step(c.HEAT_COMMAND, s.dt)) == 3 and pr.count(c.HEAT_COMMAND) == 3
+    assert len(pr.by_step(c.COMMAND, s.dt)) == 3 and pr.count(c.COMMAND) == 3
 
 
 # -------------------------------------------------------------- no command in time
 def test_lockstep_plant_times_out_without_command(launcher, probe, small_case, tmp_path):
     pr = probe().subscribe(c.MEASUREMENTS)           # a "controller" that never answers
-    pr.publisher(c.HEAT_COMMAND)
+    pr.publisher(c.COMMAND)
     plant = launcher.start('plant', params={'scenario_file': small_case.scenario_file,
                                             'command_timeout_s': 1.0,
                                             'summary_file': tmp_path / 'plant.json'})
     rc = plant.wait(30)
     out = plant.output()
     assert rc == 3, out
-    assert 'no valid heat_command stamped step 0' in out and 'command_timeout_s = 1 s' in out
+    assert 'no valid command stamped step 0' in out and 'command_timeout_s = 1 s' in out
     summ = json.loads((tmp_path / 'plant.json').read_text())
     assert summ['status'] == 'error' and summ['steps'] == 0
 
@@ -184,9 +184,9 @@ def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe,
     2..5), then goes silent: the plant refuses each bad command for its reason, counts 30
     deadline misses and holds command 9 (an answer late on a busy machine is one miss more)."""
     s, N = small_case.design.info, small_case.n_steps
-    pr = probe().subscribe(c.MEASUREMENTS, c.HEAT_APPLIED, c.DIAGNOSTICS)
-    pub = pr.publisher(c.HEAT_COMMAND)
-    heaters = list(s.input_names)
+    pr = probe().subscribe(c.MEASUREMENTS, c.APPLIED_INPUT, c.DIAGNOSTICS)
+    pub = pr.publisher(c.COMMAND)
+    names = list(s.input_names)
 
     def u_of(k):
         return np.full(s.n_u, 0.1 * (k + 1))
@@ -195,13 +195,13 @@ def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe,
         k = c.step_of_stamp(msg.header.stamp, s.dt)
         if k >= 10:
             return
-        bad = {2: c.joint_state(2, s.dt, heaters, effort=np.r_[np.nan, u_of(2)[1:]]),
-               3: c.joint_state(3, s.dt, heaters[:-1], effort=u_of(3)[:-1]),
-               4: c.joint_state(4, s.dt, ['x'] + heaters[1:], effort=u_of(4)),
-               5: c.joint_state(1, s.dt, heaters, effort=u_of(5))}      # stale stamp
+        bad = {2: c.joint_state(2, s.dt, names, effort=np.r_[np.nan, u_of(2)[1:]]),
+               3: c.joint_state(3, s.dt, names[:-1], effort=u_of(3)[:-1]),
+               4: c.joint_state(4, s.dt, ['x'] + names[1:], effort=u_of(4)),
+               5: c.joint_state(1, s.dt, names, effort=u_of(5))}      # stale stamp
         if k in bad:
             pub.publish(bad[k])
-        pub.publish(c.joint_state(k, s.dt, heaters, effort=u_of(k)))
+        pub.publish(c.joint_state(k, s.dt, names, effort=u_of(k)))
 
     pr.on(c.MEASUREMENTS, answer)
     plant = launcher.start('plant', params={'scenario_file': small_case.scenario_file, 'mode': 'realtime',
@@ -209,8 +209,8 @@ def test_realtime_plant_holds_last_command_and_rejects_bad_ones(launcher, probe,
                                             'wait_for_subscribers': 1})
     assert plant.wait(60) == 0, plant.output()
     summ = json.loads((tmp_path / 'plant.json').read_text())
-    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, s.dt)) == N, 10, 'all heat_applied')
-    U = joint_matrix(pr, c.HEAT_APPLIED, s.dt, N, 'effort')
+    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, s.dt)) == N, 10, 'all applied_input')
+    U = joint_matrix(pr, c.APPLIED_INPUT, s.dt, N, 'effort')
     # the fake controller answers from this (loaded) test process: an answer can miss its 50 ms
     # tick on a busy machine. Such a step is a deadline miss too and holds the input before it;
     # its late commands are refused as stale. Everything else is exact.
@@ -265,7 +265,7 @@ def test_plant_scenario_topic_mismatch_refused(launcher, probe, small_case):
     rc = p.wait(30)
     out = p.output()
     assert rc == 2, out
-    assert 'plant.dt: 0.25 != 0.5' in out and '/slab/scenario' in out
+    assert 'plant.dt: 0.25 != 0.5' in out and '/sep/scenario' in out
 
 
 @pytest.mark.parametrize('case', ['corrupt', 'missing', 'absent'])
@@ -329,11 +329,11 @@ def test_estimator_killed_and_restarted_mid_episode(launcher, probe, reference_c
     restart_at(k) and the episode completes."""
     case, s = reference_case, reference_case.design.info
     N = case.n_steps
-    pr = probe().subscribe(c.MEASUREMENTS, c.STATE_ESTIMATE, c.HEAT_COMMAND)
+    pr = probe().subscribe(c.MEASUREMENTS, c.STATE_ESTIMATE, c.COMMAND)
     ctl = {'design_file': case.design_file}
     est1 = launcher.start('estimator', params=ctl, name='estimator_first')
     lqr = launcher.start('lqr', params={**ctl, 'estimate_timeout_s': 0.1, 'summary_file': tmp_path / 'lqr.json'})
-    pr.wait_matched(subs=(c.STATE_ESTIMATE, c.HEAT_COMMAND))
+    pr.wait_matched(subs=(c.STATE_ESTIMATE, c.COMMAND))
     killed = {}
 
     def kill_at_50(msg):
@@ -375,16 +375,16 @@ def test_storm_of_bad_messages_keeps_memory_flat_and_the_loop_alive(launcher, pr
     flat (no sample list grows per message), and the loop still answers the next good step."""
     d = small_case.design
     s = d.info
-    pr = probe().subscribe(c.HEAT_COMMAND, c.DIAGNOSTICS)
+    pr = probe().subscribe(c.COMMAND, c.DIAGNOSTICS)
     pr.publish(c.SCENARIO, scenario_msg(small_case))
     lqg = launcher.start('lqg', params={'design_file': small_case.design_file, 'wait_for_scenario_s': 20.0,
                                         'exit_at_end': False, 'diagnostics_period_s': 1.0})
     pub = pr.publisher(c.MEASUREMENTS)
-    pr.publisher(c.HEAT_APPLIED)
-    pr.wait_matched(subs=(c.HEAT_COMMAND,), pubs=(c.MEASUREMENTS, c.HEAT_APPLIED))
+    pr.publisher(c.APPLIED_INPUT)
+    pr.wait_matched(subs=(c.COMMAND,), pubs=(c.MEASUREMENTS, c.APPLIED_INPUT))
     names = list(s.output_names)
     pr.publish(c.MEASUREMENTS, c.joint_state(0, s.dt, names, position=d.nominal.y[0]))
-    pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(0), 10, 'command 0')
+    pr.wait_for(lambda: pr.by_step(c.COMMAND, s.dt).get(0), 10, 'command 0')
     bad = [c.joint_state(0, s.dt, names, position=d.nominal.y[0]),                       # duplicate of 0
            c.joint_state(0, s.dt, names[:-1] + ['bogus'], position=d.nominal.y[0]),     # and unknown names
            c.joint_state(0, s.dt, names, position=np.full(s.n_y, np.nan))]
@@ -428,8 +428,8 @@ def test_storm_of_bad_messages_keeps_memory_flat_and_the_loop_alive(launcher, pr
     assert diag1 - diag0 <= elapsed / 0.2 + elapsed / 1.0 + 4   # at most 5 Hz + the periodic ones
     assert lqg.output().count('rejected measurement') < 20 + 3 * elapsed   # throttled log
     # the loop is alive: the next good step gets its command at once
-    pr.publish(c.HEAT_APPLIED, c.joint_state(0, s.dt, list(s.input_names), effort=d.nominal.u[0]))
+    pr.publish(c.APPLIED_INPUT, c.joint_state(0, s.dt, list(s.input_names), effort=d.nominal.u[0]))
     pr.publish(c.MEASUREMENTS, c.joint_state(1, s.dt, names, position=d.nominal.y[1]))
-    pr.wait_for(lambda: pr.by_step(c.HEAT_COMMAND, s.dt).get(1), 5, 'command 1 after the storm')
+    pr.wait_for(lambda: pr.by_step(c.COMMAND, s.dt).get(1), 5, 'command 1 after the storm')
     reasons = json.loads(last_status(pr, 'estimator')['rejected_by_reason'])
     assert set(reasons) == {'duplicate', 'unknown_names', 'non_finite'} or set(reasons) == {'duplicate'}

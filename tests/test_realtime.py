@@ -30,7 +30,7 @@ pytestmark = pytest.mark.ros
 def test_realtime_rtf10_reference_episode_on_schedule(launcher, probe, reference_case, tmp_path):
     case = reference_case
     dt, N = case.dt, case.n_steps
-    pr = probe().subscribe(c.FIELD, c.HEAT_APPLIED, c.HEAT_COMMAND)
+    pr = probe().subscribe(c.FIELD, c.APPLIED_INPUT, c.COMMAND)
     lqg = launcher.start('lqg', params={'design_file': case.design_file, 'wait_for_scenario_s': 20.0,
                                         'summary_file': tmp_path / 'lqg.json'})
     pr.wait_for(lambda: 'estimator: design file' in lqg.output(), 30, 'lqg start')
@@ -51,12 +51,12 @@ def test_realtime_rtf10_reference_episode_on_schedule(launcher, probe, reference
     assert 6.0 <= summ['wall_s'] <= 10.0, summ['wall_s']           # 250 steps x 25 ms, on schedule
 
     pr.wait_for(lambda: len(pr.by_step(c.FIELD, dt)) == N + 1, 10, 'all field messages')
-    pr.wait_for(lambda: len(pr.by_step(c.HEAT_APPLIED, dt)) == N, 10, 'all heat_applied')
-    pr.wait_for(lambda: len(pr.by_step(c.HEAT_COMMAND, dt)) == N, 10, 'all heat_command')
+    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) == N, 10, 'all applied_input')
+    pr.wait_for(lambda: len(pr.by_step(c.COMMAND, dt)) == N, 10, 'all command')
     T = field_matrix(pr, c.FIELD, dt, N)
-    U = joint_matrix(pr, c.HEAT_APPLIED, dt, N, 'effort')
+    U = joint_matrix(pr, c.APPLIED_INPUT, dt, N, 'effort')
     cmd = {}                                   # the first command stamped with each step
-    for m in pr.received(c.HEAT_COMMAND):
+    for m in pr.received(c.COMMAND):
         cmd.setdefault(c.step_of_stamp(m.header.stamp, dt), np.asarray(m.effort, float))
     assert sorted(cmd) == list(range(N))
 

@@ -57,7 +57,7 @@ def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design
 
     design_path, scen = small_design
     rec = _popen(["sep_control.ros.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
-                  "--ready-topics", "heat_command", "state_estimate", "field_estimate", "--max-duration", "120"],
+                  "--ready-topics", "command", "state_estimate", "field_estimate", "--max-duration", "120"],
                  tmp_path, "record")
     procs.append(rec)
     lqg = _popen(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
@@ -101,4 +101,4 @@ def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design
     from rosbags.highlevel import AnyReader
 
     with AnyReader([tmp_path / "bag"]) as reader:
-        assert {c.topic for c in reader.connections} >= {"/slab/measurements", "/slab/heat_command", "/slab/field"}
+        assert {c.topic for c in reader.connections} >= {"/sep/measurements", "/sep/command", "/sep/field"}

@@ -121,14 +121,14 @@ def test_record_bytes_roundtrip_and_independent_readers(tmp_path, ros, procs, st
     msgs = episode_messages(ep)
     pubs = make_publishers(ros, TYPES)
     # the latched scenario is published before the recorder exists (transient_local)
-    publish_all(pubs, [m for m in msgs if m[0] == "/slab/scenario"])
+    publish_all(pubs, [m for m in msgs if m[0] == "/sep/scenario"])
     bag = tmp_path / "bag"
     proc = start_recorder(bag, "--storage", storage, "--no-stop-at-end")
     procs.append(proc)
     wait_matched(pubs, proc)
     time.sleep(0.3)
-    sent = publish_all(pubs, [m for m in msgs if m[0] != "/slab/scenario"])
-    sent["/slab/scenario"] = [m[2] for m in msgs if m[0] == "/slab/scenario"]
+    sent = publish_all(pubs, [m for m in msgs if m[0] != "/sep/scenario"])
+    sent["/sep/scenario"] = [m[2] for m in msgs if m[0] == "/sep/scenario"]
     time.sleep(1.0)
     rc, out, err = stop(proc)
     assert rc == 0, err
@@ -150,15 +150,15 @@ def test_record_bytes_roundtrip_and_independent_readers(tmp_path, ros, procs, st
         types = {c.topic: c.msgtype for c in reader.connections}
         assert types == {t: TYPES[t] for t in sent}
         qos = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
-        assert qos["/slab/scenario"] and qos["/slab/scenario"][0].durability.name == "TRANSIENT_LOCAL"
-        assert qos["/slab/measurements"][0].reliability.name == "RELIABLE"
+        assert qos["/sep/scenario"] and qos["/sep/scenario"][0].durability.name == "TRANSIENT_LOCAL"
+        assert qos["/sep/measurements"][0].reliability.name == "RELIABLE"
         n = 0
         for conn, _t, rawdata in reader.messages():
             msg = reader.deserialize(rawdata, conn.msgtype)
             n += 1
-            if conn.topic == "/slab/measurements":
-                assert tuple(msg.name) == ep.info.output_names and msg.header.frame_id == "slab"
-            if conn.topic == "/slab/field":
+            if conn.topic == "/sep/measurements":
+                assert tuple(msg.name) == ep.info.output_names and msg.header.frame_id == "sep"
+            if conn.topic == "/sep/field":
                 assert msg.width == ep.info.n_field and msg.point_step == 40
         assert n == sum(len(v) for v in sent.values())
 
@@ -177,8 +177,8 @@ def test_record_bytes_roundtrip_and_independent_readers(tmp_path, ros, procs, st
                 assert channel.message_encoding == "cdr" and schema.encoding == "ros2msg"
                 assert schema.name == TYPES[channel.topic]
                 msg = deserialize_message(message.data, _msg_class(schema.name))
-                if channel.topic == "/slab/heat_command":
-                    assert msg.header.frame_id == "slab" and len(msg.effort) == ep.info.n_u
+                if channel.topic == "/sep/command":
+                    assert msg.header.frame_id == "sep" and len(msg.effort) == ep.info.n_u
                 count += 1
             assert count == n
 
@@ -196,26 +196,26 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
 
     s = small_scenario(n_steps=6, band_window=(3, 6), lqr_k_switch=2)
     info, N = s.info, s.problem.n_steps
-    pubs = make_publishers(ros, ["/slab/scenario", "/slab/measurements", "/slab/heat_command"])
+    pubs = make_publishers(ros, ["/sep/scenario", "/sep/measurements", "/sep/command"])
     bag = tmp_path / "bag"
     proc = start_recorder(bag, "--final-grace", "0.5")
     procs.append(proc)
     wait_matched(pubs, proc)
-    pubs["/slab/scenario"].publish(String(data=scenario_payload(s, info)))
+    pubs["/sep/scenario"].publish(String(data=scenario_payload(s, info)))
     time.sleep(0.3)
-    sent = {"/slab/measurements": [], "/slab/heat_command": []}
+    sent = {"/sep/measurements": [], "/sep/command": []}
     dt_ns = T.dt_ns(info.dt)
     for k in range(N + 1):
         stamp = Time(sec=k * dt_ns // 10**9, nanosec=k * dt_ns % 10**9)
         m = JointState(name=list(info.output_names), position=[150.0 + k + j for j in range(info.n_y)])
-        m.header.stamp, m.header.frame_id = stamp, "slab"
-        pubs["/slab/measurements"].publish(m)
-        sent["/slab/measurements"].append(m)
+        m.header.stamp, m.header.frame_id = stamp, "sep"
+        pubs["/sep/measurements"].publish(m)
+        sent["/sep/measurements"].append(m)
         if k < N:
             c = JointState(name=list(info.input_names), effort=[0.1 * k] * info.n_u)
-            c.header.stamp, c.header.frame_id = stamp, "slab"
-            pubs["/slab/heat_command"].publish(c)
-            sent["/slab/heat_command"].append(c)
+            c.header.stamp, c.header.frame_id = stamp, "sep"
+            pubs["/sep/command"].publish(c)
+            sent["/sep/command"].append(c)
         time.sleep(0.01)
     out, err = proc.communicate(timeout=30)   # no signal: it must stop by itself
     assert proc.returncode == 0, err
@@ -229,7 +229,7 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
     e = read_episode(bag)
     assert e.scenario == s and e.info == info
     np.testing.assert_array_equal(e.y[:, 0], 150.0 + np.arange(N + 1))
-    assert "/slab/field" in e.missing and "/slab/field_image" not in e.missing
+    assert "/sep/field" in e.missing and "/sep/field_image" not in e.missing
 
 
 def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
@@ -238,7 +238,7 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     ep = synthetic_episode(small_scenario(n_steps=30, band_window=(20, 30), lqr_k_switch=10))
     msgs = episode_messages(ep)
     pubs = make_publishers(ros, TYPES)
-    publish_all(pubs, [m for m in msgs if m[0] == "/slab/scenario"])
+    publish_all(pubs, [m for m in msgs if m[0] == "/sep/scenario"])
     bag = tmp_path / "bag"
     proc = start_recorder(bag, "--no-stop-at-end", "--flush-interval", "0.05")
     procs.append(proc)
@@ -248,7 +248,7 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     cut = next(i for i, m in enumerate(msgs) if m[0] == "/clock" and m is not msgs[0] and
                int.from_bytes(m[2][4:8], "little") * 10**9 + int.from_bytes(m[2][8:12], "little")
                >= 15 * T.dt_ns(ep.info.dt))
-    sent = publish_all(pubs, [m for m in msgs[:cut] if m[0] != "/slab/scenario"])
+    sent = publish_all(pubs, [m for m in msgs[:cut] if m[0] != "/sep/scenario"])
     time.sleep(1.0)
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)

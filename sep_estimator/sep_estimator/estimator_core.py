@@ -123,7 +123,7 @@ class EstimatorCore:
     def applied(self, j: int, u: np.ndarray) -> gate.Rejection | None:
         """The input the plant applied at step j (0 <= j < N)."""
         if not np.isnan(self.applied_u[j, 0]):
-            return gate.Rejection(gate.DUPLICATE, f'second heat_applied for step {j}')
+            return gate.Rejection(gate.DUPLICATE, f'second applied_input for step {j}')
         self.applied_u[j] = u
         if not self.started:
             return None

@@ -39,6 +39,8 @@ Optional attributes (defaults in brackets)::
                                             (M, n_w) and enters f as the plant decides; the
                                             design then identifies the ROM's noise input map
                                             B_w,k from impulses on w as well (W -> B_w W B_w')
+    frame_id         str   ["sep"]          the frame id of every message about this plant (its
+                                            coordinates' frame), recorded in the design file
     device_capable   bool  [False]          step() also accepts the arrays of a numpy-compatible
                                             GPU module (CuPy) and returns that module's arrays,
                                             never converting to numpy: `--device cuda` may step
@@ -114,6 +116,7 @@ class PlantInfo:
     field_is_state: bool = False
     noise_on_inputs: bool = True
     n_w: int | None = None             # noise channels (None: n_u, noise on the inputs)
+    frame_id: str = "sep"              # frame id of the messages (the plant's optional frame_id)
 
     @classmethod
     def of(cls, plant: Plant) -> "PlantInfo":
@@ -125,7 +128,7 @@ class PlantInfo:
                    grid_shape=None if grid is None else tuple(int(g) for g in grid),
                    field_is_state=bool(getattr(plant, "field_is_state", False)),
                    noise_on_inputs=bool(getattr(plant, "noise_on_inputs", True)),
-                   n_w=noise_channels(plant))
+                   n_w=noise_channels(plant), frame_id=str(getattr(plant, "frame_id", "sep")))
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -151,6 +154,8 @@ class PlantInfo:
             if not isinstance(names, (list, tuple)) or len(names) != n or not all(isinstance(x, str) for x in names):
                 raise ValueError(f"plant description: {key} must be {n} strings, got {names!r}")
             kw[key] = tuple(names)
+        if not isinstance(kw.get("frame_id", "sep"), str) or not kw.get("frame_id", "sep"):
+            raise ValueError(f"plant description: frame_id must be a non-empty string, got {kw.get('frame_id')!r}")
         if kw.get("grid_shape") is not None:
             g = kw["grid_shape"]
             if not isinstance(g, (list, tuple)) or not all(isinstance(x, int) and x > 0 for x in g) \

@@ -1,17 +1,18 @@
 """The topic contract (DESIGN.md §4) as plain data: one definition for the nodes, the recorder
 and the bag reader. No ROS import; `sep_plant.ros.contract` builds the rclpy side from it.
 
-Topics (relative names resolve in the node's namespace, ``slab`` by default; /clock and
-/diagnostics are absolute):
+Topics (relative names resolve in the node's namespace, ``sep`` by default; /clock and
+/diagnostics are absolute). The names say what a topic carries, for every plant:
 
 =======================  ================================  =====================================
 topic                    type                              content
 =======================  ================================  =====================================
 /clock                   rosgraph_msgs/msg/Clock           simulated time k dt (plant)
 measurements             sensor_msgs/msg/JointState        position = y_k; names = the plant's outputs
-heat_command             sensor_msgs/msg/JointState        effort = u_k; names = the plant's inputs
-heat_applied             sensor_msgs/msg/JointState        effort = inputs applied at step k
-state_estimate           sensor_msgs/msg/JointState        position = ROM estimate a_hat_k; a_0..
+command                  sensor_msgs/msg/JointState        effort = u_k; names = the plant's inputs
+applied_input            sensor_msgs/msg/JointState        effort = inputs applied at step k
+state_estimate           sensor_msgs/msg/JointState        position = ROM estimate a_hat_k (a_0..) and
+                                                           disturbance estimate d_hat_k (d_0..)
 field_estimate           sensor_msgs/msg/PointCloud2       x, y, z, <field>, <field>_std
 field                    sensor_msgs/msg/PointCloud2       true field (std 0)
 field_image              sensor_msgs/msg/Image             true field as a 32FC1 image (grid plants)
@@ -21,14 +22,18 @@ scenario                 std_msgs/msg/String               the plant's scenario 
 =======================  ================================  =====================================
 
 Stamps: a message of step k carries header.stamp = k dt on the simulated clock, computed in
-integer nanoseconds as k * round(dt * 1e9) (no float drift over long episodes), frame_id
-``slab``. A received stamp is step k when it lies within `STAMP_TOLERANCE` (0.1 %) of dt of
+integer nanoseconds as k * round(dt * 1e9) (no float drift over long episodes), and the
+plant's frame id (its optional ``frame_id`` attribute, ``sep`` by default). A received stamp is step k when it lies within `STAMP_TOLERANCE` (0.1 %) of dt of
 k dt (250 us at dt = 0.25 s); anything else is rejected as off the step grid.
 
 PointCloud2 layout (fixed; little endian): height 1, width n_field, five FLOAT64 fields
 x, y, z, <field_name>, <field_name>_std at offsets 0, 8, 16, 24, 32 (e.g. temperature,
 temperature_std for the heat plants); point_step 40, row_step 40 n_field, is_dense. x, y, z
 are the node coordinates in metres.
+
+sep 0.1 wrote the slab's names for every plant (namespace ``slab``, topics ``heat_command`` and
+``heat_applied``); `LEGACY_TOPICS` is the one table that maps them, so bags recorded with them
+are read as they always were (`key_of`, `detect_namespace`).
 """
 from __future__ import annotations
 
@@ -36,14 +41,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-NAMESPACE = "slab"
-FRAME_ID = "slab"
+NAMESPACE = "sep"
+#: frame id of every message when the plant declares none (`PlantInfo.frame_id`)
+FRAME_ID = "sep"
 
 CLOCK = "/clock"
 DIAGNOSTICS = "/diagnostics"
 MEASUREMENTS = "measurements"
-HEAT_COMMAND = "heat_command"
-HEAT_APPLIED = "heat_applied"
+COMMAND = "command"
+APPLIED_INPUT = "applied_input"
 STATE_ESTIMATE = "state_estimate"
 FIELD_ESTIMATE = "field_estimate"
 FIELD = "field"
@@ -84,8 +90,8 @@ class TopicSpec:
 TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(CLOCK, CLOCK_TYPE, LOOP, False),
     TopicSpec(MEASUREMENTS, JOINT_STATE, LOOP, True),
-    TopicSpec(HEAT_COMMAND, JOINT_STATE, LOOP, True),
-    TopicSpec(HEAT_APPLIED, JOINT_STATE, LOOP, True),
+    TopicSpec(COMMAND, JOINT_STATE, LOOP, True),
+    TopicSpec(APPLIED_INPUT, JOINT_STATE, LOOP, True),
     TopicSpec(STATE_ESTIMATE, JOINT_STATE, LOOP, True),
     TopicSpec(FIELD_ESTIMATE, POINT_CLOUD2, VIEW, True),
     TopicSpec(FIELD, POINT_CLOUD2, VIEW, True),
@@ -109,12 +115,33 @@ def topic_name(name: str, namespace: str = NAMESPACE) -> str:
     return f"/{ns}/{name}" if ns else f"/{name}"
 
 
+#: sep 0.1's topic names -> the contract's (its namespace was ``slab``)
+LEGACY_TOPICS = {"heat_command": COMMAND, "heat_applied": APPLIED_INPUT}
+LEGACY_NAMESPACE = "slab"
+
+
 def key_of(full_name: str, namespace: str = NAMESPACE) -> str | None:
-    """The contract name ('measurements', '/clock', ...) of a fully qualified topic, or None."""
+    """The contract name ('measurements', '/clock', ...) of a fully qualified topic, or None;
+    sep 0.1's names (`LEGACY_TOPICS`) map to theirs."""
     for t in TOPICS:
         if full_name == topic_name(t.name, namespace):
             return t.name
+    for old, new in LEGACY_TOPICS.items():
+        if full_name == topic_name(old, namespace):
+            return new
     return None
+
+
+def detect_namespace(full_names: list[str] | set[str]) -> str | None:
+    """The namespace of a graph from the topic names it has (a bag's): the one whose
+    ``measurements`` topic is there (the default namespace first, then sep 0.1's, then any
+    other), or None when there is none."""
+    found = sorted(n.rsplit("/", 1)[0].strip("/") for n in full_names
+                   if n.endswith("/" + MEASUREMENTS) and n.count("/") >= 1)
+    for ns in (NAMESPACE, LEGACY_NAMESPACE):
+        if ns in found:
+            return ns
+    return found[0] if found else None
 
 
 def contract_topics(namespace: str = NAMESPACE, names: tuple[str, ...] = RECORDED) -> dict[str, TopicSpec]:

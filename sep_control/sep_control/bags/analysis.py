@@ -12,13 +12,13 @@ resolved on the clouds' node coordinates (`Objective.of(scenario.problem, xyz)`)
 Definitions (everything computed from the bag alone, plus the design for nominal comparisons):
 
 * cost, in_band, rms, mean_dev_start / mean_dev_end: `sep_control.evaluation.metrics` on the recorded
-  true field (the field cloud) and the inputs the plant applied (heat_applied; the commands
-  when the bag has no heat_applied). For one episode mean_dev_* is max_i |f_k,i - fnom_k,i| at
+  true field (the field cloud) and the inputs the plant applied (applied_input; the commands
+  when the bag has no applied_input). For one episode mean_dev_* is max_i |f_k,i - fnom_k,i| at
   the band window's first and last step.
 * coverage_2sigma: share of node-steps k = 1..N (as `montecarlo.simulate`) with
   |f_hat - f| <= 2 std (field_estimate vs field); field_nees: mean of ((f_hat - f) / std)^2
   over node-steps with std > 0 (about 1 for a consistent filter); field_rmse.
-* latency (measurement-to-command): receive time of heat_command k minus receive time of
+* latency (measurement-to-command): receive time of command k minus receive time of
   measurement k, both in the recorder's clock (the bag's log time, which the recorder takes
   from the middleware's reception timestamp), for every k that has both; p50/p99 in seconds.
   The same for the estimate (state_estimate k - measurement k). Receive times include the
@@ -177,14 +177,14 @@ def objective_and_nominal(ep: Episode, design, diff: list[str], notes: list[str]
 
 def latencies(ep: Episode) -> tuple[np.ndarray, np.ndarray]:
     """(command, estimate) latencies [s] per step that has both messages: receive time of
-    heat_command k (state_estimate k) minus that of measurement k."""
+    command k (state_estimate k) minus that of measurement k."""
     sr = ep.step_recv_ns
     meas = sr.get(T.MEASUREMENTS)
     lat_cmd = lat_est = np.zeros(0)
     if meas is None:
         return lat_cmd, lat_est
-    if T.HEAT_COMMAND in sr:
-        d = sr[T.HEAT_COMMAND][:-1] - meas[:-1]
+    if T.COMMAND in sr:
+        d = sr[T.COMMAND][:-1] - meas[:-1]
         lat_cmd = d[np.isfinite(d)] * 1e-9
     if T.STATE_ESTIMATE in sr:
         d = sr[T.STATE_ESTIMATE] - meas
@@ -272,7 +272,7 @@ def _episode_name(bag_path: Path, name: str | None) -> str:
 
 
 def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, allow_truncated: bool = False,
-            namespace: str = T.NAMESPACE, name: str | None = None) -> EpisodeReport:
+            namespace: str | None = None, name: str | None = None) -> EpisodeReport:
     """Metrics and arrays of one bag. `design`: a `Design`, a path to a design file, or None
     (then nominal comparisons are skipped and the objective is the bag's scenario's). A bag of
     another plant than the design raises `AnalysisError` unless `allow_mismatch`."""
@@ -337,7 +337,7 @@ def pooled_control_metrics(full: Sequence[EpisodeReport], obj: Objective, F_nom:
 
 
 def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None, *, allow_mismatch: bool = False,
-              allow_truncated: bool = False, namespace: str = T.NAMESPACE) -> AggregateReport:
+              allow_truncated: bool = False, namespace: str | None = None) -> AggregateReport:
     """Pooled statistics of many episodes, comparable to the offline Monte Carlo table:
     cost mean/std, in-band fraction, mean RMS and mean-trajectory deviations over the runs
     (`metrics.summarize`), 2-sigma coverage over all node-steps, latency percentiles over all

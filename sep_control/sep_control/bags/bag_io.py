@@ -301,10 +301,10 @@ def _read_sqlite(f: Path, want: set[str] | None) -> RawBag:
 
 # --------------------------------------------------------------------------- episode layer
 #: JointState topics and the array that carries their values
-VECTOR_TOPICS = {T.MEASUREMENTS: "position", T.HEAT_COMMAND: "effort", T.HEAT_APPLIED: "effort",
+VECTOR_TOPICS = {T.MEASUREMENTS: "position", T.COMMAND: "effort", T.APPLIED_INPUT: "effort",
                  T.STATE_ESTIMATE: "position"}
 #: per-step topics with one message per input step k = 0..N-1 (the others have k = 0..N)
-INPUT_TOPICS = (T.HEAT_COMMAND, T.HEAT_APPLIED)
+INPUT_TOPICS = (T.COMMAND, T.APPLIED_INPUT)
 IMAGE_TOPICS = tuple(t.name for t in T.TOPICS if t.type_name == T.IMAGE)
 #: topics whose serialized message starts with a stamp (header.stamp, or Clock.clock)
 STAMPED_TOPICS = tuple(t.name for t in T.TOPICS if t.per_step) + (T.CLOCK, T.DIAGNOSTICS)
@@ -332,8 +332,8 @@ class Episode:
     dt: float
     n_steps: int
     y: np.ndarray             # (N+1, n_y)      measurements
-    u_cmd: np.ndarray         # (N, n_u)        heat_command
-    u: np.ndarray             # (N, n_u)        heat_applied
+    u_cmd: np.ndarray         # (N, n_u)        command
+    u: np.ndarray             # (N, n_u)        applied_input
     a_hat: np.ndarray         # (N+1, n_a)      state_estimate (NaN padded; n_a = longest estimate)
     a_dim: np.ndarray         # (N+1,) int      length of the estimate at step k (-1: none)
     F: np.ndarray             # (N+1, n_field)  true field (field cloud)
@@ -641,19 +641,19 @@ def read_vectors(msgs: _Messages, info: PlantInfo | None) -> tuple[dict[str, _Pe
     """The JointState topics per step, and the Episode arrays y, u_cmd, u, a_hat, a_dim (state
     estimates vary in length: the ROM order grows)."""
     n_y, n_u = (None, None) if info is None else (info.n_y, info.n_u)
-    dims = {T.MEASUREMENTS: n_y, T.HEAT_COMMAND: n_u, T.HEAT_APPLIED: n_u, T.STATE_ESTIMATE: None}
+    dims = {T.MEASUREMENTS: n_y, T.COMMAND: n_u, T.APPLIED_INPUT: n_u, T.STATE_ESTIMATE: None}
     vec = {key: read_per_step(msgs, key, functools.partial(joint_values, attr=attr, n=dims[key]))
            for key, attr in VECTOR_TOPICS.items()}
     n_y = n_y if n_y is not None else _longest(vec[T.MEASUREMENTS].values)
-    n_u = n_u if n_u is not None else _longest(vec[T.HEAT_COMMAND].values, vec[T.HEAT_APPLIED].values)
+    n_u = n_u if n_u is not None else _longest(vec[T.COMMAND].values, vec[T.APPLIED_INPUT].values)
     N = msgs.n_steps
     est = vec[T.STATE_ESTIMATE].values
     a_dim = np.full(N + 1, -1, dtype=np.int64)
     for k, v in est.items():
         a_dim[k] = len(v)
     return vec, {"y": stack_rows(vec[T.MEASUREMENTS].values, N + 1, n_y),
-                 "u_cmd": stack_rows(vec[T.HEAT_COMMAND].values, N, n_u),
-                 "u": stack_rows(vec[T.HEAT_APPLIED].values, N, n_u),
+                 "u_cmd": stack_rows(vec[T.COMMAND].values, N, n_u),
+                 "u": stack_rows(vec[T.APPLIED_INPUT].values, N, n_u),
                  "a_hat": stack_rows(est, N + 1, max(int(a_dim.max()), 0)), "a_dim": a_dim}
 
 
@@ -682,12 +682,16 @@ def read_images(msgs: _Messages) -> dict[str, _PerStep]:
 
 
 def read_episode(path: str | Path, scenario: Scenario | None = None, info: PlantInfo | None = None, *,
-                 namespace: str = T.NAMESPACE, allow_truncated: bool = False) -> Episode:
+                 namespace: str | None = None, allow_truncated: bool = False) -> Episode:
     """Read a bag of one episode. The bag's own scenario (and plant description) wins; `scenario`
     and `info` (e.g. a design's) are used when the bag carries none (`info` defaults to
     `scenario.info`, which builds the plant); without either, dt and N are inferred from the
-    stamps. Compare scenarios in `analyze`."""
+    stamps. Compare scenarios in `analyze`. `namespace` None: the bag's own
+    (`sep_plant.topics.detect_namespace`; sep 0.1's ``slab`` names are read through
+    `sep_plant.topics.LEGACY_TOPICS`)."""
     raw, name = _open(path, allow_truncated)
+    if namespace is None:
+        namespace = T.detect_namespace({c.topic for c in raw.connections.values()}) or T.NAMESPACE
     notes = list(raw.notes)
     index, ignored = group_by_topic(raw, namespace)
     msgs = _Messages(raw, _Decoder(raw), index,

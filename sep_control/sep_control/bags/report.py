@@ -30,7 +30,7 @@ from sep_control.evaluation.figures import (band_limits, draw_field, is_map, lin
                                  spread_nodes)
 from sep_plant import topics as T
 
-LATENCY_NOTE = ("latency = receive time of heat_command k minus receive time of measurements k, "
+LATENCY_NOTE = ("latency = receive time of command k minus receive time of measurements k, "
                 "both in the recorder's clock (bag log time)")
 
 

@@ -32,7 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR",
                    help="report directory (default: <BAG>_report for one bag, <parent>/aggregate_report for many)")
     p.add_argument("--json", metavar="PATH", help="write the metrics as JSON (DESIGN.md §3 keys)")
-    p.add_argument("--namespace", default=NAMESPACE, help=f"topic namespace of the graph (default: {NAMESPACE})")
+    p.add_argument("--namespace", default=None,
+                   help=f"topic namespace of the graph (default: the bag's own, found from its measurements topic; "
+                        f"{NAMESPACE} for sep's nodes, slab for bags of sep 0.1)")
     p.add_argument("--allow-mismatch", action="store_true",
                    help="analyse bags of another plant than the design file (flagged in the report)")
     p.add_argument("--allow-truncated", action="store_true",

@@ -5,7 +5,7 @@ The two nodes are the same classes the `estimator` and `lqr` executables run (no
 estimator hands its estimate to the LQR by a direct call in the measurement callback, so the
 heat command is published before anything else happens (state_estimate and field_estimate
 are still published, after the command, for viewers and bags); the LQR tells the estimator
-the command it sent (used if the plant's heat_applied of that step comes late).
+the command it sent (used if the plant's applied_input of that step comes late).
 
 Parameters are those of both nodes (see `estimator --help` and `lqr --help`); ``-p`` on the
 command line applies to both, a params file can address each node (ros_ws/config/lqg.yaml).

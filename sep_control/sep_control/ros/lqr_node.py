@@ -1,12 +1,12 @@
 """`lqr`: the time-varying LQR tracking law (or the ROM-MPC) as a ROS 2 node (DESIGN.md §4).
 
 u_k = clip(ubar_k + K_k a_hat_k, u_min, u_max) for every state estimate a_hat_k received on
-slab/state_estimate, published on slab/heat_command stamped k. With ``controller:=mpc`` the
+state_estimate, published on command stamped k. With ``controller:=mpc`` the
 command is the first move of the box-constrained MPC on the design's ROM (`sep_control.control.mpc`):
 the LQR law itself whenever no limit binds, an OSQP solve when one does, and the clipped LQR
 command when that solve fails or runs past ``mpc_time_budget_s`` (counted on /diagnostics).
 
-No estimate in time: the node watches slab/measurements (only their stamps) to know that step
+No estimate in time: the node watches measurements (only their stamps) to know that step
 k has begun; if no valid estimate of step k arrives within ``estimate_timeout_s`` (steady
 clock) it sends the nominal input ubar_k, logs it and counts a fallback.  An estimate that then
 arrives for that step is counted as late and dropped (the plant already has a command).  Set
@@ -34,7 +34,7 @@ from sep_control.control.mpc import DEFAULT_BUDGET_S, DEFAULT_HORIZON
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/lqr.yaml):
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
-  wait_for_scenario_s (float, 0)   wait for the plant's slab/scenario and check it first
+  wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
   controller (str, lqr)            lqr | mpc (box-constrained MPC on the ROM, input limits planned for)
   mpc_horizon (int, 20)            mpc: horizon H in steps
   mpc_time_budget_s (float, 0.02)  mpc: a QP slower than this falls back to the clipped LQR command
@@ -75,7 +75,7 @@ class LqrNode(DesignedNode):
             self.mpc = RomMPC(d.lqg, d.problem, d.nominal.u, horizon=int(horizon), time_budget_s=float(budget))
             self.log.info(f'mpc: horizon {self.mpc.H}, {self.mpc.H * self.info.n_u} moves, condensed in '
                           f'{fmt_s(steady() - t0)}, QP budget {fmt_s(float(budget))}')
-        self.heaters = list(self.info.input_names)
+        self.input_names = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
         self.u_nom, self.K = d.nominal.u, d.lqg.K
         self.lo, self.hi = d.problem.limits(self.info.n_u)
@@ -87,7 +87,7 @@ class LqrNode(DesignedNode):
         self.fallback_steps: list[int] = []
         self.compute_s = SampleWindow()
         self.on_command = None                         # lqg: tell the estimator the command
-        self.pub_cmd = node.create_publisher(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND, c.LOOP_QOS)
+        self.pub_cmd = node.create_publisher(c.TOPIC_TYPES[c.COMMAND], c.COMMAND, c.LOOP_QOS)
         self.standalone = standalone
         self.timer = None
         if standalone:
@@ -133,7 +133,7 @@ class LqrNode(DesignedNode):
 
     def _send(self, k: int, u: np.ndarray) -> None:
         self.sent[k] = True
-        self.pub_cmd.publish(c.joint_state(k, self.dt, self.heaters, effort=u))
+        self.pub_cmd.publish(c.joint_state(k, self.dt, self.input_names, effort=u, frame_id=self.frame_id))
         if self.on_command is not None:
             self.on_command(k, u)
         if self.timer is not None and k == self.current:

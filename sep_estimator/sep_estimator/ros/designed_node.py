@@ -4,7 +4,7 @@ checks, /diagnostics, the end-of-episode summary, and the spin loop used by the 
 
 ROS-side module (imports rclpy).  A node refuses to start (StartError, exit code 2) when its
 design file is missing, corrupt, or made for another plant than the one given by the
-``scenario_file`` parameter or published by the plant on slab/scenario (latched); the message
+``scenario_file`` parameter or published by the plant on scenario (latched); the message
 names every mismatching value.
 """
 from __future__ import annotations
@@ -77,7 +77,7 @@ class DesignedNode:
         self.design_file = declare(node, 'design_file', '', 'design file written by `design` (required)')
         self.scenario_file = declare(node, 'scenario_file', '',
                                      "optional: refuse to start unless the design matches this "
-                                     "scenario file ('' = check only against slab/scenario)")
+                                     "scenario file ('' = check only against scenario)")
         self.wait_for_scenario_s = declare(node, 'wait_for_scenario_s', 0.0,
                                            'wait this long at start for the plant scenario on '
                                            'slab/scenario (0 = do not wait)', lo=0.0, hi=3600.0)
@@ -89,6 +89,7 @@ class DesignedNode:
             self.design_file, self.scenario_file)
         self.info = self.design.info
         self.dt = self.info.dt
+        self.frame_id = self.info.frame_id
         self.N = self.design.n_steps
         self.dt_ns = c.dt_ns(self.dt)
         self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
@@ -143,7 +144,7 @@ class DesignedNode:
     def publish_diagnostics(self) -> None:
         try:
             self.pub_diag.publish(c.diagnostics(c.stamp(max(self.last_k, 0), self.dt),
-                                                [self.health()]))
+                                                [self.health()], self.frame_id))
         except Exception:  # noqa: BLE001 - context gone during shutdown
             pass
 

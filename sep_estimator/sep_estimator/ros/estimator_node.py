@@ -3,18 +3,18 @@
 A thin node around `sep_estimator.estimator_core.EstimatorCore` (the filter with its episode
 logic: gaps, restarts, late inputs, NIS); here: parameters, topics, message checks, diagnostics.
 
-Subscribes slab/measurements (y_k), slab/heat_applied (inputs the plant applied at step k),
-slab/heat_command (the commanded inputs, used only when the applied ones are late) and
-slab/scenario (checked against the design file); publishes slab/state_estimate (a_hat_k,
-names a_0..a_{n_r-1}), slab/field_estimate (T_nom_k + G_k a_hat_k with its per-node std, the
-contract PointCloud2; for grid plants also slab/field_estimate_image) and /diagnostics. The
+Subscribes measurements (y_k), applied_input (inputs the plant applied at step k),
+command (the commanded inputs, used only when the applied ones are late) and
+scenario (checked against the design file); publishes state_estimate (a_hat_k,
+names a_0..a_{n_r-1}), field_estimate (T_nom_k + G_k a_hat_k with its per-node std, the
+contract PointCloud2; for grid plants also field_estimate_image) and /diagnostics. The
 estimate and field messages are built only while somebody subscribes to them.
 
 Per step: measurement y_k -> ``update(k, y_k - ybar_k)`` (or ``skip(k)`` if the measurement
 is rejected) -> publish the estimate; the time update ``predict(k, u_k - ubar_k)`` runs as
 soon as the applied input of step k arrives, off the measurement-to-command path.
 
-Inputs that arrive late: if y_{k+1} arrives before heat_applied of step k, the filter predicts
+Inputs that arrive late: if y_{k+1} arrives before applied_input of step k, the filter predicts
 with the commanded input of step k if it has it (in a healthy loop it equals the applied one),
 else with the nominal (du = 0); if the applied input then arrives and differs, the estimate is
 corrected exactly (the correction B_k (du_applied - du_used) passed through the update of step
@@ -47,7 +47,7 @@ from sep_estimator.ros.designed_node import DesignedNode, scenario_summary, spin
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/estimator.yaml):
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
-  wait_for_scenario_s (float, 0)   wait for the plant's slab/scenario and check it first
+  wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
   publish_field_estimate (bool, true)
   field_precision (str, auto)      float32: the field reconstruction Phi (g_k a_hat) from a float32
                                    copy of Phi (~1e-7 relative round-off; a half to a third of the
@@ -66,7 +66,7 @@ class EstimatorNode(DesignedNode):
         super().__init__('estimator', design)
         node = self.node
         self.publish_field = declare(node, 'publish_field_estimate', True,
-                                     'publish slab/field_estimate (reconstructed field with std)')
+                                     'publish field_estimate (reconstructed field with std)')
         self.field_precision = declare(node, 'field_precision', 'auto',
                                        'field reconstruction arithmetic: float64, float32 (half the memory '
                                        'traffic on large grids; ~1e-7 relative round-off; messages stay float64), '
@@ -79,9 +79,9 @@ class EstimatorNode(DesignedNode):
         nom = d.nominal
         self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
         self.sensors = list(self.info.output_names)
-        self.heaters = list(self.info.input_names)
+        self.input_names = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r)
-        self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name)
+        self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name, self.frame_id)
         self.on_estimate = on_estimate           # direct hook (lqg): f(k, a_hat (n_r,)) -> None
         self.rej = gate.RejectionLog()
         self.compute_s = SampleWindow()
@@ -91,13 +91,13 @@ class EstimatorNode(DesignedNode):
         self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE], c.FIELD_ESTIMATE, c.FIELD_QOS)
         self.pub_image = (node.create_publisher(c.TOPIC_TYPES[c.FIELD_ESTIMATE_IMAGE], c.FIELD_ESTIMATE_IMAGE,
                                                 c.FIELD_QOS) if self.info.grid_shape else None)
-        # heat_applied before measurements: when both are ready, the executor takes them in
+        # applied_input before measurements: when both are ready, the executor takes them in
         # creation order, so u_k is used before y_{k+1} is processed
-        self.sub_u = node.create_subscription(c.TOPIC_TYPES[c.HEAT_APPLIED], c.HEAT_APPLIED,
+        self.sub_u = node.create_subscription(c.TOPIC_TYPES[c.APPLIED_INPUT], c.APPLIED_INPUT,
                                               self._on_applied, c.LOOP_QOS)
         self.sub_y = node.create_subscription(c.TOPIC_TYPES[c.MEASUREMENTS], c.MEASUREMENTS,
                                               self._on_measurement, c.LOOP_QOS)
-        self.sub_cmd = (node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND,
+        self.sub_cmd = (node.create_subscription(c.TOPIC_TYPES[c.COMMAND], c.COMMAND,
                                                  self._on_command, c.LOOP_QOS)
                         if subscribe_command else None)
         self._warm_up()
@@ -126,7 +126,7 @@ class EstimatorNode(DesignedNode):
         core.field_estimate()
         gate.check_vector(self.sensors, d.nominal.y[0], self.sensors)
         for msg in (c.joint_state(0, self.dt, self.labels, position=a),
-                    c.joint_state(0, self.dt, self.heaters, effort=d.nominal.u[0]),
+                    c.joint_state(0, self.dt, self.input_names, effort=d.nominal.u[0]),
                     self.cloud.build(0, self.dt, f, std)):
             serialize_message(msg)
 
@@ -165,7 +165,7 @@ class EstimatorNode(DesignedNode):
             self.on_estimate(k, a)
         # everything below is for other processes and viewers: built only when somebody listens
         if self.pub_est.get_subscription_count() > 0:
-            self.pub_est.publish(c.joint_state(k, self.dt, self.labels, position=a))
+            self.pub_est.publish(c.joint_state(k, self.dt, self.labels, position=a, frame_id=self.frame_id))
             self.n_estimates_published += 1
         self.compute_s.append(steady() - t_recv)
         cloud = self.publish_field and self.pub_field.get_subscription_count() > 0
@@ -175,31 +175,31 @@ class EstimatorNode(DesignedNode):
             if cloud:
                 self.pub_field.publish(self.cloud.build(k, self.dt, f, std))
             if image:
-                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape))
+                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape, self.frame_id))
         self.core.finish_step()
         if k == self.N:
             self.done = True
 
     def _on_applied(self, msg) -> None:
-        j = self._step_of(msg, 'heat_applied', self.N - 1)
+        j = self._step_of(msg, 'applied_input', self.N - 1)
         if j is None:
             return
-        u, rej = gate.check_vector(msg.name, msg.effort, self.heaters, 'heat_applied effort')
+        u, rej = gate.check_vector(msg.name, msg.effort, self.input_names, 'applied_input effort')
         if rej is None:
             rej = self.core.applied(j, u)
         if rej is not None:
-            self.reject('heat_applied', rej, self.rej, j)
+            self.reject('applied_input', rej, self.rej, j)
 
     def _on_command(self, msg) -> None:
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if j is None or not 0 <= j < self.N:
             return  # the plant gates commands; here they are only a fallback for late inputs
-        u, rej = gate.check_vector(msg.name, msg.effort, self.heaters)
+        u, rej = gate.check_vector(msg.name, msg.effort, self.input_names)
         if rej is None:
             self.note_command(j, u)
 
     def note_command(self, j: int, u: np.ndarray) -> None:
-        """The command of step j (from the LQR in the same process, or heat_command)."""
+        """The command of step j (from the LQR in the same process, or command)."""
         self.core.commanded(j, u)
 
     # -------------------------------------------------------------- report
@@ -265,7 +265,7 @@ class _Process:
 
 def main(argv: list[str] | None = None) -> int:
     opts, args = parse_front('estimator', 'ROM Kalman filter node (sep_estimator): estimates the '
-                          'slab state and field from slab/measurements.', argv, None, PARAMETERS)
+                          'slab state and field from measurements.', argv, None, PARAMETERS)
     limit_blas_threads(1)
     return run_node(lambda a: _Process(opts.executor), sim_time_default(args), 'estimator')
 

@@ -6,7 +6,7 @@ objects. Every node takes its topic names, QoS profiles and message layouts from
 
 QoS, chosen on purpose:
 
-* **Control loop** (measurements, heat_command, heat_applied, state_estimate): RELIABLE,
+* **Control loop** (measurements, command, applied_input, state_estimate): RELIABLE,
   VOLATILE, KEEP_LAST depth 10.  A lost sample would stall a lockstep episode (the plant waits
   for the command of step k) or silently cost a control update; reliability on localhost costs
   nothing measurable (see bench/bench_latency.py).  Depth 10: a subscriber that falls a few
@@ -45,7 +45,7 @@ from std_msgs.msg import Header, String
 
 from sep_plant import topics as T
 from sep_plant.topics import (CLOCK, DIAGNOSTICS, FIELD, FIELD_ESTIMATE, FIELD_ESTIMATE_IMAGE, FIELD_IMAGE,  # noqa: F401
-                     FRAME_ID, HEAT_APPLIED, HEAT_COMMAND, MEASUREMENTS, NAMESPACE, SCENARIO, STATE_ESTIMATE,
+                     FRAME_ID, APPLIED_INPUT, COMMAND, MEASUREMENTS, NAMESPACE, SCENARIO, STATE_ESTIMATE,
                      CloudLayoutError, dt_ns, stamp_ns, topic_name)
 
 _CLASSES = {T.JOINT_STATE: JointState, T.POINT_CLOUD2: PointCloud2, T.IMAGE: Image, T.STRING: String,
@@ -95,8 +95,8 @@ def stamp(k: int, dt: float) -> Time:
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
-def header(k: int, dt: float) -> Header:
-    return Header(stamp=stamp(k, dt), frame_id=FRAME_ID)
+def header(k: int, dt: float, frame_id: str = FRAME_ID) -> Header:
+    return Header(stamp=stamp(k, dt), frame_id=frame_id)
 
 
 def time_ns(t: Time) -> int:
@@ -114,10 +114,11 @@ def clock_msg(k: int, dt: float) -> Clock:
 
 
 # ----------------------------------------------------------------------- JointState
-def joint_state(k: int, dt: float, names: Sequence[str], *, position=None, effort=None) -> JointState:
+def joint_state(k: int, dt: float, names: Sequence[str], *, position=None, effort=None,
+                frame_id: str = FRAME_ID) -> JointState:
     """A JointState of step k: `position` or `effort` filled (the other arrays empty)."""
     msg = JointState()
-    msg.header = header(k, dt)
+    msg.header = header(k, dt, frame_id)
     msg.name = list(names)
     if position is not None:
         msg.position = np.asarray(position, dtype=np.float64).ravel()
@@ -130,15 +131,16 @@ def joint_state(k: int, dt: float, names: Sequence[str], *, position=None, effor
 class CloudBuilder:
     """Builds the contract PointCloud2 of one plant's field (layout fixed once)."""
 
-    def __init__(self, xyz: np.ndarray, field_name: str):
+    def __init__(self, xyz: np.ndarray, field_name: str, frame_id: str = FRAME_ID):
         self.xyz = np.asarray(xyz, dtype=np.float64)
+        self.frame_id = frame_id
         self.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
                        for i, n in enumerate(T.cloud_fields(field_name))]
 
     def build(self, k: int, dt: float, values: np.ndarray, std: np.ndarray | None = None) -> PointCloud2:
         n = self.xyz.shape[0]
         msg = PointCloud2()
-        msg.header = header(k, dt)
+        msg.header = header(k, dt, self.frame_id)
         msg.height = 1
         msg.width = n
         msg.fields = self.fields
@@ -160,11 +162,12 @@ def parse_field_cloud(msg: PointCloud2) -> dict[str, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- images
-def field_image(k: int, dt: float, values: np.ndarray, grid_shape: tuple[int, ...]) -> Image:
+def field_image(k: int, dt: float, values: np.ndarray, grid_shape: tuple[int, ...],
+                frame_id: str = FRAME_ID) -> Image:
     """sensor_msgs/Image 32FC1 of a grid field (the middle slice of a 3-D grid)."""
     img = T.image_of_field(values, grid_shape)
     msg = Image()
-    msg.header = header(k, dt)
+    msg.header = header(k, dt, frame_id)
     msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
     msg.encoding = '32FC1'
     msg.is_bigendian = 0
@@ -188,7 +191,7 @@ class Health:
     """One node's health for /diagnostics."""
 
     name: str                       # e.g. 'sep_plant: plant' (node name)
-    hardware_id: str = 'slab'
+    hardware_id: str = 'sep'
     level: int = 0                  # OK / WARN / ERROR / STALE
     message: str = 'ok'
     values: Mapping[str, object] | None = None
@@ -204,10 +207,10 @@ def _fmt_value(v: object) -> str:
     return str(v)
 
 
-def diagnostics(stamp_time: Time, statuses: Iterable[Health]) -> DiagnosticArray:
+def diagnostics(stamp_time: Time, statuses: Iterable[Health], frame_id: str = FRAME_ID) -> DiagnosticArray:
     """A DiagnosticArray with one DiagnosticStatus per `Health`."""
     arr = DiagnosticArray()
-    arr.header = Header(stamp=stamp_time, frame_id=FRAME_ID)
+    arr.header = Header(stamp=stamp_time, frame_id=frame_id)
     for h in statuses:
         st = DiagnosticStatus()
         st.level = bytes([int(h.level)])

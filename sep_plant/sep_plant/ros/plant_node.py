@@ -1,13 +1,13 @@
 """`plant`: any plant of the plant protocol as a ROS 2 node (DESIGN.md §4); the slab by default.
 
-Publishes /clock (simulated time k*dt), slab/measurements (y_k), slab/heat_applied (u applied
-at step k), slab/field (true field as a PointCloud2 with the nodes' x, y, z), for grid plants
-slab/field_image (32FC1; the middle slice of a 3-D grid), slab/scenario (its scenario and plant
-description as JSON, latched) and /diagnostics; subscribes slab/heat_command.  One episode of N
+Publishes /clock (simulated time k*dt), measurements (y_k), applied_input (u applied
+at step k), field (true field as a PointCloud2 with the nodes' x, y, z), for grid plants
+field_image (32FC1; the middle slice of a 3-D grid), scenario (its scenario and plant
+description as JSON, latched) and /diagnostics; subscribes command.  One episode of N
 steps per process, then exit 0.  The plant is checked against the protocol before step 0.
 
 Per step k = 0..N: publish /clock and y_k = h(x_k) + v_k; if k < N get the command u_k, apply
-clip(u_k), publish it on heat_applied, publish the field f(x_k), x_{k+1} = f(x_k, u, w_k).  The
+clip(u_k), publish it on applied_input, publish the field f(x_k), x_{k+1} = f(x_k, u, w_k).  The
 noise of (seed, run) is run `run` of `noise_sequences(problem, info, seed, runs)`, the numbers the
 offline Monte Carlo uses for that run, so a lockstep episode reproduces it exactly.  The field
 messages are built only while somebody subscribes to them.
@@ -47,9 +47,9 @@ PARAMETERS = """parameters (set with --ros-args -p NAME:=VALUE or --params-file 
   real_time_factor (float, 10)     realtime: steps every dt / real_time_factor  [0.01, 1000]
   seed (int, 0), run (int, 0)      noise = run `run` of the Monte Carlo with seed `seed`
   command_timeout_s (float, 10)    lockstep: wait this long for the command of each step
-  publish_field (bool, true)       publish the true field on slab/field
+  publish_field (bool, true)       publish the true field on field
   wait_for_subscribers (int, 1)    matched measurement subscribers needed before step 0
-  wait_for_field_subscribers (int, 0)  matched slab/field subscribers needed before step 0
+  wait_for_field_subscribers (int, 0)  matched field subscribers needed before step 0
   start_timeout_s (float, 30)      give up (exit 3) if they do not appear in time
   start_delay_s (float, 0.2)       settle time after they appeared (endpoint matching)
   diagnostics_period_s (float, 1)  /diagnostics period (also sent on a rejection, at most 5 Hz)
@@ -118,15 +118,15 @@ class PlantNode:
         w, v = noise_sequences(self.problem, info, p['seed'], [p['run']])
         self.w, self.v = w[0], v[0]
         self.lo, self.hi = self.problem.limits(info.n_u)
-        self.cloud = c.CloudBuilder(plant.field_coordinates(), info.field_name)
-        self.heaters = list(info.input_names)
+        self.cloud = c.CloudBuilder(plant.field_coordinates(), info.field_name, info.frame_id)
+        self.input_names = list(info.input_names)
         self.sensors = list(info.output_names)
         self.dt_ns = c.dt_ns(info.dt)
         self.N = self.problem.n_steps
         self.payload = scenario_payload(scen, info)
 
         self.pub_y = node.create_publisher(c.TOPIC_TYPES[c.MEASUREMENTS], c.MEASUREMENTS, c.LOOP_QOS)
-        self.pub_u = node.create_publisher(c.TOPIC_TYPES[c.HEAT_APPLIED], c.HEAT_APPLIED, c.LOOP_QOS)
+        self.pub_u = node.create_publisher(c.TOPIC_TYPES[c.APPLIED_INPUT], c.APPLIED_INPUT, c.LOOP_QOS)
         self.pub_field = node.create_publisher(c.TOPIC_TYPES[c.FIELD], c.FIELD, c.FIELD_QOS)
         self.pub_image = (node.create_publisher(c.TOPIC_TYPES[c.FIELD_IMAGE], c.FIELD_IMAGE, c.FIELD_QOS)
                           if info.grid_shape else None)
@@ -135,7 +135,7 @@ class PlantNode:
         from diagnostic_msgs.msg import DiagnosticArray
         self.pub_clock = node.create_publisher(Clock, c.CLOCK, c.CLOCK_QOS)
         self.pub_diag = node.create_publisher(DiagnosticArray, c.DIAGNOSTICS, c.DIAGNOSTICS_QOS)
-        self.sub_cmd = node.create_subscription(c.TOPIC_TYPES[c.HEAT_COMMAND], c.HEAT_COMMAND,
+        self.sub_cmd = node.create_subscription(c.TOPIC_TYPES[c.COMMAND], c.COMMAND,
                                                 self._on_command, c.LOOP_QOS)
         self.executor = make_executor(executor)
         self.executor_kind = executor
@@ -179,7 +179,7 @@ class PlantNode:
             rej = gate.check_step(k, expected=self.k, last=self.last_cmd_step, allow_ahead=False)
         u = None
         if rej is None:
-            u, rej = gate.check_vector(msg.name, msg.effort, self.heaters, 'heat_command effort')
+            u, rej = gate.check_vector(msg.name, msg.effort, self.input_names, 'command effort')
         if rej is not None:
             self._reject(rej)
             return
@@ -188,7 +188,7 @@ class PlantNode:
         self.t_cmd[k] = t
 
     def _reject(self, rej: gate.Rejection) -> None:
-        log_rejection(self.log, self.rejections, rej, f'rejected heat_command at step {self.k}')
+        log_rejection(self.log, self.rejections, rej, f'rejected command at step {self.k}')
         if self.diag_throttle.ready():
             self._publish_diagnostics()
 
@@ -201,7 +201,7 @@ class PlantNode:
         if self.Y is not None:
             self.Y[k] = y
             self.F[k] = self.plant.field(x)[0]
-        msg = c.joint_state(k, self.dt, self.sensors, position=y)
+        msg = c.joint_state(k, self.dt, self.sensors, position=y, frame_id=self.info.frame_id)
         self.pub_clock.publish(c.clock_msg(k, self.dt))
         self.t_pub[k] = steady()
         self.pub_y.publish(msg)
@@ -217,7 +217,7 @@ class PlantNode:
             if cloud:
                 self.pub_field.publish(self.cloud.build(k, self.dt, f))
             if image:
-                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape))
+                self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape, self.info.frame_id))
 
     def health(self) -> c.Health:
         lat = percentiles(self._latencies())
@@ -237,7 +237,7 @@ class PlantNode:
 
     def _publish_diagnostics(self) -> None:
         try:
-            self.pub_diag.publish(c.diagnostics(c.stamp(self.k, self.dt), [self.health()]))
+            self.pub_diag.publish(c.diagnostics(c.stamp(self.k, self.dt), [self.health()], self.info.frame_id))
         except Exception:  # noqa: BLE001 - context gone during shutdown
             pass
         self._next_diag = steady() + self.p['diagnostics_period_s']
@@ -261,7 +261,7 @@ class PlantNode:
     def _wait_for_peers(self) -> None:
         need_y, need_f = self.p['wait_for_subscribers'], self.p['wait_for_field_subscribers']
         t_end = steady() + self.p['start_timeout_s']
-        # with subscribers required, also a heat_command publisher (a command sent before
+        # with subscribers required, also a command publisher (a command sent before
         # its writer matched our reader would be lost)
         ok = lambda: (self.pub_y.get_subscription_count() >= need_y
                       and self.pub_field.get_subscription_count() >= need_f
@@ -269,11 +269,11 @@ class PlantNode:
         if need_y or need_f:
             self.log.info(f'waiting for {need_y} measurement subscriber(s)'
                           + (f', {need_f} field subscriber(s)' if need_f else '')
-                          + ' and a heat_command publisher')
+                          + ' and a command publisher')
         if not self._spin_until(t_end, ok):
             raise EpisodeError(
                 f"no controller: {self.pub_y.get_subscription_count()} of {need_y} measurement "
-                f"subscribers, {self.sub_cmd.get_publisher_count()} heat_command publishers and "
+                f"subscribers, {self.sub_cmd.get_publisher_count()} command publishers and "
                 f"{self.pub_field.get_subscription_count()} of {need_f} field "
                 f"subscribers after start_timeout_s = {self.p['start_timeout_s']:g} s "
                 f"(is the estimator/lqg running in namespace {self.node.get_namespace()} with "
@@ -311,7 +311,7 @@ class PlantNode:
                     why = (f'; {self.rejections.total} command(s) rejected, last: {self.rejections.last}'
                            if self.rejections.total else '')
                     raise EpisodeError(
-                        f"lockstep: no valid heat_command stamped step {k} (t = {k * self.dt:g} s) "
+                        f"lockstep: no valid command stamped step {k} (t = {k * self.dt:g} s) "
                         f"within command_timeout_s = {self.p['command_timeout_s']:g} s{why}; is the "
                         f"lqg (or estimator + lqr) running on {self.node.get_namespace()}?")
                 u = self.pending
@@ -320,7 +320,7 @@ class PlantNode:
             self.held = u_app
             if self.U is not None:
                 self.U[k] = u_app
-            self.pub_u.publish(c.joint_state(k, self.dt, self.heaters, effort=u_app))
+            self.pub_u.publish(c.joint_state(k, self.dt, self.input_names, effort=u_app, frame_id=self.info.frame_id))
             self._publish_field(k, x)
             x = self.plant.step(x, u_app[None], self.w[k][None])
         self.k = self.N
