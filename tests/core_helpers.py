@@ -1,6 +1,6 @@
 """Shared helpers for the tests/test_core_*.py tests of the pure numerical core.
 
-Everything here is written from the equations of DESIGN.md §2 and the documented index
+Everything here is written from the equations of docs/method.md and the documented index
 conventions, *not* from the library's internals, so that the tests check the library
 against an independent reference:
 

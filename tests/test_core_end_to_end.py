@@ -1,4 +1,4 @@
-"""End to end: design on a coarse grid meets the band; the reference design meets DESIGN.md."""
+"""End to end: design on a coarse grid meets the band; the reference design meets the reference anchors of docs/method.md."""
 import numpy as np
 import pytest
 
@@ -114,7 +114,7 @@ def reference():
 
 
 def test_reference_design_meets_the_acceptance_numbers(reference):
-    """DESIGN.md §2 anchors / issue 2 acceptance at the shipped defaults (n_x = 100, N = 250)."""
+    """docs/method.md anchors / issue 2 acceptance at the shipped defaults (n_x = 100, N = 250)."""
     d, orc = reference
     assert d.scenario == reference_scenario()
     dev = np.max(np.abs(d.nominal.field[150:] - 150.0))
@@ -131,7 +131,7 @@ def test_reference_design_meets_the_acceptance_numbers(reference):
 def test_reference_rom_matches_long_impulse_experiments(reference):
     """Re-running the identification reproduces the stored ROM and its recorded Markov error,
     and the ROM predicts impulse responses far beyond the identification lags (p + q = 30):
-    lags up to 80 steps (20 s), relative error <= 1e-6 (DESIGN.md: "far below 1e-6")."""
+    lags up to 80 steps (20 s), relative error <= 1e-6 (docs/method.md: "far below 1e-6")."""
     from sep_control.design.pipeline import DesignSettings, identify_rom
     from sep_control.design.tvera import impulse_experiments
 

@@ -46,7 +46,7 @@ def test_residual_form_is_the_nominal_cost():
     U = tiny_U()
     assert np.sum(residual(sim, PROB, U) ** 2) == pytest.approx(
         float(nominal_cost(nominal_states(sim, U), U, OBJ)), rel=1e-12)
-    # and the cost formula itself, written out from DESIGN.md §2
+    # and the cost formula itself, written out from docs/method.md
     T = nominal_states(sim, U)
     q = PROB.q_weights()
     J = sum(q[k] * np.mean((T[k] - 150.0) ** 2) for k in range(1, PROB.n_steps + 1)) + 0.1 * np.sum(U**2)

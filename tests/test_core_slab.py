@@ -24,7 +24,7 @@ def steady_state(s: Slab, tol: float = 1e-11, max_steps: int = 5000) -> np.ndarr
 
 @pytest.mark.parametrize("n_x", [20, 50])
 def test_step_matches_the_discretized_equations(n_x):
-    """One step is the backward-Euler step of DESIGN.md §2 with K frozen at T_k (dense solve)."""
+    """One step is the backward-Euler step of docs/method.md with K frozen at T_k (dense solve)."""
     s = Slab(n_x=n_x)
     sim = s
     rng = np.random.default_rng(1)

@@ -1,5 +1,5 @@
 """The main job's executable on a small scenario: design, plant + lqg (+ record) over topics,
-metrics printed and written as JSON with the DESIGN.md §3 keys."""
+metrics printed and written as JSON with the metrics (docs/method.md)."""
 import json
 import os
 

@@ -1,4 +1,4 @@
-"""The design file: the one place that knows its format (DESIGN.md §5).
+"""The design file: the one place that knows its format (docs/reference/design-file.md).
 
 A design file is a numpy `.npz` archive read with ``allow_pickle=False`` (no code execution on
 load). Member ``meta`` holds a UTF-8 JSON document (format version, the scenario — plant type,

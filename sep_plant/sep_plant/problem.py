@@ -1,7 +1,7 @@
 """The control problem, apart from the plant: horizon, objective, noise, limits, LQG weights.
 
 A `Problem` holds the values of a scenario file's problem keys (every default is the
-reference scenario of DESIGN.md §2). It knows nothing about any particular plant; what depends
+reference scenario of docs/method.md). It knows nothing about any particular plant; what depends
 on the plant's dimensions (per-channel vectors, the target field over the plant's nodes) is
 resolved against a `PlantInfo` and the field coordinates:
 

@@ -173,7 +173,7 @@ def mismatches(a: Scenario, b: Scenario) -> list[str]:
 
 @functools.lru_cache(maxsize=1)
 def reference() -> Scenario:
-    """The shipped reference scenario (DESIGN.md §2): the slab with every default."""
+    """The shipped reference scenario (docs/method.md): the slab with every default."""
     return Scenario().canonical()
 
 

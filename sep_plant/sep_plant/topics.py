@@ -1,4 +1,4 @@
-"""The topic contract (DESIGN.md §4) as plain data: one definition for the nodes, the recorder
+"""The topic contract (docs/reference/topics.md) as plain data: one definition for the nodes, the recorder
 and the bag reader. No ROS import; `sep_plant.ros.contract` builds the rclpy side from it.
 
 Topics (relative names resolve in the node's namespace, ``sep`` by default; /clock and

@@ -1,4 +1,4 @@
-"""Recorded-bag analysis (Python API): DESIGN.md §3 metrics from rosbag2 bags of the topic graph.
+"""Recorded-bag analysis (Python API): metrics (docs/method.md) from rosbag2 bags of the topic graph.
 
     rep = analyze("episode_bag", design="design.npz")    # one episode
     rep.metrics["in_band"], rep.episode.F, rep.err ...

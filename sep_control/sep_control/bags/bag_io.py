@@ -9,7 +9,7 @@ crash), or a lone ``.mcap`` / ``.db3`` file. The storage file is parsed directly
   the end of the file marks the bag as *truncated* and what came before is kept.
 * sqlite3: the rosbag2 schema (``topics`` and ``messages`` tables) through the sqlite3 module.
 
-`read_episode` turns the contract topics (`sep_plant.topics`, DESIGN.md §4) of any plant into
+`read_episode` turns the contract topics (`sep_plant.topics`, docs/reference/topics.md) of any plant into
 an `Episode`: per-step arrays indexed by the step k of header.stamp (`topics.steps_of_stamps`,
 one tolerance for the whole product), per-topic receive times (the bag's log time, i.e. the
 recorder's clock) and header stamps, the last diagnostics values, and the plant's scenario

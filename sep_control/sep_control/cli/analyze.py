@@ -1,6 +1,6 @@
 """`analyze BAG... [--design FILE] [--out DIR] [--json PATH]`: report on recorded episodes.
 
-Any plant: one bag gives its DESIGN.md §3 metrics and the paper's figures (lines for 1-D
+Any plant: one bag gives its metrics (docs/method.md) and the paper's figures (lines for 1-D
 plants, heat maps for grid plants, a frame of the image topic when the bag has one); several
 bags (e.g. 50 seeded episodes) give one row per episode plus pooled statistics comparable to
 the offline Monte Carlo table. Without --design the objective is the bag's own scenario's and
@@ -23,7 +23,7 @@ EXIT_BAD_INPUT = 2
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="analyze",
-        description="Analyse rosbag2 bags recorded from the sep topic graph: DESIGN.md §3 metrics, "
+        description="Analyse rosbag2 bags recorded from the sep topic graph: metrics (docs/method.md), "
                     "Markdown report with figures, optional JSON. Works for any plant of the plant protocol.")
     p.add_argument("bags", nargs="+", metavar="BAG",
                    help="bag directory (metadata.yaml + .mcap/.db3) or a lone .mcap/.db3 file")
@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="design file (.npz): its objective and nominal (default: the bag's scenario, no nominal)")
     p.add_argument("--out", metavar="DIR",
                    help="report directory (default: <BAG>_report for one bag, <parent>/aggregate_report for many)")
-    p.add_argument("--json", metavar="PATH", help="write the metrics as JSON (DESIGN.md §3 keys)")
+    p.add_argument("--json", metavar="PATH", help="write the metrics as JSON (metrics (docs/method.md))")
     p.add_argument("--namespace", default=None,
                    help=f"topic namespace of the graph (default: the bag's own, found from its measurements topic; "
                         f"{NAMESPACE} for sep's nodes, slab for bags of sep 0.1)")

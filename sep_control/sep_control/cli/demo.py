@@ -1,6 +1,6 @@
 """`demo`: the main job. Design (or reuse a matching design file), run plant + lqg over ROS 2
 topics for one full episode (lockstep, faster than real time, by default), record a bag, and
-print the closed-loop metrics of the episode (DESIGN.md §3 keys; ``--json PATH`` too) and
+print the closed-loop metrics of the episode (metrics (docs/method.md); ``--json PATH`` too) and
 where the report is.
 
 The nodes run as separate processes from the install space, resolved like `ros2 run` does
@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--three', action='store_true', help='run estimator and lqr as two processes instead of lqg')
     p.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID (default: a random free-ish id in 1..101)')
     p.add_argument('--timeout', type=float, default=600.0, help='give up after this many seconds')
-    p.add_argument('--json', metavar='PATH', help='write the episode metrics as JSON (DESIGN.md §3 keys)')
+    p.add_argument('--json', metavar='PATH', help='write the episode metrics as JSON (metrics (docs/method.md))')
     return p
 
 

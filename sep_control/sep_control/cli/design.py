@@ -22,7 +22,7 @@ protocol through --scenario) from the black-box simulator only:
   3. design the time-varying LQR and Kalman filter on the ROM,
 and write everything to one design file (.npz, read without pickles).
 
-With no --scenario the shipped reference scenario (DESIGN.md §2) is used. The plant is
+With no --scenario the shipped reference scenario (docs/method.md) is used. The plant is
 checked against the plant protocol first (exit 2 with what to fix).
 Examples: design --out out/design.npz
           design --scenario sep_plant/scenarios/plate.yaml --out out/plate.npz

@@ -25,7 +25,7 @@ Monte Carlo evaluation of a design on the nonlinear plant with process and senso
 Every controller sees the same random numbers (run i of seed s is the episode a plant node
 started with seed=s, run=i plays). Controllers: open_loop (nominal input), rom_lqg (the
 design's LQG), oracle_lqg (the same LQG on full-order finite-difference Jacobians; only where
-n_x <= --oracle-max-nx, since it costs n_x^2 N memory and n_x^3 N time). Prints the DESIGN.md §3
+n_x <= --oracle-max-nx, since it costs n_x^2 N memory and n_x^3 N time). Prints the docs/method.md
 metrics; --json writes them, --figures the paper's figures as PNG (heat maps for grid plants);
 --sweep adds the ROM-order sweep (n_r = 5, 10, 20, 40). The plant is rebuilt from the design
 file's scenario.

@@ -58,7 +58,7 @@ PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6}
 
 @dataclass
 class DesignSettings:
-    """Knobs of the offline design (defaults: DESIGN.md)."""
+    """Knobs of the offline design (defaults: docs/reference/cli.md)."""
     method: str = "gn"              # "gn" (Levenberg-Marquardt) or "gd" (paper's gradient descent)
     jacobian: str = "auto"          # "sensitivity" (N n_u experiments), "rom" (TV-ERA model), "auto": the cheaper
     belief: bool = True             # refine the mean-only optimum in belief space

@@ -1,4 +1,4 @@
-"""DESIGN.md §3 metrics, shared by evaluation, benchmarks and bag analysis.
+"""metrics (docs/method.md), shared by evaluation, benchmarks and bag analysis.
 
 Arrays are batched: a leading run axis is optional everywhere. Field trajectories are
 F (..., N+1, n_field) for k = 0..N, inputs U (..., N, n_u) for k = 0..N-1; the objective
@@ -15,7 +15,7 @@ import numpy as np
 
 from sep_plant.problem import Objective
 
-#: keys of the machine-readable results (DESIGN.md §3); mean_dev_start/end: at the band
+#: keys of the machine-readable results (docs/method.md); mean_dev_start/end: at the band
 #: window's first and last step
 JSON_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "n_runs",
              "coverage_2sigma", "deadline_misses", "rejected_messages", "latency_p50_s", "latency_p99_s")

@@ -43,7 +43,7 @@ class MonteCarloResult:
     F_std: np.ndarray      # (N+1, n_field) its per-node std (same for every run)
     F_mean: np.ndarray     # (N+1, n_field) mean true field over all runs
     coverage_2sigma: float  # over all runs, nodes and steps k >= 1
-    summary: dict          # DESIGN.md §3 metrics over all runs (streamed, see MetricsAccumulator)
+    summary: dict          # metrics (docs/method.md) over all runs (streamed, see MetricsAccumulator)
 
     def metrics(self) -> dict:
         return dict(self.summary)

@@ -1,4 +1,4 @@
-"""`lqr`: the time-varying LQR tracking law (or the ROM-MPC) as a ROS 2 node (DESIGN.md §4).
+"""`lqr`: the time-varying LQR tracking law (or the ROM-MPC) as a ROS 2 node (docs/reference/topics.md).
 
 u_k = clip(ubar_k + K_k a_hat_k, u_min, u_max) for every state estimate a_hat_k received on
 state_estimate, published on command stamped k. With ``controller:=mpc`` the

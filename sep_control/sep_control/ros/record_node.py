@@ -344,7 +344,7 @@ def make_recorder_node(sink: BagSink, topics: dict[str, tuple[str, bool]] | None
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="record",
-        description="Record the sep topic graph (DESIGN.md §4) into a rosbag2 bag with the Jazzy message "
+        description="Record the sep topic graph (docs/reference/topics.md) into a rosbag2 bag with the Jazzy message "
                     "definitions. ROS arguments go after --ros-args.")
     p.add_argument("--out", required=True, metavar="BAG_DIR", help="bag directory to create (must not exist)")
     p.add_argument("--topics", nargs="+", metavar="T",

@@ -1,4 +1,4 @@
-"""`estimator`: the time-varying Kalman filter on the ROM as a ROS 2 node (DESIGN.md §4).
+"""`estimator`: the time-varying Kalman filter on the ROM as a ROS 2 node (docs/reference/topics.md).
 
 A thin node around `sep_estimator.estimator_core.EstimatorCore` (the filter with its episode
 logic: gaps, restarts, late inputs, NIS); here: parameters, topics, message checks, diagnostics.

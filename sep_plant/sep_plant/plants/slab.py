@@ -28,7 +28,7 @@ from sep_plant.plants.backend import DeviceConstants, namespace
 
 
 class SlabPlant:
-    """The heat slab of DESIGN.md §2 (the plant protocol of `sep_plant.protocol`)."""
+    """The heat slab of docs/method.md (the plant protocol of `sep_plant.protocol`)."""
 
     field_name = "temperature"
     field_unit = "F"

@@ -1,4 +1,4 @@
-"""`plant`: any plant of the plant protocol as a ROS 2 node (DESIGN.md §4); the slab by default.
+"""`plant`: any plant of the plant protocol as a ROS 2 node (docs/reference/topics.md); the slab by default.
 
 Publishes /clock (simulated time k*dt), measurements (y_k), applied_input (u applied
 at step k), field (true field as a PointCloud2 with the nodes' x, y, z), for grid plants
