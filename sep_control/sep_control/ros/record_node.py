@@ -50,8 +50,11 @@ import threading
 import time
 from pathlib import Path
 
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from sep_control.bags.writer import BagSink
 from sep_plant import topics as T
@@ -234,8 +237,6 @@ def _stop_reason(args: argparse.Namespace, sink: BagSink, now: float, t0: float)
 def _record(node: Recorder, sink: BagSink, args: argparse.Namespace, stop: threading.Event) -> str | None:
     """Spin `node` until a stop condition (None: stopped by a signal); writes --ready-file
     once the awaited topics are matched."""
-    from rclpy.executors import SingleThreadedExecutor
-
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     t0 = time.monotonic()
@@ -266,10 +267,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: error: {out} exists already; choose a new bag directory", file=sys.stderr)
         return EXIT_BAD_INPUT
     topics = _requested_topics(args)
-
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
     stop = threading.Event()
     signalled: list[str] = []
 
