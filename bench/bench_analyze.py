@@ -12,7 +12,7 @@
     python bench/bench_analyze.py                      # both parts
     python bench/bench_analyze.py --skip-recorder --bags 50
     python bench/bench_analyze.py --skip-recorder --bags 2          # smoke run
-    python bench/bench_analyze.py --skip-analysis --rtf 10 --repeats 2
+    python bench/bench_analyze.py --skip-analysis --real-time-factor 10 --repeats 2
 """
 from __future__ import annotations
 
@@ -166,18 +166,23 @@ def main() -> None:
     ap.add_argument("--skip-analysis", action="store_true")
     ap.add_argument("--skip-recorder", action="store_true")
     ap.add_argument("--design", help="design file for the real-time part (reference scenario)")
-    ap.add_argument("--rtf", type=float, default=10.0, help="plant real_time_factor (default 10: 25 ms steps)")
+    ap.add_argument("--real-time-factor", type=float, default=10.0,
+                    help="plant real_time_factor (default 10: 25 ms steps)")
+    ap.add_argument("--rtf", type=float, default=None, help=argparse.SUPPRESS)     # old spelling
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--grid", default="40x30", help="grid of the synthetic 2-D plant bag (default 40x30)")
     ap.add_argument("--rt-scenario", default="n_x=100,n_steps=250",
                     help="scenario designed on the fly when --design is not given (default: the reference grid)")
     args = ap.parse_args()
+    if args.rtf is not None:
+        print("bench_analyze: --rtf is deprecated; use --real-time-factor", file=sys.stderr)
+        args.real_time_factor = args.rtf
     with tempfile.TemporaryDirectory(prefix="bench_analyze_") as tmp:
         work = Path(tmp)
         if not args.skip_analysis:
             bench_analysis(args.bags, work, tuple(int(n) for n in args.grid.split("x")))
         if not args.skip_recorder:
-            bench_recorder(work, args.design, args.rtf, args.repeats, args.rt_scenario)
+            bench_recorder(work, args.design, args.real_time_factor, args.repeats, args.rt_scenario)
 
 
 if __name__ == "__main__":

@@ -82,9 +82,10 @@ def main() -> None:
         U_run0: dict = {}
         evaluate(lim, d_lim, args.runs, args.horizon, f"u in [{args.u_min:g}, {args.u_max:g}]", rows, U_run0)
         lo, hi = lim.problem.limits(d_lim.info.n_u)
-        path = figures.fig_inputs_limits(Path(args.figures) / "inputs_vs_limits.png", d_lim.info, d_lim.nominal.u,
-                                         {"LQG + clip": U_run0["rom_lqg"], "ROM-MPC": U_run0["rom_mpc"]}, lo, hi,
-                                         d_lim.objective.window)
+        path = figures.inputs_vs_limits_figure(Path(args.figures) / "inputs_vs_limits.png", d_lim.info,
+                                               d_lim.nominal.u,
+                                               {"LQG + clip": U_run0["rom_lqg"], "ROM-MPC": U_run0["rom_mpc"]}, lo, hi,
+                                               d_lim.objective.window)
         margin_rows = {}
         for c in args.margins:
             d_m, t_m = design(lim, limit_margin=c)

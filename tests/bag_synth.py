@@ -8,6 +8,11 @@
 `write_bag` serializes an episode with the Jazzy typestore exactly in the contract layout and
 writes a rosbag2 bag with rosbags' Writer. Receive (log) times are synthetic and known, so
 latencies are known exactly.
+
+Topic names: the contract's (namespace ``sep``, ``command``, ``applied_input``, frame id ``sep``)
+by default; ``naming="sep01"`` writes the same messages under sep 0.1's names (namespace
+``slab``, ``heat_command``, ``heat_applied``, frame id ``slab``), as the real bag
+tests/data/bag_sep01 has them.
 """
 from __future__ import annotations
 
@@ -16,7 +21,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
@@ -35,8 +40,32 @@ LAT_EST_NS = 300_000                 # measurement k -> state_estimate k / field
 
 SMALL_PLANT = {"n_x": 20}
 SMALL_PROBLEM = {"n_steps": 40, "band_window": (24, 40), "lqr_k_switch": 19}
-#: full topic name -> ROS type of every contract topic (namespace slab)
+#: full topic name -> ROS type of every contract topic (namespace sep)
 TYPES = {name: spec.type_name for name, spec in T.contract_topics().items()}
+
+#: sep 0.1's naming, spelled out here (not taken from `topics.LEGACY_TOPICS`) so that the tests
+#: check the reader's table against what sep 0.1 wrote (tests/data/bag_sep01: these names)
+SEP01_NAMESPACE = "slab"
+SEP01_TOPICS = {T.COMMAND: "heat_command", T.APPLIED_INPUT: "heat_applied"}
+SEP01_FRAME_ID = "slab"
+NAMINGS = ("current", "sep01")
+
+
+def topic_namer(naming: str = "current") -> Callable[[str], str]:
+    """contract key -> full topic name in the given naming ('current' or 'sep01')."""
+    if naming == "current":
+        return T.topic_name
+    if naming != "sep01":
+        raise ValueError(f"naming must be one of {NAMINGS}, got {naming!r}")
+    return lambda key: T.topic_name(SEP01_TOPICS.get(key, key), SEP01_NAMESPACE)
+
+
+def frame_id_of(naming: str = "current") -> str:
+    return SEP01_FRAME_ID if naming == "sep01" else T.FRAME_ID
+
+
+#: full topic name -> ROS type in either naming
+ALL_TYPES = {**TYPES, **{topic_namer("sep01")(spec.name): spec.type_name for spec in T.TOPICS}}
 
 
 def small_scenario(**kw) -> Scenario:
@@ -176,34 +205,35 @@ def _stamp(ns: int):
     return TS.types["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
-def _header(ns: int):
-    return TS.types["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id=T.FRAME_ID)
+def _header(ns: int, frame_id: str = T.FRAME_ID):
+    return TS.types["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id=frame_id)
 
 
-def joint_state(ns: int, names, position=(), effort=()) -> bytes:
+def joint_state(ns: int, names, position=(), effort=(), frame_id: str = T.FRAME_ID) -> bytes:
     JS = TS.types[T.JOINT_STATE]
-    msg = JS(header=_header(ns), name=list(names), position=np.asarray(position, float),
+    msg = JS(header=_header(ns, frame_id), name=list(names), position=np.asarray(position, float),
              velocity=np.zeros(0), effort=np.asarray(effort, float))
     return TS.serialize_cdr(msg, T.JOINT_STATE)
 
 
-def cloud(ns: int, field_name: str, xyz: np.ndarray, values: np.ndarray, std: np.ndarray) -> bytes:
+def cloud(ns: int, field_name: str, xyz: np.ndarray, values: np.ndarray, std: np.ndarray,
+          frame_id: str = T.FRAME_ID) -> bytes:
     PC = TS.types[T.POINT_CLOUD2]
     PF = TS.types["sensor_msgs/msg/PointField"]
     pf = [PF(name=n, offset=8 * i, datatype=T.FLOAT64, count=1) for i, n in enumerate(T.cloud_fields(field_name))]
     n = xyz.shape[0]
     data = np.frombuffer(T.cloud_payload(xyz, values, std), dtype=np.uint8)
-    msg = PC(header=_header(ns), height=1, width=n, fields=pf, is_bigendian=False, point_step=T.POINT_STEP,
+    msg = PC(header=_header(ns, frame_id), height=1, width=n, fields=pf, is_bigendian=False, point_step=T.POINT_STEP,
              row_step=T.POINT_STEP * n, data=data, is_dense=True)
     return TS.serialize_cdr(msg, T.POINT_CLOUD2)
 
 
-def image(ns: int, values: np.ndarray, grid_shape: tuple[int, ...]) -> bytes:
+def image(ns: int, values: np.ndarray, grid_shape: tuple[int, ...], frame_id: str = T.FRAME_ID) -> bytes:
     """A 32FC1 sensor_msgs/Image of a grid field (as `sep_plant.ros.contract.field_image`)."""
     img = T.image_of_field(values, grid_shape)
     h, w = img.shape
-    msg = TS.types[T.IMAGE](header=_header(ns), height=h, width=w, encoding="32FC1", is_bigendian=0, step=4 * w,
-                            data=np.frombuffer(img.astype("<f4").tobytes(), dtype=np.uint8))
+    msg = TS.types[T.IMAGE](header=_header(ns, frame_id), height=h, width=w, encoding="32FC1", is_bigendian=0,
+                            step=4 * w, data=np.frombuffer(img.astype("<f4").tobytes(), dtype=np.uint8))
     return TS.serialize_cdr(msg, T.IMAGE)
 
 
@@ -211,12 +241,12 @@ def clock(ns: int) -> bytes:
     return TS.serialize_cdr(TS.types[T.CLOCK_TYPE](clock=_stamp(ns)), T.CLOCK_TYPE)
 
 
-def diagnostics(ns: int, values: dict, step: int, name="plant") -> bytes:
+def diagnostics(ns: int, values: dict, step: int, name="plant", frame_id: str = T.FRAME_ID) -> bytes:
     D = TS.types
     st = D["diagnostic_msgs/msg/DiagnosticStatus"](
         level=0, name=name, message="ok", hardware_id="slab",
         values=[D["diagnostic_msgs/msg/KeyValue"](key=kk, value=str(v)) for kk, v in {**values, "step": step}.items()])
-    arr = D[T.DIAGNOSTIC_ARRAY](header=_header(ns), status=[st])
+    arr = D[T.DIAGNOSTIC_ARRAY](header=_header(ns, frame_id), status=[st])
     return TS.serialize_cdr(arr, T.DIAGNOSTIC_ARRAY)
 
 
@@ -232,14 +262,16 @@ def _qos(transient=False):
 
 
 def episode_messages(ep: SynthEpisode, skip=(), extra_topics=False,
-                     stamp_shift_ns: Mapping[tuple[str, int], int] | None = None):
+                     stamp_shift_ns: Mapping[tuple[str, int], int] | None = None, naming: str = "current"):
     """[(topic, log_time_ns, cdr bytes)] of one episode in receive order. `stamp_shift_ns`:
-    {(contract key, k): ns} moves the header stamp of that message off k dt."""
+    {(contract key, k): ns} moves the header stamp of that message off k dt. `naming`:
+    'current' or 'sep01' (topic names and frame id; `skip` takes names of that naming)."""
     info = ep.info
     N = ep.scenario.problem.n_steps
     step = T.dt_ns(info.dt)
     shift = dict(stamp_shift_ns or {})
-    name = T.topic_name
+    name = topic_namer(naming)
+    fid = frame_id_of(naming)
 
     def st(key, k):
         return k * step + shift.get((key, k), 0)
@@ -249,43 +281,48 @@ def episode_messages(ep: SynthEpisode, skip=(), extra_topics=False,
         t = T0_NS + k * step
         out.append((T.CLOCK, t - 10_000, clock(st(T.CLOCK, k))))
         out.append((name(T.FIELD), t - 5_000, cloud(st(T.FIELD, k), info.field_name, ep.xyz, ep.F[k],
-                                                     np.zeros(info.n_field))))
+                                                     np.zeros(info.n_field), fid)))
         if ep.images:
-            out.append((name(T.FIELD_IMAGE), t - 4_000, image(st(T.FIELD_IMAGE, k), ep.F[k], info.grid_shape)))
-        out.append((name(T.MEASUREMENTS), t, joint_state(st(T.MEASUREMENTS, k), info.output_names, position=ep.y[k])))
+            out.append((name(T.FIELD_IMAGE), t - 4_000, image(st(T.FIELD_IMAGE, k), ep.F[k], info.grid_shape, fid)))
+        out.append((name(T.MEASUREMENTS), t, joint_state(st(T.MEASUREMENTS, k), info.output_names, position=ep.y[k],
+                                                         frame_id=fid)))
         out.append((name(T.STATE_ESTIMATE), t + LAT_EST_NS,
                     joint_state(st(T.STATE_ESTIMATE, k), [f"a_{i}" for i in range(len(ep.a_hat[k]))],
-                                position=ep.a_hat[k])))
+                                position=ep.a_hat[k], frame_id=fid)))
         out.append((name(T.FIELD_ESTIMATE), t + LAT_EST_NS + 1000,
-                    cloud(st(T.FIELD_ESTIMATE, k), info.field_name, ep.xyz, ep.F_hat[k], ep.F_std[k])))
+                    cloud(st(T.FIELD_ESTIMATE, k), info.field_name, ep.xyz, ep.F_hat[k], ep.F_std[k], fid)))
         if ep.images:
             out.append((name(T.FIELD_ESTIMATE_IMAGE), t + LAT_EST_NS + 2000,
-                        image(st(T.FIELD_ESTIMATE_IMAGE, k), ep.F_hat[k], info.grid_shape)))
+                        image(st(T.FIELD_ESTIMATE_IMAGE, k), ep.F_hat[k], info.grid_shape, fid)))
         if k < N:
             out.append((name(T.COMMAND), t + LAT_CMD_NS,
-                        joint_state(st(T.COMMAND, k), info.input_names, effort=ep.u_cmd[k])))
+                        joint_state(st(T.COMMAND, k), info.input_names, effort=ep.u_cmd[k], frame_id=fid)))
             out.append((name(T.APPLIED_INPUT), t + LAT_CMD_NS + 50_000,
-                        joint_state(st(T.APPLIED_INPUT, k), info.input_names, effort=ep.u[k])))
+                        joint_state(st(T.APPLIED_INPUT, k), info.input_names, effort=ep.u[k], frame_id=fid)))
         if k % 10 == 0 or k == N:
             frac = k / N
             out.append((T.DIAGNOSTICS, t + 900_000,
-                        diagnostics(st(T.DIAGNOSTICS, k), {kk: int(round(v * frac)) for kk, v in ep.diag.items()}, k)))
+                        diagnostics(st(T.DIAGNOSTICS, k), {kk: int(round(v * frac)) for kk, v in ep.diag.items()}, k,
+                                    frame_id=fid)))
         if extra_topics:
             out.append(("/rosout_like/extra", t + 1, string(f"noise {k}")))
-            out.append(("/sep/unknown", t + 2, string("x")))
+            out.append((T.topic_name("unknown", SEP01_NAMESPACE if naming == "sep01" else T.NAMESPACE), t + 2,
+                        string("x")))
     return [(tp, ns, bytes(d)) for tp, ns, d in out if tp not in skip]
 
 
 def write_messages(path: Path, msgs, storage="mcap", chunk_after: str | None = None) -> Path:
-    """Write [(topic, log time, cdr)] as a rosbag2 bag; `chunk_after`: close an MCAP chunk after
-    every message of that topic (as the recorder's periodic flushes do)."""
+    """Write [(topic, log time, cdr)] as a rosbag2 bag (contract topics of either naming get their
+    contract type, others std_msgs/String); `chunk_after`: close an MCAP chunk after every
+    message of that topic (as the recorder's periodic flushes do)."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
         conns = {}
         for topic, _t, _d in msgs:
             if topic not in conns:
-                conns[topic] = w.add_connection(topic, TYPES.get(topic, T.STRING), typestore=TS,
-                                                offered_qos_profiles=[_qos(topic == T.topic_name(T.SCENARIO))])
+                transient = topic in (topic_namer(n)(T.SCENARIO) for n in NAMINGS)
+                conns[topic] = w.add_connection(topic, ALL_TYPES.get(topic, T.STRING), typestore=TS,
+                                                offered_qos_profiles=[_qos(transient)])
         for topic, t, data in msgs:
             w.write(conns[topic], t, data)
             if chunk_after is not None and storage == "mcap" and topic == chunk_after:
@@ -294,11 +331,12 @@ def write_messages(path: Path, msgs, storage="mcap", chunk_after: str | None = N
 
 
 def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topics=False,
-              chunk_per_step=False, stamp_shift_ns=None) -> Path:
+              chunk_per_step=False, stamp_shift_ns=None, naming: str = "current") -> Path:
     """Write `ep` as a bag; chunk_per_step: close an MCAP chunk after every step (as the
-    recorder's periodic flushes do), so a cut file keeps every earlier step."""
-    msgs = episode_messages(ep, skip=skip, extra_topics=extra_topics, stamp_shift_ns=stamp_shift_ns)
-    return write_messages(path, msgs, storage, T.topic_name(T.APPLIED_INPUT) if chunk_per_step else None)
+    recorder's periodic flushes do), so a cut file keeps every earlier step. `naming`: the
+    contract's topic names ('current') or sep 0.1's ('sep01')."""
+    msgs = episode_messages(ep, skip=skip, extra_topics=extra_topics, stamp_shift_ns=stamp_shift_ns, naming=naming)
+    return write_messages(path, msgs, storage, topic_namer(naming)(T.APPLIED_INPUT) if chunk_per_step else None)
 
 
 def fake_design(ep: SynthEpisode, n_r: int = 4):

@@ -1,5 +1,6 @@
 """analyze / aggregate / analyze CLI / report on synthetic contract bags with known metrics: the slab,
-a sep 0.1 slab bag and a 2-D grid plant (heat-map figures, the image topic rendered)."""
+sep 0.1 slab bags (its scenario payload, its topic names) and a 2-D grid plant (heat-map figures,
+the image topic rendered); the progress hook in run-steps."""
 from __future__ import annotations
 
 import json
@@ -16,8 +17,9 @@ from bag_synth import (LAT_CMD_NS, LAT_EST_NS, fake_design, grid_episode, legacy
 from sep_control.evaluation import metrics as M
 from sep_control.bags.analysis import AnalysisError, aggregate, analyze
 from sep_control.cli.analyze import main as cli
-from sep_control.bags.bag_io import BagError
-from sep_control.bags.report import render_image_frame, write_report
+from sep_control.bags.figures import render_image_frame
+from sep_control.bags.report import write_report
+from sep_control.bags.storage import BagError
 from sep_estimator.design_file import save_design
 from sep_plant import topics as T
 
@@ -200,6 +202,46 @@ def test_old_sep01_bag_analysed(setup, tmp_path):
     assert (out / "field.png").stat().st_size > 0 and (out / "estimation.png").stat().st_size > 0
 
 
+@pytest.mark.parametrize("payload", ["current", "sep01"])
+def test_both_namings_give_identical_metrics(setup, tmp_path, payload):
+    """eps[0] written with sep 0.1's topic names (slab, heat_command, heat_applied; with its flat
+    scenario JSON too for payload sep01) has exactly the metrics of the contract-named bag, with
+    and without the design, alone and pooled; the report speaks of `command`."""
+    d, eps, bags, dpath = setup
+    ep = legacy_episode(small_scenario(), seed=0) if payload == "sep01" else eps[0]
+    old = write_bag(tmp_path / "ep0", ep, naming="sep01")        # same name as bags[0]: same table rows
+    for dsg in (dpath, None):
+        new_rep, old_rep = analyze(bags[0], dsg), analyze(old, dsg)
+        assert old_rep.metrics == new_rep.metrics, dsg
+        assert not old_rep.notes and not old_rep.mismatch and old_rep.episode.scenario_source == "bag"
+        np.testing.assert_array_equal(old_rep.err, new_rep.err)
+    assert analyze(old, dpath).metrics["cost_mean"] == expected(eps[0], fake_design(eps[0]))["cost_mean"]
+    mixed = aggregate([old, *bags[1:]], dpath)
+    assert mixed.metrics == aggregate(bags, dpath).metrics
+    md = write_report(analyze(old, dpath), tmp_path / "rep", figures=False).read_text()
+    assert "receive time of command k" in md and "heat_" not in md
+
+
+def test_progress_in_run_steps(setup):
+    """on_progress(steps_done, steps_total): one bag of N steps is N run-steps; the total is
+    known from the design, else after the first bag."""
+    d, eps, bags, dpath = setup
+    N = eps[0].scenario.problem.n_steps
+    calls = []
+    analyze(bags[0], dpath, on_progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(0, N), (N, N)]
+    calls.clear()
+    analyze(bags[0], on_progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(0, None), (N, N)]
+    calls.clear()
+    agg = aggregate(bags, dpath, on_progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(i * N, 4 * N) for i in range(5)]
+    calls.clear()
+    assert aggregate(bags, on_progress=lambda done, total: calls.append((done, total))).metrics["n_runs"] == 4
+    assert calls == [(0, None)] + [(i * N, 4 * N) for i in range(1, 5)]
+    assert aggregate(bags, dpath).metrics == agg.metrics                 # silent by default, same numbers
+
+
 @pytest.fixture(scope="module")
 def grid(tmp_path_factory):
     d = tmp_path_factory.mktemp("grid")
@@ -227,7 +269,7 @@ def test_grid_plant_bag_analysed_with_heat_maps(grid, tmp_path):
     k1 = eps[0].scenario.problem.window[1]
     assert f"field_image at k = {k1}" in md and "grid 6 x 5" in md and "target field" in md
     # the field figure is the 2 x 3 map panel (closed loop, nominal, difference), not lines
-    from sep_control.evaluation.figures import pyplot
+    from sep_control.plotting import pyplot
 
     assert pyplot().imread(out / "field.png").shape[1] > 1.2 * pyplot().imread(out / "inputs.png").shape[1]
     agg = aggregate(bags, dpath)
@@ -246,7 +288,7 @@ def test_grid_3d_report(tmp_path):
 
 def test_render_image_frame_is_the_published_image(grid, tmp_path):
     """The frame as a viewer shows the 32FC1 image: row 0 on top, grey from min to max."""
-    from sep_control.evaluation.figures import pyplot
+    from sep_control.plotting import pyplot
 
     d, eps, bags, _ = grid
     rep = analyze(bags[1])

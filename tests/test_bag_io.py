@@ -1,5 +1,7 @@
-"""bag_io: synthetic contract bags (rosbags Writer, Jazzy typestore) read back exactly, for the slab,
-sep 0.1 slab bags and a 2-D grid plant; the one stamp tolerance; bad bags."""
+"""Bag reading and writing (`sep_control.bags`: storage, episode, repair, writer): synthetic contract
+bags (rosbags Writer, Jazzy typestore) read back exactly, for the slab, sep 0.1 slab bags (both
+namings) and a 2-D grid plant; the one stamp tolerance; bad bags; the recorder's ROS-free sink;
+the real sep 0.1 bag."""
 from __future__ import annotations
 
 import json
@@ -9,9 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bag_synth import (LAT_CMD_NS, T0_NS, episode_messages, grid_episode, legacy_episode, small_scenario,
-                       synthetic_episode, write_bag, write_messages)
-from sep_control.bags.bag_io import BagError, read_episode, read_raw, repair_bag
+from bag_synth import (LAT_CMD_NS, NAMINGS, T0_NS, TYPES, episode_messages, grid_episode, legacy_episode,
+                       small_scenario, synthetic_episode, topic_namer, write_bag, write_messages)
+from sep_control.bags.episode import read_episode
+from sep_control.bags.repair import repair_bag
+from sep_control.bags.storage import BagError, read_raw
 from sep_plant import topics as T
 
 
@@ -58,6 +62,34 @@ def test_old_sep01_bag_flat_scenario(tmp_path):
     np.testing.assert_array_equal(e.F, old.F)
     np.testing.assert_array_equal(e.F_hat, old.F_hat)
     np.testing.assert_array_equal(e.u, old.u)
+
+
+EPISODE_ARRAYS = ("F", "F_hat", "F_std", "y", "u_cmd", "u", "a_hat", "a_dim", "xyz")
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_both_namings_read_as_the_same_episode(tmp_path, ep, storage):
+    """The same episode written with the contract's names (sep, command, applied_input) and with
+    sep 0.1's (slab, heat_command, heat_applied) reads as the same Episode: the namespace is
+    detected, the old names map through `topics.LEGACY_TOPICS`, nothing is missing or ignored."""
+    eps = {n: read_episode(write_bag(tmp_path / n, ep, storage=storage, naming=n)) for n in NAMINGS}
+    old_topics = {c.topic for c in read_raw(tmp_path / "sep01").connections.values()}
+    assert {"/slab/heat_command", "/slab/heat_applied", "/slab/measurements"} <= old_topics
+    assert not any(t.startswith("/sep/") or t.endswith(("/command", "/applied_input")) for t in old_topics)
+    new, old = eps["current"], eps["sep01"]
+    for e in (new, old):
+        assert e.scenario == ep.scenario and e.complete and not e.missing and not e.ignored_topics and not e.notes
+    for name in EPISODE_ARRAYS:
+        np.testing.assert_array_equal(getattr(old, name), getattr(new, name), err_msg=name)
+    np.testing.assert_array_equal(old.u, ep.u)
+    assert old.counts == new.counts and old.counts[T.COMMAND] == ep.scenario.problem.n_steps
+    assert old.diag_totals == new.diag_totals and old.diagnostics == new.diagnostics
+    assert old.step_recv_ns.keys() == new.step_recv_ns.keys()
+    for key in new.step_recv_ns:
+        np.testing.assert_array_equal(old.step_recv_ns[key], new.step_recv_ns[key], err_msg=key)
+    # the namespace given explicitly reads the same
+    e = read_episode(tmp_path / "sep01", namespace="slab")
+    np.testing.assert_array_equal(e.u_cmd, new.u_cmd)
 
 
 @pytest.mark.parametrize("shape", [(6, 5), (4, 3, 3)])
@@ -244,6 +276,72 @@ def test_undecodable_message_is_skipped_and_noted(tmp_path, ep):
     assert np.isfinite(e.u_cmd).sum() == (ep.scenario.problem.n_steps - 1) * ep.info.n_u
 
 
+def _sink(out, **kw):
+    from sep_control.bags.writer import BagSink
+
+    sink = BagSink(out, **kw)
+    sink.types.update(TYPES)
+    return sink
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_bag_sink_writes_exactly_what_it_is_fed(tmp_path, ep, storage):
+    """The recorder's writer (no ROS): the queued bytes and log times make a complete bag that reads
+    as the episode; it notices the final step (measurement N of the scenario's N)."""
+    msgs = episode_messages(ep)
+    sink = _sink(tmp_path / "bag", storage=storage)
+    sink.start()
+    for topic, t, data in msgs:
+        sink.put(topic, t, data)
+    sink.close()
+    assert sink.error is None and sink.total == len(msgs)
+    assert sink.n_steps == ep.scenario.problem.n_steps and sink.final_seen is not None
+    raw = read_raw(tmp_path / "bag")
+    assert raw.complete and raw.has_metadata and raw.storage == storage
+    assert raw.data == [d for _, _, d in msgs]
+    np.testing.assert_array_equal(raw.log_times, [t for _, t, _ in msgs])
+    e = read_episode(tmp_path / "bag")
+    assert not e.missing and not e.notes
+    for name in ("F", "F_hat", "F_std", "y", "u_cmd", "u"):
+        np.testing.assert_array_equal(getattr(e, name), getattr(ep, name), err_msg=name)
+
+
+def test_bag_sink_flushes_while_open(tmp_path, ep):
+    """What the sink wrote is readable from the open file (as after a SIGKILL) once it flushed."""
+    import time
+
+    msgs = episode_messages(ep)
+    half = len(msgs) // 2
+    sink = _sink(tmp_path / "bag", flush_interval=0.01)
+    sink.start()
+    for topic, t, data in msgs[:half]:
+        sink.put(topic, t, data)
+    mcap = next((tmp_path / "bag").glob("*.mcap"))
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    t0 = time.monotonic()
+    n = 0
+    while n < half and time.monotonic() - t0 < 20:   # until the writer thread flushed all of them
+        time.sleep(0.05)
+        (cut / "cut.mcap").write_bytes(mcap.read_bytes())
+        try:
+            n = len(read_raw(cut))
+        except BagError:            # nothing flushed yet (empty file, or a part of the header)
+            n = 0
+    raw = read_raw(cut)
+    sink.close()
+    assert not raw.complete and raw.data == [d for _, _, d in msgs[:half]]
+    assert read_raw(tmp_path / "bag").complete
+
+
+def test_bag_sink_refuses_an_existing_directory(tmp_path):
+    (tmp_path / "bag").mkdir()
+    sink = _sink(tmp_path / "bag")
+    with pytest.raises(Exception, match="exists"):
+        sink.start()
+    sink.close()
+
+
 DATA = Path(__file__).resolve().parent / "data"
 SEP01_BAG = DATA / "bag_sep01"            # recorded by sep 0.1's demo (commit 488f89e), see data/README.txt
 
@@ -266,7 +364,11 @@ def test_real_sep01_bag_read_and_analysed():
     old_demo = json.loads((DATA / "bag_sep01_demo_metrics.json").read_text())
     scen_file = load_scenario(DATA / "bag_sep01_scenario.yaml")
 
-    # -- bag_io, scenario from the bag's flat sep 0.1 payload
+    # -- sep 0.1's topic names are those bag_synth writes with naming="sep01"
+    topics = {c.topic for c in read_raw(SEP01_BAG).connections.values()}
+    assert topics == {topic_namer("sep01")(t.name) for t in T.TOPICS if t.name not in T.OPTIONAL}
+
+    # -- read_episode, scenario from the bag's flat sep 0.1 payload
     e = read_episode(SEP01_BAG)
     s = e.scenario
     assert e.scenario_source == "bag" and s.plant_type == "slab" and s == scen_file

@@ -3,7 +3,7 @@
 A recorder process records contract topics published from this test process; the bag must
 hold exactly the published bytes, open with independent readers (the `mcap` library and
 rosbags' AnyReader) and decode as the contract types; SIGINT closes it cleanly, SIGKILL
-leaves a bag that `bag_io` still reads up to the last flush; it stops by itself at the end.
+leaves a bag that `sep_control.bags` still reads up to the last flush; it stops by itself at the end.
 """
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def stop(proc, sig=signal.SIGINT, timeout=30):
 
 
 def received(bag) -> dict[str, list[bytes]]:
-    from sep_control.bags.bag_io import read_raw
+    from sep_control.bags.storage import read_raw
 
     raw = read_raw(bag)
     got: dict[str, list[bytes]] = {}
@@ -224,7 +224,7 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
     assert raw.complete
     for topic in sent:
         assert [deserialize_message(d, JointState) for d in got[topic]] == sent[topic]
-    from sep_control.bags.bag_io import read_episode
+    from sep_control.bags.episode import read_episode
 
     e = read_episode(bag)
     assert e.scenario == s and e.info == info
@@ -233,7 +233,8 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
 
 
 def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
-    from sep_control.bags.bag_io import BagError, read_episode
+    from sep_control.bags.episode import read_episode
+    from sep_control.bags.storage import BagError
 
     ep = synthetic_episode(small_scenario(n_steps=30, band_window=(20, 30), lqr_k_switch=10))
     msgs = episode_messages(ep)
@@ -263,7 +264,7 @@ def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
     for topic in sent:
         assert same_payload(got[topic], sent[topic])
     # repair: a complete bag that rosbags' AnyReader opens
-    from sep_control.bags.bag_io import repair_bag
+    from sep_control.bags.repair import repair_bag
 
     fixed = repair_bag(bag, tmp_path / "fixed")
     from rosbags.highlevel import AnyReader

@@ -31,22 +31,31 @@ Definitions (everything computed from the bag alone, plus the design for nominal
   whose LQR did not report it: those ran the LQR); for rom_mpc also mpc_qp_steps and
   mpc_fallbacks (QPs solved, steps that fell back to the clipped LQR).
 
-Pure: no rclpy, no matplotlib (figures are in `sep_control.bags.report`).
+Progress: `analyze` and `aggregate` take ``on_progress(steps_done, steps_total)``, called in
+run-steps (one bag of N steps is N run-steps; ``steps_total`` None while unknown).
+
+Pure: no rclpy, no matplotlib (figures are in `sep_control.bags.figures`, the Markdown report in
+`sep_control.bags.report`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
 from sep_control.evaluation import metrics as M
-from sep_control.bags.bag_io import BagError, Episode, read_episode
+from sep_control.bags.episode import Episode, read_episode
+from sep_control.bags.storage import BagError
 from sep_plant import topics as T
 from sep_plant.problem import Objective, ProblemError
 from sep_plant.protocol import PlantInfo
 from sep_plant.scenario import Scenario
+
+
+#: ``on_progress(steps_done, steps_total)`` in run-steps; steps_total None while unknown
+ProgressHook = Callable[[int, int | None], None]
 
 
 class AnalysisError(RuntimeError):
@@ -109,6 +118,11 @@ class AggregateReport:
     @property
     def F_runs(self) -> np.ndarray:
         return np.stack([r.episode.F for r in self.reports])
+
+
+def reports_of(rep: EpisodeReport | AggregateReport) -> list[EpisodeReport]:
+    """The episode reports of an aggregate, or [rep] for one episode."""
+    return rep.reports if isinstance(rep, AggregateReport) else [rep]
 
 
 def _load_design(design):
@@ -272,12 +286,49 @@ def _episode_name(bag_path: Path, name: str | None) -> str:
 
 
 def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, allow_truncated: bool = False,
-            namespace: str | None = None, name: str | None = None) -> EpisodeReport:
-    """Metrics and arrays of one bag. `design`: a `Design`, a path to a design file, or None
-    (then nominal comparisons are skipped and the objective is the bag's scenario's). A bag of
-    another plant than the design raises `AnalysisError` unless `allow_mismatch`."""
+            namespace: str | None = None, name: str | None = None,
+            on_progress: ProgressHook | None = None) -> EpisodeReport:
+    """Metrics (docs/method.md) and arrays of one recorded episode.
+
+    Parameters
+    ----------
+    bag_path : str or Path
+        A rosbag2 directory (MCAP or sqlite3) or a lone ``.mcap`` / ``.db3`` file.
+    design : Design, str, Path or None
+        A `sep_estimator.design_file.Design` or the path of a design file
+        (docs/reference/design-file.md): its objective and nominal f_nom, u_nom. None: the
+        objective of the bag's scenario on the clouds' node coordinates, no nominal comparisons.
+    allow_mismatch : bool, default False
+        Analyse a bag of another plant than the design's (flagged in ``mismatch``) instead of
+        raising.
+    allow_truncated : bool, default False
+        Analyse what was recovered from a truncated bag instead of raising.
+    namespace : str, optional
+        Namespace of the contract topics; None: the bag's own (``sep``, or sep 0.1's ``slab``).
+    name : str, optional
+        The episode's name in tables (default: the bag's directory or file stem).
+    on_progress : callable, optional
+        ``on_progress(steps_done, steps_total)`` in run-steps: (0, N or None) before reading,
+        (N, N) after; default None (silent).
+
+    Returns
+    -------
+    EpisodeReport
+        ``metrics`` (keys of `sep_control.evaluation.metrics.JSON_KEYS` plus the bag's: latency
+        percentiles, field_nees, field_rmse, controller, ...; None where the bag lacks what a
+        metric needs), the episode's arrays, the estimation error F_hat - F and the latencies.
+
+    Raises
+    ------
+    BagError
+        The bag cannot be read (see `sep_control.bags.episode.read_episode`).
+    AnalysisError
+        The bag's plant differs from the design's and `allow_mismatch` is False.
+    """
     design = _load_design(design)
     bag_path = Path(bag_path)
+    if on_progress is not None:
+        on_progress(0, design.n_steps if design is not None else None)
     ep = read_episode(bag_path, scenario=design.scenario if design is not None else None,
                       info=design.info if design is not None else None,
                       namespace=namespace, allow_truncated=allow_truncated)
@@ -289,6 +340,8 @@ def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, 
         m["scenario_mismatch"] = diff
     if ep.missing:
         notes.append("missing topics: " + ", ".join(ep.missing))
+    if on_progress is not None:
+        on_progress(ep.n_steps, ep.n_steps)
     return EpisodeReport(name=_episode_name(bag_path, name), episode=ep, scenario=scen, design=design,
                          objective=obj, F_nom=F_nom, metrics=m, err=ep.F_hat - ep.F, latency_cmd_s=lat_cmd,
                          latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes)
@@ -336,16 +389,67 @@ def pooled_control_metrics(full: Sequence[EpisodeReport], obj: Objective, F_nom:
             "n_runs": len(full)}
 
 
+def _analyze_all(items: Sequence[str | Path | EpisodeReport], design, on_progress: ProgressHook | None,
+                 **kw) -> list[EpisodeReport]:
+    """`analyze` every bag (reports pass through), reporting run-steps: the total is the number
+    of bags times N (the design's, else the first bag's; pooled bags share one scenario)."""
+    n_steps = design.n_steps if design is not None else None
+    total = len(items) * n_steps if n_steps is not None else None
+    done = 0
+    if on_progress is not None:
+        on_progress(done, total)
+    reports = []
+    for p in items:
+        r = p if isinstance(p, EpisodeReport) else analyze(p, design, **kw)
+        reports.append(r)
+        done += r.episode.n_steps
+        if on_progress is not None:
+            total = max(total if total is not None else len(items) * r.episode.n_steps, done)
+            on_progress(done, total)
+    return reports
+
+
 def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None, *, allow_mismatch: bool = False,
-              allow_truncated: bool = False, namespace: str | None = None) -> AggregateReport:
-    """Pooled statistics of many episodes, comparable to the offline Monte Carlo table:
-    cost mean/std, in-band fraction, mean RMS and mean-trajectory deviations over the runs
-    (`metrics.summarize`), 2-sigma coverage over all node-steps, latency percentiles over all
-    steps, deadline misses and rejected messages summed over the episodes."""
+              allow_truncated: bool = False, namespace: str | None = None,
+              on_progress: ProgressHook | None = None) -> AggregateReport:
+    """Pooled statistics of many episodes, comparable to the offline Monte Carlo table.
+
+    Cost mean/std, in-band fraction, mean RMS and mean-trajectory deviations over the runs
+    (`sep_control.evaluation.metrics.summarize`, over the episodes that have the field and
+    inputs at every step), 2-sigma coverage over all node-steps, latency percentiles over all
+    steps, deadline misses and rejected messages summed over the episodes.
+
+    Parameters
+    ----------
+    paths : iterable of str, Path or EpisodeReport
+        The bags (as for `analyze`), or reports already made by `analyze`.
+    design : Design, str, Path or None
+        As for `analyze`; loaded once.
+    allow_mismatch, allow_truncated : bool, default False
+        As for `analyze`.
+    namespace : str, optional
+        As for `analyze`.
+    on_progress : callable, optional
+        ``on_progress(steps_done, steps_total)`` in run-steps, after each bag (and once with 0
+        before the first); steps_total is the number of bags times N, None until N is known;
+        default None (silent).
+
+    Returns
+    -------
+    AggregateReport
+        ``metrics`` (pooled), ``rows`` (episode name -> its metrics; repeated names get '#1',
+        '#2', ...) and the per-episode ``reports``.
+
+    Raises
+    ------
+    BagError
+        A bag cannot be read.
+    AnalysisError
+        No bags, bags of different scenarios, or a scenario mismatch with the design.
+    """
     design = _load_design(design)
-    reports = [p if isinstance(p, EpisodeReport) else
-               analyze(p, design, allow_mismatch=allow_mismatch, allow_truncated=allow_truncated, namespace=namespace)
-               for p in paths]
+    reports = _analyze_all(list(paths), design, on_progress, allow_mismatch=allow_mismatch,
+                           allow_truncated=allow_truncated, namespace=namespace)
     if not reports:
         raise AnalysisError("no bags to aggregate")
     _check_same_scenario(reports)
@@ -373,5 +477,5 @@ def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None
                            rows=_unique_rows(reports), notes=notes)
 
 
-__all__ = ["AnalysisError", "BagError", "EpisodeReport", "AggregateReport", "analyze", "aggregate",
-           "episode_metrics"]
+__all__ = ["AnalysisError", "BagError", "EpisodeReport", "AggregateReport", "ProgressHook", "analyze",
+           "aggregate", "episode_metrics", "reports_of"]

@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from sep_control.evaluation import metrics as M
     from sep_control.bags.analysis import AnalysisError, aggregate, analyze
-    from sep_control.bags.bag_io import BagError
+    from sep_control.bags.storage import BagError
 
     t0 = time.perf_counter()
     try:

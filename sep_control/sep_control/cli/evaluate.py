@@ -156,22 +156,22 @@ def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, se
 
 def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
     info, xyz, obj, nom = design.info, design.field_xyz, design.objective, design.nominal
-    paths = [figures.fig_nominal(out / "nominal_belief_and_control.png", info, xyz, obj.target, obj.band,
-                                 nom.belief_mean, nom.belief_std, nom.u, obj.window)]
+    paths = [figures.nominal_belief_figure(out / "nominal_belief_and_control.png", info, xyz, obj.target, obj.band,
+                                           nom.belief_mean, nom.belief_std, nom.u, obj.window)]
     means = {name: r.F_mean for name, r in results.items()}
     if means:
-        paths.append(figures.fig_mean_vs_nominal(out / "closed_loop_mean_vs_nominal.png", info, xyz, obj.target,
-                                                 obj.band, nom.field, means, obj.window))
+        paths.append(figures.mc_mean_vs_nominal_figure(out / "closed_loop_mean_vs_nominal.png", info, xyz,
+                                                       obj.target, obj.band, nom.field, means, obj.window))
     closed = results.get("rom_lqg") or results.get("oracle_lqg")
     if closed is not None:
         ol = results["open_loop"].F[0] if "open_loop" in results else None
-        paths.append(figures.fig_estimation(out / "estimation_error_2sigma.png", info, xyz, nom.field, closed.F[0],
-                                            closed.F_hat[0], closed.F_std, ol, obj.window,
-                                            sensed=sensed_nodes(design.rom, P=design.lqg.kf.P_prior[-1])))
-        paths.append(figures.fig_std_map(out / "estimation_std.png", info, xyz, closed.F_std, obj.window))
+        paths.append(figures.mc_estimation_figure(out / "estimation_error_2sigma.png", info, xyz, nom.field,
+                                                  closed.F[0], closed.F_hat[0], closed.F_std, ol, obj.window,
+                                                  sensed=sensed_nodes(design.rom, P=design.lqg.kf.P_prior[-1])))
+        paths.append(figures.mc_std_map_figure(out / "estimation_std.png", info, xyz, closed.F_std, obj.window))
     if sweep_rows:
-        paths.append(figures.fig_rom_sweep(out / "rom_order_sweep.png", design.hankel_sv,
-                                           min(obj.window[0], design.n_steps), sweep_rows))
+        paths.append(figures.rom_sweep_figure(out / "rom_order_sweep.png", design.hankel_sv,
+                                              min(obj.window[0], design.n_steps), sweep_rows))
     return paths
 
 

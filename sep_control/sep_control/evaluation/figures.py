@@ -1,14 +1,17 @@
-"""The paper's figures as PNG (matplotlib, Agg backend): plotting only, no computation.
+"""The Monte Carlo evaluation's figures as PNG (`sep evaluate`): plotting only, no computation.
 
 Fields are drawn as lines over x for 1-D plants and as heat maps for grid plants (2-D; the
-middle slice along the last axis for 3-D), so every figure works for every plant:
+middle slice along the last axis for 3-D), so every figure works for every plant (drawing
+primitives: `sep_control.plotting`; the recorded-bag report's figures: `sep_control.bags.figures`):
 
-fig_nominal         nominal belief (mean +- 2 sigma, or maps) and optimal control (paper Fig. 2a-b)
-fig_mean_vs_nominal closed-loop mean field vs nominal at the band window's start and end (Fig. 1a)
-fig_estimation      estimation error with 2-sigma bounds at the two unsensed nodes where the
-                    reconstruction std is largest, against the open-loop deviation (Fig. 1b-c)
-fig_rom_sweep       Hankel singular values, Markov error and cost vs n_r
-fig_inputs_limits   each input over time against its limits, for several controllers (one run)
+nominal_belief_figure       nominal belief (mean +- 2 sigma, or maps) and optimal control (paper Fig. 2a-b)
+mc_mean_vs_nominal_figure   closed-loop mean field vs nominal at the band window's start and end (Fig. 1a)
+mc_estimation_figure        one run's estimation error with 2-sigma bounds at the two unsensed nodes
+                            where the reconstruction std is largest, against the open-loop deviation
+                            (Fig. 1b-c)
+mc_std_map_figure           mean reconstruction std over the band window
+rom_sweep_figure            Hankel singular values, Markov error and cost vs n_r
+inputs_vs_limits_figure     each input over time against its limits, for several controllers (one run)
 """
 from __future__ import annotations
 
@@ -17,108 +20,20 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from sep_control.plotting import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot,
+                                  save_keeping_layout, save_figure, spread_nodes, unit_suffix)
 from sep_plant.protocol import PlantInfo
-from sep_plant.topics import image_of_field
 
 
-def pyplot():
-    """matplotlib.pyplot on the Agg backend (no display needed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path) -> Path:
-    """Lay out, write as PNG (110 dpi) and close `fig`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    pyplot().close(fig)
-    return path
-
-
-# ------------------------------------------------------------------ building blocks
-def is_map(info: PlantInfo | None) -> bool:
-    """Whether fields of this plant are drawn as heat maps (grid plants of 2 or 3 axes)."""
-    return info is not None and info.grid_shape is not None and len(info.grid_shape) >= 2
-
-
-def line_coordinate(xyz: np.ndarray) -> tuple[np.ndarray, str]:
-    """The coordinate to plot a 1-D field against: the axis along which the nodes spread."""
-    axis = int(np.argmax(np.ptp(xyz, axis=0))) if xyz.shape[0] > 1 else 0
-    return xyz[:, axis], "xyz"[axis] + " [m]"
-
-
-def map_extent(xyz: np.ndarray, grid_shape: Sequence[int]) -> list[float]:
-    """imshow extent [x0, x1, y0, y1] of a grid field's first two axes (rows = first axis)."""
-    g = xyz.reshape(tuple(grid_shape) + (3,))
-    first = g[(slice(None),) + (0,) * (len(grid_shape) - 1)]
-    second = g[(0, slice(None)) + (0,) * (len(grid_shape) - 2)]
-    return [float(second[0, 1]), float(second[-1, 1]), float(first[-1, 0]), float(first[0, 0])]
-
-
-def draw_field(ax, info: PlantInfo | None, xyz: np.ndarray, values: np.ndarray, *, label: str | None = None,
-               vmin: float | None = None, vmax: float | None = None, cmap: str = "inferno", **line_kw):
-    """A field on `ax`: a line over x (1-D), or a heat map (grid plants; 3-D: middle slice).
-    Returns the image for a map (for a colorbar), else None."""
-    if is_map(info):
-        img = image_of_field(values, info.grid_shape)
-        im = ax.imshow(img, origin="upper", extent=map_extent(xyz, info.grid_shape), vmin=vmin, vmax=vmax,
-                       cmap=cmap, aspect="equal")
-        ax.set(xlabel="y [m]", ylabel="x [m]")
-        if len(info.grid_shape) == 3:
-            ax.set_title((ax.get_title() + " " if ax.get_title() else "") + "(middle z slice)", fontsize=9)
-        return im
-    x, xl = line_coordinate(xyz)
-    order = np.argsort(x, kind="stable")
-    ax.plot(x[order], np.asarray(values)[order], label=label, **line_kw)
-    ax.set_xlabel(xl)
-    return None
-
-
-def band_limits(target: np.ndarray, band: float) -> tuple[float, float]:
-    return float(np.min(target) - band), float(np.max(target) + band)
-
-
-def spread_nodes(score: np.ndarray, xyz: np.ndarray, count: int = 2, min_frac: float = 0.25,
-                 exclude: Sequence[int] = ()) -> list[int]:
-    """`count` nodes with the largest `score`, each at least `min_frac` of the domain's extent away
-    from those already chosen (else the next best), none in `exclude`: e.g. the unsensed nodes
-    where the reconstruction std is largest."""
-    extent = float(np.max(np.ptp(xyz, axis=0))) or 1.0
-    score = np.array(score, dtype=float)
-    score[list(exclude)] = -np.inf
-    chosen: list[int] = []
-    for i in np.argsort(-score, kind="stable"):
-        if all(np.linalg.norm(xyz[i] - xyz[j]) >= min_frac * extent for j in chosen):
-            chosen.append(int(i))
-        if len(chosen) == count:
-            break
-    for i in np.argsort(-score, kind="stable"):          # too few far apart: fill by score
-        if len(chosen) == count:
-            break
-        if int(i) not in chosen:
-            chosen.append(int(i))
-    return chosen
-
-
-def node_label(xyz: np.ndarray, i: int, info: PlantInfo | None) -> str:
-    dims = info.spatial_dims if info is not None else 1
-    return "node " + str(i) + " at (" + ", ".join(f"{c:.3g}" for c in xyz[i][:max(dims, 1)]) + ") m"
-
-
-# ------------------------------------------------------------------ paper figures
-def fig_nominal(path: Path, info: PlantInfo, xyz: np.ndarray, target: np.ndarray, band: float,
-                belief_mean: np.ndarray, belief_std: np.ndarray, u_nom: np.ndarray, window: tuple[int, int]) -> Path:
+def nominal_belief_figure(path: Path, info: PlantInfo, xyz: np.ndarray, target: np.ndarray, band: float,
+                          belief_mean: np.ndarray, belief_std: np.ndarray, u_nom: np.ndarray,
+                          window: tuple[int, int]) -> Path:
     """Nominal belief (mean +- 2 sigma over x at six times; maps at the window's start and end)
     and the optimal open-loop inputs."""
     plt = pyplot()
     N = u_nom.shape[0]
     t = np.arange(N + 1) * info.dt
-    unit = f" [{info.field_unit}]" if info.field_unit else ""
+    unit = unit_suffix(info.field_unit)
     if is_map(info):
         fig, axes = plt.subplots(1, 3, figsize=(14, 4))
         lo, hi = band_limits(target, band)
@@ -148,11 +63,11 @@ def fig_nominal(path: Path, info: PlantInfo, xyz: np.ndarray, target: np.ndarray
     return save_figure(fig, path)
 
 
-def fig_mean_vs_nominal(path: Path, info: PlantInfo, xyz: np.ndarray, target: np.ndarray, band: float,
-                        F_nom: np.ndarray, means: Mapping[str, np.ndarray], window: tuple[int, int]) -> Path:
+def mc_mean_vs_nominal_figure(path: Path, info: PlantInfo, xyz: np.ndarray, target: np.ndarray, band: float,
+                              F_nom: np.ndarray, means: Mapping[str, np.ndarray], window: tuple[int, int]) -> Path:
     """`means[name]` is the mean field trajectory (N+1, n_field) of a controller over the runs."""
     plt = pyplot()
-    unit = f" [{info.field_unit}]" if info.field_unit else ""
+    unit = unit_suffix(info.field_unit)
     if is_map(info):
         names = list(means)
         fig, axes = plt.subplots(2, 1 + len(names), figsize=(4.2 * (1 + len(names)), 7.4), squeeze=False)
@@ -163,10 +78,7 @@ def fig_mean_vs_nominal(path: Path, info: PlantInfo, xyz: np.ndarray, target: np
                 ax.set_title(f"{title}, t = {k * info.dt:.4g} s", fontsize=9)
                 im = draw_field(ax, info, xyz, vals, vmin=lo, vmax=hi)
             fig.colorbar(im, ax=list(axes[row]), label=info.field_name + unit, shrink=0.8)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        return path
+        return save_keeping_layout(fig, path)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     x, xl = line_coordinate(xyz)
     order = np.argsort(x)
@@ -181,9 +93,9 @@ def fig_mean_vs_nominal(path: Path, info: PlantInfo, xyz: np.ndarray, target: np
     return save_figure(fig, path)
 
 
-def fig_estimation(path: Path, info: PlantInfo, xyz: np.ndarray, F_nom: np.ndarray, F_cl: np.ndarray,
-                   F_hat: np.ndarray, F_std: np.ndarray, F_ol: np.ndarray | None, window: tuple[int, int],
-                   sensed: Sequence[int] = ()) -> Path:
+def mc_estimation_figure(path: Path, info: PlantInfo, xyz: np.ndarray, F_nom: np.ndarray, F_cl: np.ndarray,
+                         F_hat: np.ndarray, F_std: np.ndarray, F_ol: np.ndarray | None, window: tuple[int, int],
+                         sensed: Sequence[int] = ()) -> Path:
     """One run: estimation error f_hat - f with +-2 sigma, and f - f_nom closed vs open loop, at
     the two unsensed nodes (not in `sensed`) where the mean reconstruction std over the band
     window is largest."""
@@ -199,13 +111,14 @@ def fig_estimation(path: Path, info: PlantInfo, xyz: np.ndarray, F_nom: np.ndarr
         if F_ol is not None:
             ax.plot(t, F_ol[:, i] - F_nom[:, i], "C3", lw=1, label="open loop - nominal")
         ax.set(xlabel="t [s]", title=node_label(xyz, i, info))
-    unit = f" [{info.field_unit}]" if info.field_unit else ""
+    unit = unit_suffix(info.field_unit)
     axes[0, 0].set_ylabel(info.field_name + unit)
     axes[0, 0].legend(fontsize=8)
     return save_figure(fig, path)
 
 
-def fig_std_map(path: Path, info: PlantInfo, xyz: np.ndarray, F_std: np.ndarray, window: tuple[int, int]) -> Path:
+def mc_std_map_figure(path: Path, info: PlantInfo, xyz: np.ndarray, F_std: np.ndarray,
+                      window: tuple[int, int]) -> Path:
     """Mean reconstruction std over the band window (a map for grid plants, a line for 1-D)."""
     plt = pyplot()
     k0, k1 = window
@@ -213,7 +126,7 @@ def fig_std_map(path: Path, info: PlantInfo, xyz: np.ndarray, F_std: np.ndarray,
     fig, ax = plt.subplots(figsize=(5.5 if is_map(info) else 8, 4.2))
     ax.set_title(f"estimation std, mean over t = {k0 * info.dt:.4g}..{k1 * info.dt:.4g} s")
     im = draw_field(ax, info, xyz, std, cmap="viridis")
-    unit = f" [{info.field_unit}]" if info.field_unit else ""
+    unit = unit_suffix(info.field_unit)
     if im is not None:
         fig.colorbar(im, ax=ax, label="std" + unit)
     else:
@@ -221,7 +134,7 @@ def fig_std_map(path: Path, info: PlantInfo, xyz: np.ndarray, F_std: np.ndarray,
     return save_figure(fig, path)
 
 
-def fig_rom_sweep(path: Path, hankel_sv: np.ndarray, k: int, rows: Sequence[Mapping]) -> Path:
+def rom_sweep_figure(path: Path, hankel_sv: np.ndarray, k: int, rows: Sequence[Mapping]) -> Path:
     """rows: dicts with n_r, n_r_used, markov_rel_error, cost_mean (ROM-LQG), cost_oracle."""
     plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
@@ -246,8 +159,8 @@ def fig_rom_sweep(path: Path, hankel_sv: np.ndarray, k: int, rows: Sequence[Mapp
     return save_figure(fig, path)
 
 
-def fig_inputs_limits(path: Path, info: PlantInfo, u_nom: np.ndarray, inputs: Mapping[str, np.ndarray],
-                      u_min: np.ndarray, u_max: np.ndarray, window: tuple[int, int]) -> Path:
+def inputs_vs_limits_figure(path: Path, info: PlantInfo, u_nom: np.ndarray, inputs: Mapping[str, np.ndarray],
+                            u_min: np.ndarray, u_max: np.ndarray, window: tuple[int, int]) -> Path:
     """One panel per input: the nominal and each controller's applied input u_k (one run) over
     time, the limits shaded outside, the band window marked."""
     plt = pyplot()
@@ -260,8 +173,10 @@ def fig_inputs_limits(path: Path, info: PlantInfo, u_nom: np.ndarray, inputs: Ma
         for (label, U), color in zip(inputs.items(), ("tab:red", "tab:blue", "tab:green", "tab:purple")):
             ax.step(t, U[:, j], where="post", color=color, lw=0.9, label=label)
         lo, hi = float(u_min[j]), float(u_max[j])
-        top = max(float(np.max([U[:, j].max() for U in inputs.values()] + [u_nom[:, j].max()])), hi if np.isfinite(hi) else 0)
-        bot = min(float(np.min([U[:, j].min() for U in inputs.values()] + [u_nom[:, j].min()])), lo if np.isfinite(lo) else 0)
+        top = max(float(np.max([U[:, j].max() for U in inputs.values()] + [u_nom[:, j].max()])),
+                  hi if np.isfinite(hi) else 0)
+        bot = min(float(np.min([U[:, j].min() for U in inputs.values()] + [u_nom[:, j].min()])),
+                  lo if np.isfinite(lo) else 0)
         pad = 0.08 * max(top - bot, 1e-6)
         if np.isfinite(hi):
             ax.axhspan(hi, top + pad, color="0.85", zorder=0)
