@@ -92,9 +92,19 @@ v_std: 0.4
 FAST = ['--p', '5', '--q', '5', '--n-r', '10', '--ensemble', '20', '--no-belief', '--quiet']
 
 
+def can_build_wheels() -> bool:
+    """setuptools' bdist_wheel is there (setuptools >= 70.1, or the `wheel` package)."""
+    import importlib.util
+    return any(importlib.util.find_spec(m) is not None
+               for m in ('setuptools.command.bdist_wheel', 'wheel'))
+
+
 @pytest.fixture(scope='module')
 def rosfree(tmp_path_factory):
     """(target folder, environment) of the three packages pip-installed without ROS."""
+    if not can_build_wheels():
+        pytest.fail(f'{sys.prefix}: no bdist_wheel (setuptools < 70.1 and no `wheel`): run `make venv` '
+                    '(requirements.txt pins wheel)')
     base = tmp_path_factory.mktemp('rosfree')
     src, target, block = base / 'src', base / 'target', base / 'block'
     for pkg in PACKAGES:   # copies: an in-tree build leaves build/ and *.egg-info behind
