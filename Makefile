@@ -13,7 +13,7 @@
 #                `make distclean` removes it too)
 #
 # Variables: PYTHON=python3.12 chooses the interpreter that creates .venv (default: the first
-# of python3.12, python3.11, python3 that is a supported version); VERBOSE=1 shows colcon's full
+# of python3.11, python3.12, python3 that is a supported version); VERBOSE=1 shows colcon's full
 # output; PYTEST_ARGS, DEMO_ARGS, BENCH_SCALE_ARGS are passed through.
 
 SHELL := /bin/bash
@@ -27,14 +27,15 @@ STAMP := $(VENV)/.requirements.stamp
 WS := $(ROOT)/ros_ws
 PACKAGES := sep_plant sep_estimator sep_control
 
-# Interpreter used only to create the venv.  Every pin of requirements.txt, with its whole
-# dependency closure (the ROS 2 Jazzy wheels included), has wheels for CPython 3.11 and 3.12
-# (3.12 is Jazzy's, on Ubuntu 24.04); numpy 2.4 needs >= 3.11.  3.13 resolves too but is not
-# tested: `make PYTHON=python3.13 SUPPORTED_PYTHONS=3.13` to try it.
+# Interpreter used only to create the venv.  Every pin of requirements.txt and its whole
+# dependency closure (the ROS 2 Jazzy wheels included; EmPy is pure Python) have wheels for
+# CPython 3.11 and 3.12 (Jazzy's, on Ubuntu 24.04), and both are tested; numpy 2.4 needs
+# >= 3.11.  3.11 stays first when both are there.  3.13 resolves too but is not tested:
+# `make PYTHON=python3.13 SUPPORTED_PYTHONS=3.13` to try it.
 SUPPORTED_PYTHONS ?= 3.11 3.12
 PY_VERSION_OF = $(1) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null
 ifeq ($(strip $(PYTHON)),)
-PYTHON := $(shell for p in python3.12 python3.11 python3; do \
+PYTHON := $(shell for p in python3.11 python3.12 python3; do \
 	  v=$$($(call PY_VERSION_OF,$$p)) || continue; \
 	  case " $(SUPPORTED_PYTHONS) " in (*" $$v "*) command -v $$p; break;; esac; done)
 endif
@@ -87,7 +88,7 @@ check-python:
 	      echo "error: $(VENV) uses Python $$have, PYTHON=$(PYTHON) is $${want:-not runnable}: run \`make distclean\` first to recreate it" >&2; exit 2; fi;; \
 	  esac; \
 	elif [ -z "$(PYTHON)" ]; then \
-	  echo "error: no python3.12 or python3.11 found to create $(VENV) (supported: $(SUPPORTED_PYTHONS)); $(HOW_TO_GET_PYTHON)" >&2; exit 2; \
+	  echo "error: no python3.11 or python3.12 found to create $(VENV) (supported: $(SUPPORTED_PYTHONS)); $(HOW_TO_GET_PYTHON)" >&2; exit 2; \
 	else \
 	  v=$$($(call PY_VERSION_OF,"$(PYTHON)")) || { echo "error: PYTHON=$(PYTHON) does not run; $(HOW_TO_GET_PYTHON)" >&2; exit 2; }; \
 	  case " $(SUPPORTED_PYTHONS) " in *" $$v "*) ;; *) \

@@ -288,7 +288,7 @@ def test_make_venv_without_any_supported_python(scratch_checkout, tmp_path):
     bare.mkdir()
     proc = make(scratch_checkout, 'venv', path=str(bare))
     assert proc.returncode != 0
-    assert 'no python3.12 or python3.11 found' in proc.stderr, proc.stderr
+    assert 'no python3.11 or python3.12 found' in proc.stderr, proc.stderr
     assert not (scratch_checkout / '.venv').exists()
 
 
