@@ -80,19 +80,22 @@ HOW_TO_GET_PYTHON := install python3.12 (Ubuntu 24.04's python3) or python3.11 (
 deadsnakes PPA on Ubuntu) and run \`PYTHON=python3.12 make\`; on a native ROS 2 Jazzy install \
 use the system python3 with requirements-ros.txt instead (see that file)
 check-python:
-	@if [ -x "$(PY)" ]; then \
+	@fail() { echo "error: $$*; $(HOW_TO_GET_PYTHON)" >&2; exit 2; }; \
+	if [ -x "$(PY)" ]; then \
 	  have=$$($(call PY_VERSION_OF,"$(PY)")); \
 	  case "$(origin PYTHON)" in environment|command*) \
 	    want=$$($(call PY_VERSION_OF,"$(PYTHON)")); \
 	    if [ "$$want" != "$$have" ]; then \
-	      echo "error: $(VENV) uses Python $$have, PYTHON=$(PYTHON) is $${want:-not runnable}: run \`make distclean\` first to recreate it" >&2; exit 2; fi;; \
+	      echo "error: $(VENV) uses Python $$have, PYTHON=$(PYTHON) is $${want:-not runnable}:" \
+	        "run \`make distclean\` first to recreate it" >&2; exit 2; fi;; \
 	  esac; \
 	elif [ -z "$(PYTHON)" ]; then \
-	  echo "error: no python3.11 or python3.12 found to create $(VENV) (supported: $(SUPPORTED_PYTHONS)); $(HOW_TO_GET_PYTHON)" >&2; exit 2; \
+	  fail "no python3.11 or python3.12 found to create $(VENV) (supported: $(SUPPORTED_PYTHONS))"; \
 	else \
-	  v=$$($(call PY_VERSION_OF,"$(PYTHON)")) || { echo "error: PYTHON=$(PYTHON) does not run; $(HOW_TO_GET_PYTHON)" >&2; exit 2; }; \
+	  v=$$($(call PY_VERSION_OF,"$(PYTHON)")) || fail "PYTHON=$(PYTHON) does not run"; \
 	  case " $(SUPPORTED_PYTHONS) " in *" $$v "*) ;; *) \
-	    echo "error: PYTHON=$(PYTHON) is Python $$v; the pinned requirements (ROS 2 Jazzy wheels from PyPI, numpy 2.4) are tested on Python $(SUPPORTED_PYTHONS); $(HOW_TO_GET_PYTHON)" >&2; exit 2;; \
+	    fail "PYTHON=$(PYTHON) is Python $$v; the pinned requirements (ROS 2 Jazzy wheels" \
+	      "from PyPI, numpy 2.4) are tested on Python $(SUPPORTED_PYTHONS)";; \
 	  esac; \
 	fi
 

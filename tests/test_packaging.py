@@ -299,3 +299,9 @@ def test_make_venv_refuses_to_mix_interpreters(scratch_checkout, tmp_path):
     new = fake_python(tmp_path / 'python3.12', '3.12')
     proc = make(scratch_checkout, 'venv', f'PYTHON={new}')
     assert proc.returncode != 0 and 'make distclean' in proc.stderr, proc.stderr
+
+
+def test_make_venv_with_a_python_that_does_not_run(scratch_checkout, tmp_path):
+    proc = make(scratch_checkout, 'venv', f'PYTHON={tmp_path / "missing" / "python3.12"}')
+    assert proc.returncode != 0 and 'does not run' in proc.stderr, proc.stderr
+    assert 'PYTHON=python3.12 make' in proc.stderr and not (scratch_checkout / '.venv').exists()

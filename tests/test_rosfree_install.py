@@ -29,7 +29,8 @@ import sys
 from pathlib import Path
 
 TARGET = {target!r}
-BLOCKED = re.compile(r'^(rclpy|rcl_interfaces|builtin_interfaces|ament_index_python|rosidl\w*|\w+_msgs)(\.|$)')
+BLOCKED = re.compile(r'^(rclpy|rcl_interfaces|builtin_interfaces|ament_index_python|rosidl\w*'
+                     r'|\w+_msgs)(\.|$)')
 
 
 class NoRos:
