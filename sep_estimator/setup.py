@@ -1,10 +1,16 @@
-"""Packaging for the sep_estimator ROS 2 (ament_python) package of sep."""
+"""Packaging for the sep_estimator ROS 2 (ament_python) package of sep.
+
+Built by colcon (`make build`: the ros2-run layout in ros_ws/install) or by pip without ROS
+(`pip install ./sep_plant ./sep_estimator ./sep_control`: the offline tools).  The version is a
+literal copy of ``sep_plant.__version__`` (readable without importing; a test checks the copies).
+"""
 import os
 from glob import glob
 
 from setuptools import find_packages, setup
 
 package_name = 'sep_estimator'
+VERSION = '0.8.0'  # = sep_plant.__version__
 here = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -17,13 +23,19 @@ data_files = [
     ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
     ('share/' + package_name, ['package.xml']),
 ]
+# The estimator node's parameter file (--params-file), under share/<pkg>/config.
+_config = _rel_glob(os.path.join('config', '*.yaml'))
+if _config:
+    data_files.append(('share/' + package_name + '/config', _config))
 
 setup(
     name=package_name,
-    version='0.7.0',
+    version=VERSION,
     packages=find_packages(exclude=['test']),
     data_files=data_files,
-    install_requires=['setuptools'],
+    # What the package imports at run time; never rclpy or ROS messages (they come from ROS:
+    # package.xml), so that the offline tools install without ROS.
+    install_requires=['sep_plant==' + VERSION, 'numpy'],
     zip_safe=True,
     maintainer='sep team',
     maintainer_email='sep@example.com',

@@ -19,7 +19,7 @@ PACKAGES = ('sep_plant', 'sep_estimator', 'sep_control')
 EXECUTABLES = {
     'sep_plant': ('plant',),
     'sep_estimator': ('estimator',),
-    'sep_control': ('lqr', 'lqg', 'design', 'evaluate', 'validate', 'record', 'analyze',
+    'sep_control': ('sep', 'lqr', 'lqg', 'design', 'evaluate', 'validate', 'record', 'analyze',
                     'demo'),
 }
 CASES = [(pkg, exe) for pkg, exes in EXECUTABLES.items() for exe in exes]
@@ -94,8 +94,10 @@ def test_console_scripts_match_the_list(ament_env):
 
 
 def test_data_files_installed(ament_env):
-    """Scenario files (sep_plant) and parameter files (sep_control) reach share/<pkg>/."""
-    for pkg, sub in (('sep_plant', 'scenarios'), ('sep_control', 'config')):
+    """Scenario files (sep_plant) and every package's parameter files reach share/<pkg>/."""
+    for pkg, sub in (('sep_plant', 'scenarios'), ('sep_plant', 'config'),
+                     ('sep_estimator', 'config'), ('sep_control', 'config')):
+        assert list((REPO_ROOT / pkg / sub).glob('*.yaml')), (pkg, sub)
         sources = sorted(p.name for p in (REPO_ROOT / pkg / sub).glob('*.yaml'))
         installed = sorted(p.name for p in (ament_env.prefix(pkg) / 'share' / pkg / sub).glob('*.yaml'))
         assert installed == sources, (pkg, sub)
@@ -113,7 +115,8 @@ def test_executable_resolves_and_runs(ament_env, package_name, executable_name):
     shebang = path.read_text().splitlines()[0]
     assert shebang.startswith('#!'), shebang
     interpreter = Path(shebang[2:].strip().split()[0])
-    assert interpreter.parent == Path(sys.prefix) / 'bin', shebang
+    # (resolved: a checkout's .venv may be a symlink to a shared venv)
+    assert interpreter.parent.resolve() == (Path(sys.prefix) / 'bin').resolve(), shebang
     assert os.access(interpreter, os.X_OK)
 
     # Like `ros2 run <pkg> <exe> --help` from a shell that sourced install/setup.sh.

@@ -1,3 +1,5 @@
 """sep_control: part of sep (separation-based, data-driven LQG for large partially observed systems): design, controllers, analysis."""
 
-__version__ = "0.7.0"
+from sep_plant import __version__  # the one version of sep (defined in the base package)
+
+__all__ = ["__version__"]

@@ -8,7 +8,7 @@ are still published, after the command, for viewers and bags); the LQR tells the
 the command it sent (used if the plant's applied_input of that step comes late).
 
 Parameters are those of both nodes (see `estimator --help` and `lqr --help`); ``-p`` on the
-command line applies to both, a params file can address each node (ros_ws/config/lqg.yaml).
+command line applies to both, a params file can address each node (share/sep_control/config/lqg.yaml).
 """
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ from sep_estimator.ros.designed_node import spin_episode
 
 from sep_control.ros.lqr_node import LqrNode
 
-PARAMETERS = EST_PARAMETERS.replace('estimator.yaml', 'lqg.yaml') + """
+PARAMETERS = EST_PARAMETERS.replace('sep_estimator)/share/sep_estimator/config/estimator.yaml',
+                                    'sep_control)/share/sep_control/config/lqg.yaml') + """
   controller (str, lqr)            lqr | mpc (box-constrained MPC on the ROM: input limits planned for)
   mpc_horizon (int, 20)            mpc: horizon H in steps
   mpc_time_budget_s (float, 0.02)  mpc: a QP slower than this falls back to the clipped LQR command

@@ -31,7 +31,7 @@ from sep_estimator.ros.designed_node import DesignedNode, scenario_summary, spin
 from sep_control.design.gains import command
 from sep_control.control.mpc import DEFAULT_BUDGET_S, DEFAULT_HORIZON
 
-PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/lqr.yaml):
+PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_control)/share/sep_control/config/lqr.yaml):
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first

@@ -44,7 +44,7 @@ from sep_estimator.estimator_core import EstimatorCore
 from sep_estimator.ltv import FIELD_PRECISIONS
 from sep_estimator.ros.designed_node import DesignedNode, scenario_summary, spin_episode
 
-PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file ros_ws/config/estimator.yaml):
+PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_estimator)/share/sep_estimator/config/estimator.yaml):
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first

@@ -41,7 +41,7 @@ from sep_plant.protocol import clip_inputs
 
 MODES = ('lockstep', 'realtime')
 
-PARAMETERS = """parameters (set with --ros-args -p NAME:=VALUE or --params-file ros_ws/config/plant.yaml):
+PARAMETERS = """parameters (set with --ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_plant)/share/sep_plant/config/plant.yaml):
   scenario_file (str, '')          scenario YAML; '' = the shipped reference scenario
   mode (str, lockstep)             lockstep | realtime
   real_time_factor (float, 10)     realtime: steps every dt / real_time_factor  [0.01, 1000]
