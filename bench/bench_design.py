@@ -23,8 +23,10 @@ from threadpoolctl import threadpool_limits
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.metrics import format_table
 from sep_control.evaluation.montecarlo import simulate
-from sep_control.design.optimizer import (RomLinearization, SensitivityLinearization, objective_of, optimize,
-                                  sensitivity_normal_equations)
+from sep_control.design.belief import objective_of
+from sep_control.design.jacobians import SensitivityJacobian
+from sep_control.design.linearization import RomLinearization, SensitivityLinearization, sensitivity_normal_equations
+from sep_control.design.optimizer import Optimizer, OptimizerOptions
 from sep_control.design.tvera import identify
 from sep_control.evaluation.oracle import oracle_lqg
 from sep_plant.protocol import nominal_states
@@ -145,7 +147,9 @@ def main() -> None:
         opt_rows = {}
         with threadpool_limits(args.threads):
             for method, iters in (("gn", None), ("gd", args.gd_iter)):
-                r, t = timed(optimize, sim, s, method=method, max_iter=iters, show_progress=False)
+                opt = Optimizer(sim, s, OptimizerOptions(method=method, max_iter=iters, show_progress=False),
+                                SensitivityJacobian())
+                r, t = timed(opt.run)
                 opt_rows[method] = {"iterations": r.iterations, "cost": r.cost, "seconds": t,
                                     "experiments": r.experiments}
         for r in opt_rows.values():

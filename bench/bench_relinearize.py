@@ -31,7 +31,7 @@ from threadpoolctl import threadpool_limits
 
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.montecarlo import simulate
-from sep_control.design.optimizer import SAME_INPUT_RTOL
+from sep_control.design.linearization import SAME_INPUT_RTOL
 from sep_control.evaluation.oracle import oracle_lqg
 from sep_plant.scenario import load_scenario
 

@@ -5,8 +5,10 @@ import pytest
 from core_helpers import coarse_scenario, flat
 from core_helpers import one_blas_thread  # noqa: F401  (fixture)
 from sep_control.evaluation.metrics import nominal_cost
-from sep_control.design.optimizer import (belief_cost, objective_of, optimize, run_belief,
-                                  sensitivity_normal_equations)
+from sep_control.design.belief import belief_cost, objective_of, run_belief
+from sep_control.design.jacobians import SensitivityJacobian
+from sep_control.design.linearization import sensitivity_normal_equations
+from sep_control.design.optimizer import Optimizer, OptimizerOptions
 from sep_plant.protocol import nominal_states
 
 # A tiny, strongly nonlinear problem: long steps and large inputs move the field by tens of
@@ -18,6 +20,11 @@ TINY, PROB = TINY_SCENARIO.plant, TINY_SCENARIO.problem
 OBJ = objective_of(TINY, PROB)
 
 pytestmark = pytest.mark.usefixtures("one_blas_thread")
+
+
+def optimize(plant, problem, U0=None, **options):
+    """One `Optimizer` run with the sensitivity Jacobian, no progress bar."""
+    return Optimizer(plant, problem, OptimizerOptions(show_progress=False, **options), SensitivityJacobian()).run(U0)
 
 
 def tiny_U(seed=0):
@@ -51,6 +58,8 @@ def test_residual_form_is_the_nominal_cost():
     q = PROB.q_weights()
     J = sum(q[k] * np.mean((T[k] - 150.0) ** 2) for k in range(1, PROB.n_steps + 1)) + 0.1 * np.sum(U**2)
     assert float(nominal_cost(T, U, OBJ)) == pytest.approx(J, rel=1e-12)
+    # the evaluation's nominal_cost is the objective's own cost, bit for bit
+    assert OBJ.cost(T, U) == nominal_cost(T, U, OBJ)
 
 
 def test_gradient_equals_brute_force_finite_differences():
@@ -112,8 +121,8 @@ def small():
 
 def test_gauss_newton_beats_gradient_descent(small):
     s, sim = small
-    gn = optimize(sim, s, method="gn", max_iter=4, show_progress=False)
-    gd = optimize(sim, s, method="gd", max_iter=4, show_progress=False)
+    gn = optimize(sim, s, method="gn", max_iter=4)
+    gd = optimize(sim, s, method="gd", max_iter=4)
     obj = objective_of(sim, s)
     assert gn.history[0] == gd.history[0]                      # same start (constant u_init)
     # GN converges: its 4th step lowers the cost by less than tol and is not taken
@@ -131,7 +140,7 @@ def test_optimum_has_a_small_gradient(small):
     s, sim = small
     U0 = np.full((s.n_steps, sim.n_u), s.u_init)
     obj = objective_of(sim, s)
-    res = optimize(sim, s, method="gn", max_iter=30, tol=1e-14, show_progress=False)
+    res = optimize(sim, s, method="gn", max_iter=30, tol=1e-14)
     grad = lambda U: 2 * sensitivity_normal_equations(sim, U, nominal_states(sim, U), obj, eps=1e-6,
                                                       gram=False).Jtr
     g0, g = grad(U0), grad(res.U)
@@ -149,7 +158,7 @@ def test_optimum_has_a_small_gradient(small):
 def test_input_limits_are_respected(small):
     s, sim = small
     s2 = s.replace(u_min=0.0, u_max=0.6)
-    res = optimize(sim, s2, method="gn", max_iter=3, show_progress=False)
+    res = optimize(sim, s2, method="gn", max_iter=3)
     assert res.U.min() >= 0.0 and res.U.max() <= 0.6
     assert res.cost < res.history[0]
 
@@ -174,9 +183,8 @@ def test_mean_only_problem_is_a_noise_free_belief(small):
 
 def test_belief_objective_optimizes_the_belief_cost(small):
     s, sim = small
-    start = optimize(sim, s, method="gn", max_iter=3, show_progress=False)
-    res = optimize(sim, s, U0=start.U, method="gn", objective="belief", max_iter=2, members=20, seed=1,
-                   show_progress=False)
+    start = optimize(sim, s, method="gn", max_iter=3)
+    res = optimize(sim, s, U0=start.U, method="gn", objective="belief", max_iter=2, members=20, enkf_seed=1)
     assert res.objective == "belief"
     assert res.cost <= res.history[0]
     assert res.cost == pytest.approx(belief_cost(run_belief(sim, res.U, s, 20, 1), res.U, objective_of(sim, s)),
@@ -186,16 +194,16 @@ def test_belief_objective_optimizes_the_belief_cost(small):
 def test_bad_arguments(small):
     s, sim = small
     with pytest.raises(ValueError, match="method"):
-        optimize(sim, s, method="newton", show_progress=False)
+        optimize(sim, s, method="newton")
     with pytest.raises(ValueError, match="objective"):
-        optimize(sim, s, objective="robust", show_progress=False)
+        optimize(sim, s, objective="robust")
 
 
 def test_belief_members_stepped_in_memory_batches_equal_one_batch(small):
     """The EnKF's forecast steps go in batches that fit the memory budget: the same belief."""
     from unittest import mock
 
-    from sep_control.design import optimizer as opt
+    from sep_control.design import belief as belief_mod
 
     s, sim = small
     U = np.full((s.n_steps, sim.n_u), 0.3)
@@ -207,7 +215,7 @@ def test_belief_members_stepped_in_memory_batches_equal_one_batch(small):
         calls.append(X.shape[0])
         return step(X, *a)
 
-    with mock.patch.object(opt, "runs_per_batch", return_value=6), mock.patch.object(sim, "step", counting_step):
+    with mock.patch.object(belief_mod, "runs_per_batch", return_value=6), mock.patch.object(sim, "step", counting_step):
         split = run_belief(sim, U, s, 20, 3)
     assert max(calls) == 6 and 2 in calls          # 20 members as 6 + 6 + 6 + 2
     np.testing.assert_allclose(split.mean, whole.mean, rtol=0, atol=1e-12 * np.abs(whole.mean).max())

@@ -158,13 +158,13 @@ def test_experiments_split_by_a_memory_budget_give_the_same_data():
     from unittest import mock
 
     from core_helpers import flat
-    from sep_control.design import tvera
+    from sep_control.design import impulse
 
     s = flat(n_x=30, n_steps=20, k_band=12, lqr_k_switch=10)
     U = np.full((20, 5), 0.2)
-    whole = tvera.impulse_experiments(s.plant, U, 8, 4, 1e-3)
-    with mock.patch.object(tvera, "runs_per_batch", return_value=2 * 8 * 2):     # two channels a pass
-        split = tvera.impulse_experiments(s.plant, U, 8, 4, 1e-3)
+    whole = impulse.impulse_experiments(s.plant, U, 8, 4, 1e-3)
+    with mock.patch.object(impulse, "runs_per_batch", return_value=2 * 8 * 2):     # two channels a pass
+        split = impulse.impulse_experiments(s.plant, U, 8, 4, 1e-3)
     np.testing.assert_allclose(split.Y, whole.Y, rtol=0, atol=1e-12 * np.abs(whole.Y).max())
     # (the field responses agree to the basis tolerance, 1e-8 of the largest: the order of adding differs)
     np.testing.assert_allclose(split.Yf, whole.Yf, rtol=0, atol=5e-8 * np.abs(whole.Yf).max())
@@ -228,7 +228,7 @@ def test_merge_streams_coefficients_like_add():
 def test_compressed_field_map_drops_only_what_the_state_spread_does_not_reach():
     """compress_field_map: with X_k = L_k L_k', every |(G_k - G_k') L_k|_2 <= tol sigma_1 of
     [g_0 L_0 ... g_N L_N]; Phi' stays orthonormal; the directions the spread reaches are kept."""
-    from sep_control.design.gains import compress_field_map
+    from sep_control.design.field_map import compress_field_map
 
     rng = np.random.default_rng(4)
     n_f, r_f, n, N1 = 400, 30, 6, 9
@@ -261,7 +261,8 @@ def test_design_compresses_its_field_map_and_keeps_its_gains():
     Kalman gains are those of the uncompressed model, the field std that of the compressed map."""
     from core_helpers import cached_design, coarse_scenario
     from sep_control.design.pipeline import DesignSettings, identify_rom
-    from sep_control.design.gains import FIELD_MAP_TOL, design_lqg
+    from sep_control.design.field_map import FIELD_MAP_TOL
+    from sep_control.design.gains import design_lqg
     from sep_estimator.ltv import field_std_schedule
 
     scen = coarse_scenario(20, 40)
@@ -270,7 +271,7 @@ def test_design_compresses_its_field_map_and_keeps_its_gains():
     st = DesignSettings(**settings)
     assert st.field_map_tol == FIELD_MAP_TOL
     ident = identify_rom(scen.plant, d.nominal.u, st)
-    full = design_lqg(ident.model, d.problem)
+    full = design_lqg(ident.model, d.problem).lqg()
     assert d.rom.G.rank < ident.model.G.rank
     for name in ("A", "B", "C"):
         np.testing.assert_array_equal(getattr(d.rom, name), getattr(ident.model, name))
@@ -278,3 +279,14 @@ def test_design_compresses_its_field_map_and_keeps_its_gains():
     np.testing.assert_array_equal(d.lqg.kf.L, full.kf.L)
     np.testing.assert_allclose(d.lqg.field_std, field_std_schedule(d.rom.G, d.lqg.kf.P_post), rtol=1e-12)
     np.testing.assert_allclose(d.lqg.field_std, full.field_std, rtol=0, atol=1e-3 * full.field_std.max())
+    # the stages apart: design_lqg compresses nothing (the gains on the model it was given), and
+    # the field-map stage on those gains gives the design's map and field std bit for bit
+    from sep_control.design.field_map import compressed_lqg
+
+    gains = design_lqg(ident.model, d.problem)
+    assert gains.model is ident.model
+    lqg = compressed_lqg(gains, st.field_map_tol)
+    np.testing.assert_array_equal(lqg.model.G.Phi, d.rom.G.Phi)
+    np.testing.assert_array_equal(lqg.model.G.g, d.rom.G.g)
+    np.testing.assert_array_equal(lqg.field_std, d.lqg.field_std)
+    np.testing.assert_array_equal(lqg.kf.P_prior, d.lqg.kf.P_prior)

@@ -249,7 +249,7 @@ def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3,
     step by default). Sensors that average or mix the field read no single node. With `P`
     (n, n), a covariance of the state at step k, the rows are compared in the directions the
     state takes, (C_k[i] - G_k[j]) P^(1/2): a field map compressed to those directions
-    (`sep_control.design.gains.compress_field_map`) differs from C elsewhere."""
+    (`sep_control.design.field_map.compress_field_map`) differs from C elsewhere."""
     k = model.C.shape[0] - 1 if k is None else k
     G, C = model.G.matrix(k), model.C[k]
     if P is not None:

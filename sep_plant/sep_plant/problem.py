@@ -201,6 +201,27 @@ class Objective:
     def n_steps(self) -> int:
         return int(self.q.shape[0] - 1)
 
+    def cost(self, F: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """The nominal cost J of field trajectories and inputs (docs/method.md):
+
+            J = sum_{k=1..N} q_k mean_i (f_{k,i} - f*_i)^2 + r_u sum_{k=0..N-1} |u_k|^2.
+
+        Parameters
+        ----------
+        F : ndarray, shape (..., N+1, n_field)
+            Field trajectories f_k for k = 0..N (f_0 does not enter), a leading run axis optional.
+        U : ndarray, shape (..., N, n_u)
+            Inputs u_k for k = 0..N-1.
+
+        Returns
+        -------
+        J : ndarray, shape (...)
+            The cost of every run (a 0-d array without a run axis).
+        """
+        q = self.q[1:]
+        field = np.einsum("k,...k->...", q, np.mean((F[..., 1:, :] - self.target) ** 2, axis=-1))
+        return field + self.r_u * np.sum(U**2, axis=(-2, -1))
+
 
 # ------------------------------------------------------------ expressions
 _BINOPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv,

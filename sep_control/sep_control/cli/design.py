@@ -78,7 +78,7 @@ SETTINGS_OPTIONS = (
      "u in [0, 0.6] any c that binds costs the band (see README)"),
     ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin"),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude"),
-    ("--seed", "seed", dict(type=int), "EnKF random seed"),
+    ("--seed", "enkf_seed", dict(type=int), "EnKF random seed"),
 )
 
 

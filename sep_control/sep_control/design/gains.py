@@ -8,27 +8,20 @@ by the backward Riccati recursion (S_N = Q_N):
 so du_k = K_k a_k. On the ROM the state weight comes from the outputs, Q_k = C_k' Q_y,k C_k.
 
 Online: u_k = clip(ubar_k + K_k ahat_{k|k}, u_min, u_max).
-`design_lqg` puts the LQR and the Kalman filter together on one model (ROM or oracle), and
-compresses a POD field map to the directions the ROM state reaches (`compress_field_map`).
+`design_lqg` puts the LQR and the Kalman filter together on one model (ROM or oracle): the
+gains only (`GainsResult`); the design's field map is compressed afterwards, against the
+spread these gains give the ROM state (`sep_control.design.field_map`).
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from sep_estimator.ltv import LQG, LTVModel, PODFieldMap, psd_factor
+from sep_estimator.ltv import LQG, KalmanSchedule, LTVModel
 from sep_estimator.tvkf import kalman_gains, schedule_from_posteriors
 from sep_plant.problem import Problem
-
-#: relative tolerance of the design's field map against the ROM state's spread
-#: (`compress_field_map`, `state_spread`). Measured on the four shipped scenarios (200 closed-loop
-#: runs each, the same runs with the full and the compressed map): the reconstructed field moved by
-#: at most 9.3e-4 of the largest per-node std (8.3e-5 rms), the 2-sigma coverage not at all (4
-#: digits), and Phi shrank 59 -> 24 (reference), 220 -> 70 (plate 64^2), 246 -> 86 (block 24^3),
-#: 517 -> 158 (Allen-Cahn) columns
-FIELD_MAP_TOL = 1e-5
 
 
 def tv_lqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,43 +52,46 @@ def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min, u_ma
     return u
 
 
-def state_spread(model: LTVModel, K: np.ndarray, kf, V: np.ndarray) -> np.ndarray:
-    """X_k = P_k|k + cov(ahat_k) in closed loop + cov(ahat_k) in open loop (N+1, n, n): covers the
-    ROM state's covariance with the LQG running (P_k|k + the closed-loop estimate's, which moves
-    along B_k through the feedback) and without it (P_k|k + the open-loop estimate's)."""
-    return (kf.P_post + estimate_covariances(model, K, kf, V, closed_loop=True)
-            + estimate_covariances(model, K, kf, V, closed_loop=False))
+@dataclass(frozen=True)
+class GainsResult:
+    """The LQG gains designed on one model (`design_lqg`)."""
+
+    model: LTVModel        # the model they were designed on
+    K: np.ndarray          # (N, n_u, n) LQR gains, du_k = K_k ahat_{k|k}
+    kf: KalmanSchedule     # the forward Riccati recursion's gains L_k and covariances P_k|k, P_k|k-1
+    W: np.ndarray          # (n_w, n_w) process noise covariance
+    V: np.ndarray          # (n_y, n_y) sensor noise covariance
+
+    def lqg(self, name: str = "rom_lqg", model: LTVModel | None = None) -> LQG:
+        """The LQG of these gains on `model` (default: the one they were designed on; else the
+        same A_k, B_k, C_k with another field map). The priors are recomputed from the
+        posteriors, exactly as a loaded design file rebuilds them, and the field std
+        (`LQG.field_std`) is that of the model's field map."""
+        m = self.model if model is None else model
+        return LQG(name, m, self.K, schedule_from_posteriors(m, self.kf.L, self.kf.P_post, self.W), self.W, self.V)
 
 
-def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap:
-    """G_k = Phi g_k on fewer directions: the SVD U S V' of [g_0 L_0 ... g_N L_N], X_k = L_k L_k'
-    (X (N+1, n, n): the state spread, `state_spread`), keeps U_r, the directions with
-    S > tol S_1: Phi' = Phi U_r (still orthonormal), g_k' = U_r' g_k.
+def design_lqg(model: LTVModel, problem: Problem) -> GainsResult:
+    """TV-LQR (weights on the outputs) and TV Kalman filter for `model` under `problem`'s
+    weights and noise: Q_k = C_k' Q_y,k C_k, R = lqr_r I, W = diag(w_std^2), V = diag(v_std^2).
 
-    What is dropped moves the field by less than tol times its largest spread, both the
-    reconstructed mean and the std. Neither the LQR (weights on the outputs) nor the filter (it
-    reads the outputs) uses G, so the gains do not change."""
-    gL = G.g @ psd_factor(X)                                   # (N+1, r_f, n)
-    U, S, _ = np.linalg.svd(np.concatenate(list(gL), axis=1), full_matrices=False)
-    r = int(np.count_nonzero(S > tol * S[0])) if S.size and S[0] > 0 else 0
-    Ur = U[:, :max(r, 1)] if G.rank else U[:, :0]
-    return PODFieldMap(np.ascontiguousarray(G.Phi @ Ur), np.ascontiguousarray(np.matmul(Ur.T, G.g)))
+    Parameters
+    ----------
+    model : LTVModel
+        The model (a ROM, or the oracle's full-order one).
+    problem : Problem
+        LQR weights (lqr_q_early, lqr_q_late, lqr_k_switch, lqr_r) and noise stds (w_std, v_std).
 
-
-def design_lqg(model: LTVModel, problem: Problem, name: str = "rom_lqg", map_tol: float | None = None) -> LQG:
-    """TV-LQR (weights on the outputs) and TV Kalman filter for `model` under `problem`'s weights
-    and noise: Q_k = C_k' Q_y,k C_k, R = lqr_r I, W = diag(w_std^2), V = diag(v_std^2). With
-    `map_tol`, a POD field map is compressed against the ROM state's spread with and without
-    the feedback (`state_spread`, `compress_field_map`); the gains do not depend on it."""
+    Returns
+    -------
+    GainsResult
+        K, the Kalman schedule, W and V on `model`; `GainsResult.lqg(name)` makes the LQG.
+    """
     Q = output_weights(model.C, problem.lqr_output_weights(model.n_y))
     R = np.eye(model.n_u) * problem.lqr_r
     K, _ = tv_lqr(model.A, model.B, Q, R)
     W, V = problem.noise_covariances(model.noise_input.shape[2], model.n_y)
-    kf = kalman_gains(model, W, V)
-    if map_tol is not None and isinstance(model.G, PODFieldMap):
-        model = replace(model, G=compress_field_map(model.G, state_spread(model, K, kf, V), map_tol))
-    # priors from the posteriors, exactly as a loaded design file rebuilds them
-    return LQG(name, model, K, schedule_from_posteriors(model, kf.L, kf.P_post, W), W, V)
+    return GainsResult(model, K, kalman_gains(model, W, V), W, V)
 
 
 def estimate_covariances(model: LTVModel, K: np.ndarray, kf, V: np.ndarray, closed_loop: bool = True) -> np.ndarray:

@@ -1,15 +1,7 @@
 """Time-varying Eigensystem Realization Algorithm (Majji, Juang & Junkins 2010).
 
-Markov parameters of the perturbation system around the nominal,
-    Y_{k,j} = C_k A_{k-1} ... A_{j+1} B_j        (response at step k to an input impulse at j < k),
-come from impulse-response experiments on the black box (`impulse_experiments`): channel c at
-step j perturbed by +-delta (scheme "central", the default: no O(delta) bias, two runs per
-impulse) or by +delta against an unperturbed copy of the nominal in the same batch (scheme
-"forward": one run per impulse, a bias of O(delta); a small delta lifts the plant's round-off
-into the field basis), outputs h(x) and field f(x) recorded for lags 1..p+q. The channels are
-the n_u inputs and, for a plant whose process noise does not enter through the inputs, its n_w
-noise channels too (then B_w,k is identified the same way as B_k).
-
+The Markov parameters Y_{k,j} = C_k A_{k-1} ... A_{j+1} B_j of the perturbation system around
+the nominal come from impulse experiments on the black box (`sep_control.design.impulse`).
 At each step k the generalized Hankel matrix of p future outputs and q_k = min(q, k) past
 inputs factors as H_k = O_k R_k:
     H_k[i, m] = Y_{k+i, k-1-m},   H_k = U S V',  O_k = U_n S_n^{1/2},  R_k = S_n^{1/2} V_n'
@@ -19,12 +11,12 @@ with n_k the ROM order (<= n_r, singular values below rel_tol * sigma_1 dropped)
 so A_k maps the coordinates of step k into those of step k+1 (consistent coordinates).
 Near k = 0 only k past inputs exist and n_k grows (0, n_u, 2 n_u, ...), A_k rectangular.
 The nominal is extended past N (last input held) so the last Hankel matrices are complete.
+Noise channels, when identified, are realized with the inputs and split off as B_w,k.
 
 The field output map G_k (df_k = G_k a_k) follows from the field Markov parameters of the
-same experiments (field snapshots): G_k = Hf_k V_n S_n^{-1/2}, Hf_k[0, m] = Yf_{k, k-1-m}. The
-field responses stream into an orthonormal basis Phi as they are simulated, so G_k = Phi g_k
-(`sep_estimator.ltv.PODFieldMap`): memory n_field r + N r n_r, never N n_field n_r.
-Only `plant.step`, `plant.observe`, `plant.field` and state snapshots are used.
+same experiments (field snapshots): G_k = Hf_k V_n S_n^{-1/2}, Hf_k[0, m] = Yf_{k, k-1-m}, kept
+on the experiments' orthonormal basis Phi, so G_k = Phi g_k (`sep_estimator.ltv.PODFieldMap`):
+memory n_field r + N r n_r, never N n_field n_r.
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -34,54 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from sep_estimator.ltv import LTVModel, PODFieldMap
-from sep_plant.device import base_plant
-from sep_plant.protocol import Plant, noise_channels, rollout
+from sep_plant.protocol import Plant, rollout
 
-from sep_control.design.basis import IncrementalBasis, truncate
-from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
 from sep_control.compute.progress import progress
-
-#: relative tolerance of the field responses' basis (against the largest response) and of its
-#: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
-#: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes)
-FIELD_TOL = 1e-8
-#: impulse schemes: experiments per impulse (a forward pass also steps one unperturbed copy of the
-#: nominal per start step, beside its impulses, so that both sides of every difference come from
-#: the same batched solve: a nominal from a separate rollout differs in round-off, which the
-#: division by delta would lift into spurious field directions)
-SCHEMES = {"central": 2, "forward": 1}
-
-
-@dataclass
-class MarkovData:
-    """Markov parameters from impulse experiments around a nominal of N steps.
-
-    Y[j, l]  = Y_{j+l, j}  (n_y, n_ch) for lags l = 1..L (index l-1), inputs j = 0..N-1;
-    field Markov parameters Yf_{j+l, j} (n_field, n_ch), lags 1..Lf, kept as coefficients on an
-    orthonormal basis of the field responses: Yf[j, l] = basis @ Yc[j, l] (see `sep_control.design.basis`:
-    memory n_field r + N Lf r n_ch instead of N Lf n_field n_ch).
-    Channels: the n_u inputs, then the noise channels (only when noise is not on the inputs).
-    """
-    Y: np.ndarray          # (N, L, n_y, n_ch)
-    Yc: np.ndarray         # (N, Lf, r, n_ch) field responses on `basis`
-    basis: np.ndarray      # (n_field, r) orthonormal
-    delta: float
-    experiments: int
-    n_u: int               # the first n_u channels are the inputs
-
-    @property
-    def Y_inputs(self) -> np.ndarray:
-        return self.Y[..., :self.n_u]
-
-    @classmethod
-    def from_dense(cls, Y: np.ndarray, Yf: np.ndarray, delta: float, experiments: int, n_u: int) -> "MarkovData":
-        """From dense field Markov parameters Yf (N, Lf, n_field, n_ch) (the identity basis)."""
-        return cls(Y, Yf, np.eye(Yf.shape[2]), delta, experiments, n_u)
-
-    @property
-    def Yf(self) -> np.ndarray:
-        """The field Markov parameters as a dense (N, Lf, n_field, n_ch) array (small grids only)."""
-        return np.einsum("fr,jlrc->jlfc", self.basis, self.Yc)
+from sep_control.design.basis import truncate
+# the experiments' names, also for the callers that take them from here
+from sep_control.design.impulse import (FIELD_TOL, SCHEMES, MarkovData, experiment_chunks,  # noqa: F401
+                                        extend_nominal, impulse_experiments)
 
 
 @dataclass
@@ -106,211 +57,68 @@ class Identification:
                 and (p is None or self.p == p) and (q is None or self.q == q))
 
 
-def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
-    """Hold the last input for `extra` steps past N."""
-    return np.vstack([U, np.repeat(U[-1:], extra, axis=0)])
+@dataclass(frozen=True)
+class RomSettings:
+    """The settings of one TV-ERA identification (`identify`; defaults: docs/reference/cli.md)."""
 
+    p: int = 15                     # Hankel block rows (future outputs)
+    q: int = 15                     # Hankel block columns (past inputs)
+    n_r: int = 20                   # ROM order cap
+    sv_tol: float = 1e-10           # relative singular-value cutoff
+    impulse: float = 0.01           # impulse amplitude relative to the RMS nominal input
+    scheme: str = "central"         # impulse scheme (`SCHEMES`)
+    field_tol: float | None = None  # the field basis' relative tolerance (None: FIELD_TOL)
+    memory_budget: int | None = None  # bytes for a batch of experiments (None: the default budget)
+    chunks: int = 1                 # experiments in this many chunks of start steps
+    engine: object = None           # `sep_control.compute.engine` running the chunks (None: in-process)
 
-def experiment_chunks(N: int, chunks: int) -> list[tuple[int, int]]:
-    """The start-step ranges [j0, j1) of the experiment chunks: `chunks` near-equal ranges of
-    0..N-1 (fewer when N is smaller). The chunk plan is part of the method's inputs: it fixes
-    which experiments share a pass and a field basis, so it never depends on the engine."""
-    if chunks < 1:
-        raise ValueError(f"experiment chunks must be >= 1, got {chunks}")
-    edges = np.linspace(0, N, min(chunks, max(N, 1)) + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
-def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
-                        Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
-                        field_tol: float = FIELD_TOL, memory_budget: int | None = None,
-                        scheme: str = "central", chunks: int = 1, engine=None) -> MarkovData:
-    """Impulse responses for every input step j < N and channel c.
-
-    scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
-    (y(+delta) - ybar) / delta, N n_ch experiments plus one unperturbed copy of the nominal per
-    start step j, stepped in the same batch (N (n_ch + 1) runs).
-    The start steps are split into `chunks` ranges (`experiment_chunks`); each chunk is one task
-    for the `engine` (`sep_control.compute.engine`; in-process by default), started from its own nominal
-    snapshots Xbar_ext[j0:j1]. In a chunk the experiments run as a batch in lockstep over global
-    steps; experiment (j, c, +-) is active for steps j..j+lags-1 only, so a pass holds at most
-    2 n_ch lags runs ((n_ch + 1) lags forward): a ring of `lags` slots, start j in slot j mod
-    lags, stepped in place (no copy of the batch per step). When that batch exceeds
-    `memory_budget` (`sep_control.compute.budget`), the channels are split into groups, one pass each.
-    `Xbar_ext` is the nominal over N + lags steps (computed if None).
-    Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
-    relative to the chunk's largest response); only their coefficients are kept. The chunks'
-    bases are then merged in chunk order into one basis Phi: each chunk's responses phi_c C_c
-    are streamed in again from their coefficients (`IncrementalBasis.merge`, blocks of 64), with
-    field_tol relative to the largest response of all chunks, so the merged basis is what one
-    chunk would give (the same rank to +-2), and the coefficients become C_c' T_c with
-    T_c = phi_c' Phi. The result depends on the chunk plan, never on which worker finished first.
-    """
-    from sep_control.compute.engine import InProcess
-
-    if scheme not in SCHEMES:
-        raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
-    engine = engine or InProcess()
-    N, n_u = U.shape
-    U_ext = extend_nominal(U, lags)
-    if Xbar_ext is None:
-        Xbar_ext = rollout(plant, plant.initial_state(1), U_ext)[0]
-    n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
-    n_ch = n_u + n_w
-    n_y, n_f = int(plant.n_y), int(plant.n_field)
-    in_process = engine.local
-    if memory_budget is None and not in_process:
-        # the default budget is this machine's; a worker must hold a chunk's batch too (only
-        # when this binds does it change the plan: pass --memory-budget for the same bits)
-        wb = worker_budget(engine)
-        memory_budget = None if wb is None else min(wb, default_budget())
-    slot_runs = runs_per_batch(int(plant.n_x), n_f, memory_budget) // lags     # runs per start step
-    per_pass = max(1, (slot_runs - (scheme == "forward")) // SCHEMES[scheme])     # channels per pass
-    groups = [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
-    plan = experiment_chunks(N, chunks)
-    shared = dict(plant=engine.ship(plant), U_ext=U_ext, lags=lags,
-                  field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
-                  field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
-                  n_chunks=len(plan))
-    tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
-    labels = [f"plant {type(base_plant(plant)).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
-              f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
-    parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
-                       show_progress=show_progress and not in_process)
-    Y = np.zeros((N, lags, n_y, n_ch))
-    basis = IncrementalBasis(n_f, field_tol)
-    flat = [Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1) if phi.shape[1] else np.zeros((0, 0))
-            for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
-    # the tolerance is against the largest response of all chunks, whatever their order
-    basis.scale = max((float(np.sqrt(np.einsum("ij,ij->j", m, m)).max()) for m in flat if m.size), default=0.0)
-    for (j0, j1), (Yp, phi, _), m in zip(plan, parts, flat):
-        Y[j0:j1] = Yp
-        # each chunk's responses are streamed in again as coefficients (`IncrementalBasis.merge`):
-        # entering phi_c as unit vectors would keep each chunk's own small directions (rank 172
-        # instead of 63 at n_x = 1600 with 4 chunks)
-        basis.merge(phi, m)
-    r = basis.rank
-    Yc = np.zeros((N, field_lags, r, n_ch))
-    for (j0, j1), (_, phi, Yc_local) in zip(plan, parts):
-        if phi.shape[1]:
-            # phi_c on Phi: (phi' Phi)' Yc per (j, lag), a batched BLAS product (einsum's own loop
-            # took 7x longer at Allen-Cahn's r ~ 1000)
-            Yc[j0:j1] = np.matmul((phi.T @ basis.phi).T, Yc_local)
-    return MarkovData(Y, Yc, basis.phi.copy(), delta, SCHEMES[scheme] * N * n_ch, n_u)
-
-
-def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
-                   groups: list[np.ndarray], n_u: int, n_w: int, scheme: str, field_tol: float,
-                   bar_desc: str | None = None, n_chunks: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One experiment chunk (start steps j0..j1-1, every channel group): returns its output
-    Markov parameters Y (j1-j0, lags, n_y, n_ch), its field basis phi (n_f, r_c) and the field
-    coefficients Yc (j1-j0, field_lags, r_c, n_ch) on it. `plant` is the plant or its
-    shipped form (`engine.ship`: rebuilt once per worker process)."""
-    from sep_control.compute.engine import local_plant
-
-    i, j0, j1, Xbar = task
-    plant = local_plant(plant)
-    n_y, n_f = int(plant.n_y), int(plant.n_field)
-    n_ch = n_u + n_w
-    n = j1 - j0
-    Y = np.zeros((n, lags, n_y, n_ch))
-    basis = IncrementalBasis(n_f, field_tol)
-    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
-    desc = None if bar_desc is None else (bar_desc if n_chunks == 1 else f"{bar_desc} {i + 1}/{n_chunks}")
-    bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
-    for chs in groups:
-        _impulse_pass(plant, U_ext[j0:], Xbar, n, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
-                      scheme)
-    if hasattr(bar, "close"):
-        bar.close()
-    r = basis.rank
-    Yc = np.zeros((n, field_lags, r, n_ch))
-    for j, lag, chs, C in blocks:
-        Cr = np.zeros((C.shape[0], r))
-        Cr[:, :C.shape[1]] = C
-        Yc[j[:, None], lag[:, None] - 1, :, chs[None, :]] = Cr.reshape(len(j), len(chs), r)
-    return Y, basis.phi.copy(), Yc
-
-
-def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
-                  delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
-                  blocks: list, bar, scheme: str = "central") -> None:
-    """One lockstep pass over the channels `chs` (see `impulse_experiments`); steps and start
-    steps are counted from the chunk's first start step (U_ext and Xbar_ext begin there)."""
-    n_y, n_f, n_x = int(plant.n_y), int(plant.n_field), int(plant.n_x)
-    m = len(chs)
-    sides = SCHEMES[scheme]
-    # per slot: [+delta e_c ..., -delta e_c ...] (central) or [+delta e_c ..., 0] (forward)
-    E = np.eye(n_u + n_w)[chs]
-    pert = (np.vstack([E, -E]) if sides == 2 else np.vstack([E, np.zeros((1, E.shape[1]))])) * delta
-    rows = pert.shape[0]
-    X = np.empty((lags * rows, n_x))
-    slot_start = np.full(lags, -1)                    # start step j held by each slot (-1: none)
-    for k in range(N + lags - 1):
-        if hasattr(bar, "update"):
-            bar.update(1)
-        if k < N:
-            s = k % lags
-            X[s * rows:(s + 1) * rows] = Xbar_ext[k]
-            slot_start[s] = k
-        used = min(k + 1, lags) * rows                # ramp-up: only the slots filled so far
-        j_slot = slot_start[:used // rows]
-        Uk = np.repeat(U_ext[k][None], used, axis=0)
-        Wk = np.zeros((used, n_w)) if n_w else None
-        if k < N:
-            s = k % lags
-            Uk[s * rows:(s + 1) * rows] += pert[:, :n_u]
-            if n_w:
-                Wk[s * rows:(s + 1) * rows] += pert[:, n_u:]
-        if k < N:
-            X[:used] = plant.step(X[:used], Uk, Wk)
-        else:   # ramp-down: step only the slots still in an experiment (one or two ring ranges)
-            for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < lags))):
-                r0, r1 = a * rows, b * rows
-                X[r0:r1] = plant.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
-        # record lag k+1-j for every active experiment j (slots of finished ones are ignored)
-        lag = k + 1 - j_slot
-        active = (j_slot >= 0) & (lag >= 1) & (lag <= lags)
-        if not np.any(active):
-            continue
-        j, lag = j_slot[active], lag[active]
-        sel = np.flatnonzero(np.repeat(active, rows))
-        Yo = plant.observe(X[sel]).reshape(len(j), rows, n_y)
-        Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = _difference(Yo, m, sides, delta)
-        keep = lag <= field_lags
-        if np.any(keep):
-            fsel = np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows))
-            Ff = plant.field(X[fsel]).reshape(int(keep.sum()), rows, n_f)
-            D = _difference(Ff, m, sides, delta).reshape(-1, n_f)             # (keep m, n_f)
-            blocks.append((j[keep], lag[keep], chs, basis.add(D)))
-
-
-def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:
-    """Sorted indices -> the [a, b) ranges of consecutive ones."""
-    if idx.size == 0:
-        return []
-    cut = np.flatnonzero(np.diff(idx) > 1) + 1
-    return [(int(g[0]), int(g[-1]) + 1) for g in np.split(idx, cut)]
-
-
-def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
-    """(experiments, m, n) impulse responses from the runs V (experiments, rows, n) of one slot:
-    central (V[:m] - V[m:2m]) / 2 delta, forward (V[:m] - V[m]) / delta."""
-    if sides == 2:
-        return (V[:, :m] - V[:, m:]) / (2 * delta)
-    return (V[:, :m] - V[:, m:m + 1]) / delta
+    def identify(self, plant: Plant, U: np.ndarray, show_progress: bool = False) -> Identification:
+        """`identify` around the nominal input U with these settings."""
+        return identify(plant, U, self.p, self.q, self.n_r, self.sv_tol, self.impulse, show_progress,
+                        field_tol=self.field_tol, memory_budget=self.memory_budget, scheme=self.scheme,
+                        chunks=self.chunks, engine=self.engine)
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
              memory_budget: int | None = None, scheme: str = "central", chunks: int = 1,
              engine=None) -> Identification:
-    """TV-ERA around the nominal input U.
+    """TV-ERA around the nominal input U: impulse experiments, then the realization (`tv_era`).
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
-    k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input;
-    `scheme` "central" or "forward"; the experiments run in `chunks` chunks on `engine` (see
-    `impulse_experiments`).
+    k = N is complete; the impulse amplitude delta is `impulse` times the RMS nominal input.
+
+    Parameters
+    ----------
+    plant : Plant
+        The black-box plant (only step, observe, field and state snapshots are used).
+    U : ndarray, shape (N, n_u)
+        The nominal input.
+    p, q : int
+        Hankel block rows (future outputs) and columns (past inputs); experiments of p + q steps.
+    n_r : int
+        ROM order cap.
+    sv_tol : float
+        Relative Hankel singular-value cutoff.
+    impulse : float
+        Impulse amplitude relative to the RMS nominal input.
+    show_progress : bool
+        Draw progress bars.
+    field_tol : float, optional
+        The field basis' relative tolerance (None: `FIELD_TOL`).
+    memory_budget : int, optional
+        Bytes for a batch of experiments (None: the default budget).
+    scheme : {"central", "forward"}
+        Impulse scheme (`sep_control.design.impulse.impulse_experiments`).
+    chunks : int
+        Experiments in this many chunks of start steps (`experiment_chunks`).
+    engine : optional
+        The `sep_control.compute.engine` that runs the chunks (None: in-process).
+
+    Returns
+    -------
+    Identification
+        The model, the Hankel singular values, the Markov data and the nominal it was made around.
     """
     N = U.shape[0]
     lags = p + q
@@ -336,24 +144,43 @@ def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:
 
 def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 1e-10,
            show_progress: bool = False, field_tol: float = FIELD_TOL) -> tuple[LTVModel, np.ndarray]:
-    """Realize (A_k, B_k, C_k, G_k) for k = 0..N from Markov parameters (needs lags >= p+q).
+    """Realize (A_k, B_k, C_k, G_k) for k = 0..N from Markov parameters (the module docstring).
 
-    Returns the model (B_w split off when there are noise channels) and the Hankel singular
-    values (N+1, n_sv)."""
+    Parameters
+    ----------
+    data : MarkovData
+        Markov parameters up to lag p + q (outputs) and q (field), from `impulse_experiments`.
+    N : int
+        Horizon: A_k, B_k for k < N and C_k, G_k for k <= N.
+    p, q : int
+        Hankel block rows (future outputs) and columns (past inputs).
+    n_r : int
+        ROM order cap.
+    rel_tol : float
+        Hankel singular values below rel_tol sigma_1 are dropped.
+    show_progress : bool
+        Draw a progress bar.
+    field_tol : float
+        The field map's basis is truncated to the span its g_k use, at this relative tolerance.
+
+    Returns
+    -------
+    model : LTVModel
+        The ROM, states zero-padded to n_r (B_w split off when there are noise channels).
+    hankel_sv : ndarray, shape (N+1, n_sv)
+        Singular values of every H_k (zero padded).
+    """
     Y, Yc = data.Y, data.Yc
     _, L, n_y, n_ch = Y.shape
-    r_f = Yc.shape[2]
     if L < p + q:
         raise ValueError(f"need Markov parameters up to lag p+q = {p + q}, have {L}")
     if Yc.shape[1] < q:
         raise ValueError(f"need field Markov parameters up to lag q = {q}, have {Yc.shape[1]}")
-    n_sv = min(p * n_y, q * n_ch)
     dims = np.zeros(N + 1, dtype=np.int64)
-    A = np.zeros((N, n_r, n_r))
     B = np.zeros((N, n_r, n_ch))
     C = np.zeros((N + 1, n_y, n_r))
-    g = np.zeros((N + 1, r_f, n_r))                   # G_k = basis g_k
-    sv = np.zeros((N + 1, n_sv))
+    g = np.zeros((N + 1, Yc.shape[2], n_r))             # G_k = basis g_k
+    sv = np.zeros((N + 1, min(p * n_y, q * n_ch)))
     # O_k^+ = S^{-1/2} U',  R_k^+ = V S^{-1/2} for every k (needed one step ahead)
     O_pinv: list[np.ndarray | None] = [None] * (N + 1)
     R_pinv: list[np.ndarray | None] = [None] * (N + 1)
@@ -361,38 +188,50 @@ def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 
         q_k = min(q, k)
         if q_k == 0:
             continue
-        H = _hankel(Y, k, p, q_k, 0)
-        Us, S, Vt = np.linalg.svd(H, full_matrices=False)
+        Us, S, Vt = np.linalg.svd(_hankel(Y, k, p, q_k, 0), full_matrices=False)
         sv[k, :S.size] = S
         n = int(min(n_r, np.sum(S > rel_tol * S[0]))) if S[0] > 0 else 0
         dims[k] = n
         if n == 0:
             continue
         sq = np.sqrt(S[:n])
-        O = Us[:, :n] * sq
-        R = sq[:, None] * Vt[:n]
-        C[k, :, :n] = O[:n_y]
-        B[k - 1, :n, :] = R[:, :n_ch]
+        C[k, :, :n] = (Us[:, :n] * sq)[:n_y]                  # first block row of O_k
+        B[k - 1, :n, :] = (sq[:, None] * Vt[:n])[:, :n_ch]    # first block column of R_k
         O_pinv[k] = Us[:, :n].T / sq[:, None]
         R_pinv[k] = Vt[:n].T / sq[None, :]
         # field map: first block row of the field Hankel [Yf_{k,k-1-m}]_m = Yf[k-1-m, lag m+1],
         # on the field basis (coefficients only: nothing of size n_field here)
         Hc = np.concatenate([Yc[k - 1 - m, m] for m in range(q_k)], axis=1)   # (r_f, q_k n_ch)
         g[k, :, :n] = Hc @ R_pinv[k]
+    A = _transitions(Y, p, q, n_r, dims, O_pinv, R_pinv)
+    return _assemble(data, A, B, C, g, dims, field_tol), sv
+
+
+def _transitions(Y: np.ndarray, p: int, q: int, n_r: int, dims: np.ndarray, O_pinv: list,
+                 R_pinv: list) -> np.ndarray:
+    """A_k = O_{k+1}^+ H'_k R_k^+ for k = 1..N-1 (A_0 = 0: the state at k = 0 is empty), (N, n_r, n_r)."""
+    N = dims.shape[0] - 1
+    A = np.zeros((N, n_r, n_r))
     for k in range(1, N):
         n, n_next = dims[k], dims[k + 1]
         if n == 0 or n_next == 0:
             continue
         Hs = _hankel(Y, k, p, min(q, k), 1)
         A[k, :n_next, :n] = O_pinv[k + 1] @ Hs @ R_pinv[k]
-    n_u = data.n_u
+    return A
+
+
+def _assemble(data: MarkovData, A: np.ndarray, B: np.ndarray, C: np.ndarray, g: np.ndarray, dims: np.ndarray,
+              field_tol: float) -> LTVModel:
+    """The LTVModel: B split into the inputs' B and the noise channels' B_w, and the field map on
+    the basis truncated to the span its g_k use (the field reconstruction needs no more)."""
+    n_u, n_ch = data.n_u, B.shape[2]
+    N1, r_f, n_r = g.shape
     Bw = B[:, :, n_u:].copy() if n_ch > n_u else None
-    # the basis spans every field response; the field map needs only the span of its g_k
     Phi, coef = truncate(data.basis, g.transpose(1, 0, 2).reshape(r_f, -1), field_tol)
-    g = coef.reshape(Phi.shape[1], N + 1, n_r).transpose(1, 0, 2)
-    model = LTVModel(A=A, B=B[:, :, :n_u].copy() if Bw is not None else B, C=C,
-                     G=PODFieldMap(np.ascontiguousarray(Phi), np.ascontiguousarray(g)), dims=dims, Bw=Bw)
-    return model, sv
+    g = coef.reshape(Phi.shape[1], N1, n_r).transpose(1, 0, 2)
+    return LTVModel(A=A, B=B[:, :, :n_u].copy() if Bw is not None else B, C=C,
+                    G=PODFieldMap(np.ascontiguousarray(Phi), np.ascontiguousarray(g)), dims=dims, Bw=Bw)
 
 
 def markov_relative_error(model: LTVModel, Y: np.ndarray) -> float:

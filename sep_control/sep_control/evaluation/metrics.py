@@ -23,10 +23,8 @@ CONTROLLERS = ("open_loop", "rom_lqg", "oracle_lqg", "rom_mpc")
 
 
 def nominal_cost(F: np.ndarray, U: np.ndarray, obj: Objective) -> np.ndarray:
-    """J = sum_{k=1..N} q_k mean_i (f_{k,i} - f*_i)^2 + r_u sum_{k=0..N-1} |u_k|^2."""
-    q = obj.q[1:]
-    field = np.einsum("k,...k->...", q, np.mean((F[..., 1:, :] - obj.target) ** 2, axis=-1))
-    return field + obj.r_u * np.sum(U**2, axis=(-2, -1))
+    """J = sum_{k=1..N} q_k mean_i (f_{k,i} - f*_i)^2 + r_u sum_{k=0..N-1} |u_k|^2 (`Objective.cost`)."""
+    return obj.cost(F, U)
 
 
 def _window(F: np.ndarray, obj: Objective) -> np.ndarray:

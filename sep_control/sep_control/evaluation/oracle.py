@@ -79,4 +79,4 @@ def oracle_lqg(design: Design, plant: Plant | None = None) -> LQG:
     scenario when none is given)."""
     plant = plant if plant is not None else design.scenario.plant
     X = nominal_states(plant, design.nominal.u)
-    return design_lqg(full_order_model(plant, X, design.nominal.u), design.problem, "oracle_lqg")
+    return design_lqg(full_order_model(plant, X, design.nominal.u), design.problem).lqg("oracle_lqg")

@@ -1,0 +1,302 @@
+"""Impulse-response experiments on the black box: the Markov parameters TV-ERA realizes.
+
+Markov parameters of the perturbation system around the nominal,
+    Y_{k,j} = C_k A_{k-1} ... A_{j+1} B_j        (response at step k to an input impulse at j < k),
+come from experiments on the plant (`impulse_experiments`): channel c at step j perturbed by
++-delta (scheme "central", the default: no O(delta) bias, two runs per impulse) or by +delta
+against an unperturbed copy of the nominal in the same batch (scheme "forward": one run per
+impulse, a bias of O(delta); a small delta lifts the plant's round-off into the field basis),
+outputs h(x) and field f(x) recorded for lags 1..p+q. The channels are the n_u inputs and, for a
+plant whose process noise does not enter through the inputs, its n_w noise channels too.
+
+The field responses stream into an orthonormal basis Phi as they are simulated
+(`sep_control.design.basis`), so only their coefficients are kept: memory n_field r + N L r n_ch,
+never N L n_field n_ch. The experiments run in chunks of start steps, one task each for an
+engine (`sep_control.compute.engine`), and the chunks' bases are merged in chunk order.
+Only `plant.step`, `plant.observe`, `plant.field` and state snapshots are used.
+Pure numpy: no ROS import.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sep_plant.device import base_plant
+from sep_plant.protocol import Plant, noise_channels, rollout
+
+from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
+from sep_control.compute.progress import progress
+from sep_control.design.basis import IncrementalBasis
+
+#: relative tolerance of the field responses' basis (against the largest response) and of its
+#: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
+#: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes)
+FIELD_TOL = 1e-8
+#: impulse schemes: experiments per impulse (a forward pass also steps one unperturbed copy of the
+#: nominal per start step, beside its impulses, so that both sides of every difference come from
+#: the same batched solve: a nominal from a separate rollout differs in round-off, which the
+#: division by delta would lift into spurious field directions)
+SCHEMES = {"central": 2, "forward": 1}
+
+
+@dataclass
+class MarkovData:
+    """Markov parameters from impulse experiments around a nominal of N steps.
+
+    Y[j, l]  = Y_{j+l, j}  (n_y, n_ch) for lags l = 1..L (index l-1), inputs j = 0..N-1;
+    field Markov parameters Yf_{j+l, j} (n_field, n_ch), lags 1..Lf, kept as coefficients on an
+    orthonormal basis of the field responses: Yf[j, l] = basis @ Yc[j, l] (see `sep_control.design.basis`:
+    memory n_field r + N Lf r n_ch instead of N Lf n_field n_ch).
+    Channels: the n_u inputs, then the noise channels (only when noise is not on the inputs).
+    """
+    Y: np.ndarray          # (N, L, n_y, n_ch)
+    Yc: np.ndarray         # (N, Lf, r, n_ch) field responses on `basis`
+    basis: np.ndarray      # (n_field, r) orthonormal
+    delta: float
+    experiments: int
+    n_u: int               # the first n_u channels are the inputs
+
+    @property
+    def Y_inputs(self) -> np.ndarray:
+        return self.Y[..., :self.n_u]
+
+    @classmethod
+    def from_dense(cls, Y: np.ndarray, Yf: np.ndarray, delta: float, experiments: int, n_u: int) -> "MarkovData":
+        """From dense field Markov parameters Yf (N, Lf, n_field, n_ch) (the identity basis)."""
+        return cls(Y, Yf, np.eye(Yf.shape[2]), delta, experiments, n_u)
+
+    @property
+    def Yf(self) -> np.ndarray:
+        """The field Markov parameters as a dense (N, Lf, n_field, n_ch) array (small grids only)."""
+        return np.einsum("fr,jlrc->jlfc", self.basis, self.Yc)
+
+
+def extend_nominal(U: np.ndarray, extra: int) -> np.ndarray:
+    """Hold the last input for `extra` steps past N."""
+    return np.vstack([U, np.repeat(U[-1:], extra, axis=0)])
+
+
+def experiment_chunks(N: int, chunks: int) -> list[tuple[int, int]]:
+    """The start-step ranges [j0, j1) of the experiment chunks: `chunks` near-equal ranges of
+    0..N-1 (fewer when N is smaller). The chunk plan is part of the method's inputs: it fixes
+    which experiments share a pass and a field basis, so it never depends on the engine."""
+    if chunks < 1:
+        raise ValueError(f"experiment chunks must be >= 1, got {chunks}")
+    edges = np.linspace(0, N, min(chunks, max(N, 1)) + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
+                        Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
+                        field_tol: float = FIELD_TOL, memory_budget: int | None = None,
+                        scheme: str = "central", chunks: int = 1, engine=None) -> MarkovData:
+    """Impulse responses for every input step j < N and channel c.
+
+    scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
+    (y(+delta) - ybar) / delta, N n_ch experiments plus one unperturbed copy of the nominal per
+    start step j, stepped in the same batch (N (n_ch + 1) runs).
+    The start steps are split into `chunks` ranges (`experiment_chunks`); each chunk is one task
+    for the `engine` (`sep_control.compute.engine`; in-process by default), started from its own nominal
+    snapshots Xbar_ext[j0:j1]. In a chunk the experiments run as a batch in lockstep over global
+    steps; experiment (j, c, +-) is active for steps j..j+lags-1 only, so a pass holds at most
+    2 n_ch lags runs ((n_ch + 1) lags forward): a ring of `lags` slots, start j in slot j mod
+    lags, stepped in place (no copy of the batch per step). When that batch exceeds
+    `memory_budget` (`sep_control.compute.budget`), the channels are split into groups, one pass each.
+    `Xbar_ext` is the nominal over N + lags steps (computed if None).
+    Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
+    relative to the chunk's largest response); only their coefficients are kept. The chunks'
+    bases are then merged in chunk order into one basis Phi: each chunk's responses phi_c C_c
+    are streamed in again from their coefficients (`IncrementalBasis.merge`, blocks of 64), with
+    field_tol relative to the largest response of all chunks, so the merged basis is what one
+    chunk would give (the same rank to +-2), and the coefficients become C_c' T_c with
+    T_c = phi_c' Phi. The result depends on the chunk plan, never on which worker finished first.
+    """
+    from sep_control.compute.engine import InProcess
+
+    if scheme not in SCHEMES:
+        raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
+    engine = engine or InProcess()
+    N, n_u = U.shape
+    U_ext = extend_nominal(U, lags)
+    if Xbar_ext is None:
+        Xbar_ext = rollout(plant, plant.initial_state(1), U_ext)[0]
+    n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
+    n_ch = n_u + n_w
+    n_y, n_f = int(plant.n_y), int(plant.n_field)
+    in_process = engine.local
+    groups = _channel_groups(plant, n_ch, lags, scheme, memory_budget, engine)
+    plan = experiment_chunks(N, chunks)
+    shared = dict(plant=engine.ship(plant), U_ext=U_ext, lags=lags,
+                  field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
+                  field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
+                  n_chunks=len(plan))
+    tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
+    labels = [f"plant {type(base_plant(plant)).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
+              f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
+    parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
+                       show_progress=show_progress and not in_process)
+    Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
+    return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * N * n_ch, n_u)
+
+
+def _channel_groups(plant: Plant, n_ch: int, lags: int, scheme: str, memory_budget: int | None,
+                    engine) -> list[np.ndarray]:
+    """The channels of each lockstep pass: as many as fit `memory_budget` per start step."""
+    if memory_budget is None and not engine.local:
+        # the default budget is this machine's; a worker must hold a chunk's batch too (only
+        # when this binds does it change the plan: pass --memory-budget for the same bits)
+        wb = worker_budget(engine)
+        memory_budget = None if wb is None else min(wb, default_budget())
+    slot_runs = runs_per_batch(int(plant.n_x), int(plant.n_field), memory_budget) // lags   # runs per start step
+    per_pass = max(1, (slot_runs - (scheme == "forward")) // SCHEMES[scheme])     # channels per pass
+    return [np.arange(c, min(n_ch, c + per_pass)) for c in range(0, n_ch, per_pass)]
+
+
+def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, int, int, int], field_lags: int,
+                  n_f: int, field_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The chunks' (Y, phi, Yc) as one: Y of `shape` (N, lags, n_y, n_ch), the field coefficients
+    on the merged basis Phi, and Phi (see `impulse_experiments`)."""
+    N, n_ch = shape[0], shape[3]
+    Y = np.zeros(shape)
+    basis = IncrementalBasis(n_f, field_tol)
+    flat = [Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1) if phi.shape[1] else np.zeros((0, 0))
+            for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
+    # the tolerance is against the largest response of all chunks, whatever their order
+    basis.scale = max((float(np.sqrt(np.einsum("ij,ij->j", m, m)).max()) for m in flat if m.size), default=0.0)
+    for (j0, j1), (Yp, phi, _), m in zip(plan, parts, flat):
+        Y[j0:j1] = Yp
+        # each chunk's responses are streamed in again as coefficients (`IncrementalBasis.merge`):
+        # entering phi_c as unit vectors would keep each chunk's own small directions (rank 172
+        # instead of 63 at n_x = 1600 with 4 chunks)
+        basis.merge(phi, m)
+    r = basis.rank
+    Yc = np.zeros((N, field_lags, r, n_ch))
+    for (j0, j1), (_, phi, Yc_local) in zip(plan, parts):
+        if phi.shape[1]:
+            # phi_c on Phi: (phi' Phi)' Yc per (j, lag), a batched BLAS product (einsum's own loop
+            # took 7x longer at Allen-Cahn's r ~ 1000)
+            Yc[j0:j1] = np.matmul((phi.T @ basis.phi).T, Yc_local)
+    return Y, Yc, basis.phi.copy()
+
+
+def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
+                   groups: list[np.ndarray], n_u: int, n_w: int, scheme: str, field_tol: float,
+                   bar_desc: str | None = None, n_chunks: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One experiment chunk (start steps j0..j1-1, every channel group): returns its output
+    Markov parameters Y (j1-j0, lags, n_y, n_ch), its field basis phi (n_f, r_c) and the field
+    coefficients Yc (j1-j0, field_lags, r_c, n_ch) on it. `plant` is the plant or its
+    shipped form (`engine.ship`: rebuilt once per worker process)."""
+    from sep_control.compute.engine import local_plant
+
+    i, j0, j1, Xbar = task
+    plant = local_plant(plant)
+    n_y, n_f = int(plant.n_y), int(plant.n_field)
+    n_ch = n_u + n_w
+    n = j1 - j0
+    Y = np.zeros((n, lags, n_y, n_ch))
+    basis = IncrementalBasis(n_f, field_tol)
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
+    desc = None if bar_desc is None else (bar_desc if n_chunks == 1 else f"{bar_desc} {i + 1}/{n_chunks}")
+    bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
+    for chs in groups:
+        _impulse_pass(plant, U_ext[j0:], Xbar, n, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
+                      scheme)
+    if hasattr(bar, "close"):
+        bar.close()
+    r = basis.rank
+    Yc = np.zeros((n, field_lags, r, n_ch))
+    for j, lag, chs, C in blocks:
+        Cr = np.zeros((C.shape[0], r))
+        Cr[:, :C.shape[1]] = C
+        Yc[j[:, None], lag[:, None] - 1, :, chs[None, :]] = Cr.reshape(len(j), len(chs), r)
+    return Y, basis.phi.copy(), Yc
+
+
+def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
+                  delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
+                  blocks: list, bar, scheme: str = "central") -> None:
+    """One lockstep pass over the channels `chs` (see `impulse_experiments`); steps and start
+    steps are counted from the chunk's first start step (U_ext and Xbar_ext begin there)."""
+    ring = _Ring(plant, chs, n_u, n_w, lags, delta, scheme)
+    for k in range(N + lags - 1):
+        if hasattr(bar, "update"):
+            bar.update(1)
+        j_slot = ring.advance(k, N, U_ext[k], Xbar_ext[k] if k < N else None)
+        ring.record(k, j_slot, field_lags, Y, basis, blocks)
+
+
+class _Ring:
+    """The runs of one pass: a ring of `lags` slots, start step j in slot j mod lags, each slot
+    [+delta e_c ..., -delta e_c ...] (central) or [+delta e_c ..., 0] (forward) for c in `chs`,
+    stepped in place (no copy of the batch per step)."""
+
+    def __init__(self, plant: Plant, chs: np.ndarray, n_u: int, n_w: int, lags: int, delta: float, scheme: str):
+        self.plant, self.chs, self.n_u, self.n_w, self.lags, self.delta = plant, chs, n_u, n_w, lags, delta
+        self.m, self.sides = len(chs), SCHEMES[scheme]
+        E = np.eye(n_u + n_w)[chs]
+        self.pert = (np.vstack([E, -E]) if self.sides == 2 else np.vstack([E, np.zeros((1, E.shape[1]))])) * delta
+        self.rows = self.pert.shape[0]
+        self.X = np.empty((lags * self.rows, int(plant.n_x)))
+        self.slot_start = np.full(lags, -1)              # start step j held by each slot (-1: none)
+
+    def advance(self, k: int, N: int, u_k: np.ndarray, xbar_k: np.ndarray | None) -> np.ndarray:
+        """Start experiment k (k < N) from the nominal state xbar_k and step every run still in
+        an experiment by u_k (plus the new slot's impulses); returns the start step of each slot."""
+        rows, n_u, n_w, X = self.rows, self.n_u, self.n_w, self.X
+        s = k % self.lags
+        if k < N:
+            X[s * rows:(s + 1) * rows] = xbar_k
+            self.slot_start[s] = k
+        used = min(k + 1, self.lags) * rows              # ramp-up: only the slots filled so far
+        j_slot = self.slot_start[:used // rows]
+        Uk = np.repeat(u_k[None], used, axis=0)
+        Wk = np.zeros((used, n_w)) if n_w else None
+        if k < N:
+            Uk[s * rows:(s + 1) * rows] += self.pert[:, :n_u]
+            if n_w:
+                Wk[s * rows:(s + 1) * rows] += self.pert[:, n_u:]
+            X[:used] = self.plant.step(X[:used], Uk, Wk)
+        else:   # ramp-down: step only the slots still in an experiment (one or two ring ranges)
+            for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < self.lags))):
+                r0, r1 = a * rows, b * rows
+                X[r0:r1] = self.plant.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
+        return j_slot
+
+    def record(self, k: int, j_slot: np.ndarray, field_lags: int, Y: np.ndarray, basis: IncrementalBasis,
+               blocks: list) -> None:
+        """Record lag k+1-j of every active experiment j (slots of finished ones are ignored):
+        outputs into Y, field responses of lags <= field_lags into `basis` and their
+        coefficients into `blocks`."""
+        plant, rows, m, chs = self.plant, self.rows, self.m, self.chs
+        lag = k + 1 - j_slot
+        active = (j_slot >= 0) & (lag >= 1) & (lag <= self.lags)
+        if not np.any(active):
+            return
+        j, lag = j_slot[active], lag[active]
+        sel = np.flatnonzero(np.repeat(active, rows))
+        Yo = plant.observe(self.X[sel]).reshape(len(j), rows, int(plant.n_y))
+        Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = _difference(Yo, m, self.sides, self.delta)
+        keep = lag <= field_lags
+        if np.any(keep):
+            n_f = int(plant.n_field)
+            fsel = np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows))
+            Ff = plant.field(self.X[fsel]).reshape(int(keep.sum()), rows, n_f)
+            D = _difference(Ff, m, self.sides, self.delta).reshape(-1, n_f)             # (keep m, n_f)
+            blocks.append((j[keep], lag[keep], chs, basis.add(D)))
+
+
+def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:
+    """Sorted indices -> the [a, b) ranges of consecutive ones."""
+    if idx.size == 0:
+        return []
+    cut = np.flatnonzero(np.diff(idx) > 1) + 1
+    return [(int(g[0]), int(g[-1]) + 1) for g in np.split(idx, cut)]
+
+
+def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
+    """(experiments, m, n) impulse responses from the runs V (experiments, rows, n) of one slot:
+    central (V[:m] - V[m:2m]) / 2 delta, forward (V[:m] - V[m]) / delta."""
+    if sides == 2:
+        return (V[:, :m] - V[:, m:]) / (2 * delta)
+    return (V[:, :m] - V[:, m:m + 1]) / delta

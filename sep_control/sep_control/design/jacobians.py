@@ -1,0 +1,158 @@
+"""Which Gauss-Newton model the optimizer uses at each iterate: the linearization strategies.
+
+* `SensitivityJacobian`: N n_u impulse-sensitivity experiments at every iterate
+  (`SensitivityLinearization`).
+* `RomJacobian`: a TV-ERA model identified at the iterates (`RomLinearization`). It keeps its
+  last identification while U moved less than `relinearize_rtol` (relative), or for every
+  iteration as a chord (`chord`); far from the optimum its identifications may use coarser
+  `proposal` settings, since they only propose steps that the true objective accepts.
+* `AutoJacobian`: sensitivities until an accepted step reaches the optimum's neighbourhood
+  (it moves U by at most `NEAR_OPTIMUM` or lowers the objective by at most `NEAR_DECREASE`),
+  then one TV-ERA identification there, which the belief refinement and the design reuse.
+
+A strategy holds the state of one optimization (the kept identification, whether the last
+step was near the optimum): make a new one per `Optimizer.run`.
+Pure numpy: no ROS import.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol
+
+from sep_plant.problem import Objective
+from sep_plant.protocol import Plant
+
+from sep_control.design.linearization import (SAME_INPUT_RTOL, Linearization, Point, RomLinearization,
+                                              SensitivityLinearization, same_input,
+                                              sensitivity_normal_equations)
+from sep_control.design.tvera import Identification, RomSettings
+
+#: an accepted step that moved U by at most NEAR_OPTIMUM (max |dU| / max |U|) or lowered the cost
+#: by at most NEAR_DECREASE (relative) marks the optimum's neighbourhood: the Gauss-Newton steps
+#: after it move U by 1e-3 and less, or lower the cost by 1e-5 and less (every shipped scenario;
+#: Allen-Cahn's weakly weighted inputs, r_u = 1e-5, still move by percents there), so a model
+#: identified there is the one the belief refinement and the design go on with
+NEAR_OPTIMUM = 1e-2
+NEAR_DECREASE = 1e-3
+
+
+def near_optimum(moved: float, decrease: float) -> bool:
+    """Whether an accepted step that moved U by `moved` (max |dU| / max |U|) and lowered the
+    objective by `decrease` (relative) was made in the optimum's neighbourhood."""
+    return moved <= NEAR_OPTIMUM or decrease <= NEAR_DECREASE
+
+
+class Linearized(NamedTuple):
+    """A linearization and what it cost."""
+
+    lin: Linearization
+    kind: str           # "sensitivity", "rom", "rom (proposal)" or "rom (kept)"
+    experiments: int    # simulator runs made for it (0: a kept identification)
+
+
+class Jacobian(Protocol):
+    """A linearization strategy (see the module docstring)."""
+
+    def linearize(self, plant: Plant, obj: Objective, at: Point, gram: bool = True) -> Linearized:
+        """The Gauss-Newton model at `at` (`gram` False: the gradient is enough)."""
+
+    def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
+                    gram: bool = True) -> Linearized | None:
+        """After every trial step of `lin` failed: a model made at `at` to try again, or None."""
+
+    def accepted(self, moved: float, decrease: float) -> None:
+        """An accepted step moved U by `moved` and lowered the objective by `decrease` (relative)."""
+
+
+class SensitivityJacobian:
+    """N n_u impulse-sensitivity experiments of amplitude `eps` at every iterate."""
+
+    def __init__(self, eps: float = 1e-4):
+        self.eps = eps
+
+    def linearize(self, plant: Plant, obj: Objective, at: Point, gram: bool = True) -> Linearized:
+        ne = sensitivity_normal_equations(plant, at.U, at.X, obj, self.eps, at.residual_field, gram=gram)
+        return Linearized(SensitivityLinearization(ne, at.U.shape), "sensitivity", ne.experiments)
+
+    def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
+                    gram: bool = True) -> Linearized | None:
+        return None         # already made at `at`
+
+    def accepted(self, moved: float, decrease: float) -> None:
+        pass
+
+
+class RomJacobian:
+    """A TV-ERA model identified at the iterates (`RomLinearization`).
+
+    Parameters
+    ----------
+    rom : RomSettings
+        The identification's settings (those near the optimum, which a later stage reuses).
+    proposal : RomSettings, optional
+        Settings of the identifications made far from the optimum (the first, and those after
+        an accepted step outside the optimum's neighbourhood), e.g. forward impulses and a
+        coarser field basis: they only propose steps. None: `rom` everywhere.
+    relinearize_rtol : float
+        Keep the last identification while U stays within this of where it was made
+        (`same_input`; the default identifies again after every step).
+    chord : bool
+        Keep the first identification for every iteration (a chord method).
+    start : Identification, optional
+        An identification handed over by an earlier stage, kept as if made here.
+    """
+
+    def __init__(self, rom: RomSettings, proposal: RomSettings | None = None,
+                 relinearize_rtol: float = SAME_INPUT_RTOL, chord: bool = False,
+                 start: Identification | None = None):
+        self.rom, self.proposal = rom, proposal
+        self.relinearize_rtol, self.chord = relinearize_rtol, chord
+        self.kept = start          # the newest identification (each holds the nominal states and a basis)
+        self.settled = False       # the last accepted step was in the optimum's neighbourhood
+
+    def linearize(self, plant: Plant, obj: Objective, at: Point, gram: bool = True,
+                  rtol: float | None = None) -> Linearized:
+        rtol = self.relinearize_rtol if rtol is None else rtol
+        if self.kept is not None and (self.chord or same_input(self.kept.U, at.U, rtol)):
+            return Linearized(self._on(self.kept, obj, at), "rom (kept)", 0)
+        far = self.proposal is not None and not self.settled
+        self.kept = (self.proposal if far else self.rom).identify(plant, at.U)
+        return Linearized(self._on(self.kept, obj, at), "rom (proposal)" if far else "rom",
+                          self.kept.data.experiments)
+
+    def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
+                    gram: bool = True) -> Linearized | None:
+        """A model kept from an earlier input whose trials all failed: once more on one made at
+        `at`, with the full settings (None for a chord, or when `lin` was made at `at`)."""
+        if lin.identification is None or self.chord or same_input(lin.identification.U, at.U):
+            return None
+        self.settled = True
+        return self.linearize(plant, obj, at, gram, SAME_INPUT_RTOL)
+
+    def accepted(self, moved: float, decrease: float) -> None:
+        self.settled = near_optimum(moved, decrease)
+
+    @staticmethod
+    def _on(ident: Identification, obj: Objective, at: Point) -> RomLinearization:
+        return RomLinearization(ident, obj, at.residual_field, at.U)
+
+
+class AutoJacobian:
+    """`sensitivity` until an accepted step reaches the optimum's neighbourhood (`near_optimum`),
+    `rom` from there on: one TV-ERA identification near the optimum instead of N n_u more
+    sensitivity runs per iteration."""
+
+    def __init__(self, sensitivity: SensitivityJacobian, rom: RomJacobian):
+        self.sensitivity, self.rom = sensitivity, rom
+        self.current: SensitivityJacobian | RomJacobian = sensitivity
+
+    def linearize(self, plant: Plant, obj: Objective, at: Point, gram: bool = True) -> Linearized:
+        return self.current.linearize(plant, obj, at, gram)
+
+    def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
+                    gram: bool = True) -> Linearized | None:
+        return self.current.relinearize(plant, obj, at, lin, gram)
+
+    def accepted(self, moved: float, decrease: float) -> None:
+        self.rom.accepted(moved, decrease)
+        if self.current is self.sensitivity and self.rom.settled:
+            self.current = self.rom

@@ -1,0 +1,192 @@
+"""The knobs of the offline design (`DesignSettings`; defaults and flags: docs/reference/cli.md).
+
+Pure Python/numpy: no ROS import.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sep_plant.protocol import Plant
+from sep_plant.scenario import Scenario
+
+from sep_control.compute.budget import runs_per_batch
+from sep_control.design.field_map import FIELD_MAP_TOL
+from sep_control.design.linearization import SAME_INPUT_RTOL
+from sep_control.design.tvera import FIELD_TOL, SCHEMES, RomSettings
+
+#: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
+ROM_FROM = 5
+
+#: keys of older design files and scenario `design:` sections, and what they are called now
+RENAMED = {"seed": "enkf_seed"}
+
+
+@dataclass
+class DesignSettings:
+    """Knobs of the offline design (defaults: docs/reference/cli.md).
+
+    Parameters
+    ----------
+    method : {"gn", "gd"}
+        Optimizer: Levenberg-Marquardt, or the paper's gradient descent.
+    jacobian : {"auto", "sensitivity", "rom"}
+        Gauss-Newton Jacobian: N n_u sensitivity experiments, a TV-ERA model, or the cheaper
+        (`resolved_jacobian_for`; below the crossover sensitivities until the optimum's
+        neighbourhood, then one identification there).
+    belief : bool
+        Refine the mean-only optimum in belief space.
+    max_iter : int, optional
+        Optimizer iterations (None: 10 for gn, 60 for gd).
+    belief_iter : int
+        Belief-space Gauss-Newton iterations after the mean-only optimum.
+    fd_eps : float
+        Sensitivity experiment amplitude.
+    step_size : float
+        Gradient-descent step alpha.
+    ensemble : int
+        EnKF members (even: antithetic pairs).
+    n_r, p, q : int
+        ROM order cap, Hankel block rows (future outputs) and columns (past inputs).
+    sv_tol : float
+        Relative Hankel singular-value cutoff.
+    impulse : float
+        Impulse amplitude relative to the RMS nominal input.
+    impulse_scheme : {"central", "forward"}
+        TV-ERA impulses: +- pairs, or one run each against an unperturbed copy.
+    field_map_tol : float
+        Field map: drop directions moving the field by less than this times its spread.
+    enkf_seed : int
+        Seed of the EnKF's random numbers (older files and scenarios: `seed`).
+    tol : float
+        Stop when an accepted step lowers the cost by less than this (relative).
+    relinearize_rtol : float
+        ROM Jacobian: keep the last identification while U moved less than this (relative).
+    coarse_proposals : bool
+        ROM Jacobian far from the optimum: forward impulses and a coarser field basis.
+    memory_budget : int, optional
+        Bytes for a batch of experiments (None: a quarter of the free memory).
+    chunks : int
+        Impulse experiments in this many chunks of start steps (tasks).
+    limit_margin : float
+        Keep this many closed-loop input stds inside u_min/u_max (0: none).
+    margin_iterations : int
+        Nominal + LQG redesigns with the tightened limits.
+    """
+
+    method: str = "gn"
+    jacobian: str = "auto"
+    belief: bool = True
+    max_iter: int | None = None
+    belief_iter: int = 2
+    fd_eps: float = 1e-4
+    step_size: float = 1e-3
+    ensemble: int = 200
+    n_r: int = 20
+    p: int = 15
+    q: int = 15
+    sv_tol: float = 1e-10
+    impulse: float = 0.01
+    impulse_scheme: str = "central"
+    field_map_tol: float = FIELD_MAP_TOL
+    enkf_seed: int = 0
+    tol: float = 1e-7
+    relinearize_rtol: float = 1e-2
+    coarse_proposals: bool = True
+    memory_budget: int | None = None
+    chunks: int = 4
+    limit_margin: float = 0.0
+    margin_iterations: int = 2
+
+    def check(self) -> None:
+        """Raise ValueError naming the first setting out of range."""
+        if self.method not in ("gn", "gd"):
+            raise ValueError(f"method must be 'gn' or 'gd', got {self.method!r}")
+        if self.impulse_scheme not in SCHEMES:
+            raise ValueError(f"impulse_scheme must be one of {', '.join(SCHEMES)}, got {self.impulse_scheme!r}")
+        if self.jacobian not in ("sensitivity", "rom", "auto"):
+            raise ValueError(f"jacobian must be 'sensitivity', 'rom' or 'auto', got {self.jacobian!r}")
+        for name in ("n_r", "p", "q", "ensemble", "chunks"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.ensemble % 2 or self.ensemble < 4:
+            raise ValueError(f"ensemble must be even and >= 4 (antithetic pairs), got {self.ensemble}")
+        if not (np.isfinite(self.limit_margin) and self.limit_margin >= 0):
+            raise ValueError(f"limit_margin must be a finite number >= 0, got {self.limit_margin}")
+        if not 0.0 < self.relinearize_rtol <= 0.1:
+            raise ValueError(f"relinearize_rtol must be in (0, 0.1], got {self.relinearize_rtol}: a model kept "
+                             "through the large early steps makes a chord method, which stops short of the optimum")
+        if self.margin_iterations < 0:
+            raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
+        if not 0.0 < self.field_map_tol < 1.0:
+            raise ValueError(f"field_map_tol must be in (0, 1), got {self.field_map_tol}")
+        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol", "relinearize_rtol", "field_map_tol"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
+
+    def rom(self, engine=None) -> RomSettings:
+        """The TV-ERA settings of the design's identifications (experiments on `engine`)."""
+        return RomSettings(p=self.p, q=self.q, n_r=self.n_r, sv_tol=self.sv_tol, impulse=self.impulse,
+                           scheme=self.impulse_scheme, memory_budget=self.memory_budget, chunks=self.chunks,
+                           engine=engine)
+
+    def resolved_jacobian(self, n_steps: int) -> str:
+        """'auto': the Jacobian whose experiments take fewer plant steps per iteration. The
+        sensitivity one runs N n_u experiments of N/2 steps on average, N (N+1) n_u / 2
+        run-steps (and forms a dense (N n_u)^2 normal matrix from N n_f rows, O(N^3) work); the
+        ROM one 2 N n_u experiments of p + q steps, 2 N n_u (p + q) run-steps, and solves the step
+        on the ROM in O(N n_r^3). In plant steps the ROM one is cheaper from N + 1 > 4 (p + q);
+        its own work (POD updates, Hankel SVDs) moves the measured time crossover to N ~ 145
+        (slab at n_x = 100 and 1600, Allen-Cahn at 2500: bench/bench_design.py --crossover),
+        hence the ROM one from N + 1 > ROM_FROM (p + q) (N >= 150 with the default p = q = 15).
+        Forward impulses (`impulse_scheme`) halve the ROM one's experiments and move the
+        crossover lower (measured N ~ 110 at n_x = 1600); the rule stays the central one's."""
+        if self.jacobian != "auto":
+            return self.jacobian
+        return "rom" if n_steps + 1 > ROM_FROM * (self.p + self.q) else "sensitivity"
+
+    def resolved_jacobian_for(self, plant: Plant, n_steps: int) -> str:
+        """`resolved_jacobian`, and the ROM one also when the sensitivity experiments (N n_u runs
+        in one batch) would not fit the memory budget."""
+        jac = self.resolved_jacobian(n_steps)
+        if self.jacobian == "auto" and jac == "sensitivity" and \
+                n_steps * int(plant.n_u) > runs_per_batch(int(plant.n_x), int(plant.n_field), self.memory_budget):
+            return "rom"
+        return jac
+
+    @classmethod
+    def for_scenario(cls, scenario: Scenario, **overrides: Any) -> "DesignSettings":
+        """The defaults, then the scenario's `design:` section, then `overrides` (ValueError naming
+        an unknown key; a renamed key, `seed` for `enkf_seed`, is read with a DeprecationWarning)."""
+        section = dict(scenario.design)
+        for old, new in RENAMED.items():
+            if old in section:
+                if new in section:
+                    raise ValueError(f"scenario design section: give `{new}` only (`{old}` is its old name)")
+                warnings.warn(f"scenario design section: `{old}` is deprecated, write `{new}`",
+                              DeprecationWarning, stacklevel=2)
+                section[new] = section.pop(old)
+        known = cls.__dataclass_fields__
+        unknown = sorted(k for k in section if k not in known)
+        if unknown:
+            raise ValueError(f"scenario design section: unknown setting(s) {unknown}; known: {sorted(known)}")
+        st = cls(**{**section, **overrides})
+        st.check()
+        return st
+
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> "DesignSettings":
+        """The settings recorded in a design file's metadata (unknown keys ignored; files older
+        than the chunked experiments ran them as one chunk, older than `relinearize_rtol`
+        identified again after every step, older than `field_map_tol` truncated the field map
+        at the field basis' tolerance, older than `coarse_proposals` identified every model
+        with the full settings, and older ones record `enkf_seed` as `seed`)."""
+        recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, "field_map_tol": FIELD_TOL,
+                    "coarse_proposals": False}
+        for key, value in meta.get("settings", {}).items():
+            recorded[RENAMED.get(key, key)] = value
+        return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})

@@ -1,0 +1,199 @@
+"""The stages of the offline design, each a function with a typed result:
+
+    nominal_stage          -> NominalResult         open-loop nominal (mean-only, then belief space)
+    identification_stage   -> IdentificationStage   TV-ERA ROM around the nominal
+    gains_stage            -> GainsResult           TV-LQR and Kalman filter on the ROM
+    field_map_stage        -> LQG                   the ROM's field map compressed for those gains
+
+`design_pass` runs them in order (`sep_control.design.pipeline.run_design` runs passes).
+Pure numpy/scipy: no ROS import.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from sep_estimator.enkf import EnKFResult
+from sep_estimator.ltv import LQG
+from sep_plant.problem import Problem
+from sep_plant.protocol import Plant, rollout
+
+from sep_control.design.belief import run_belief
+from sep_control.design.field_map import compressed_lqg
+from sep_control.design.gains import GainsResult, design_lqg
+from sep_control.design.jacobians import AutoJacobian, Jacobian, RomJacobian, SensitivityJacobian
+from sep_control.design.linearization import same_input
+from sep_control.design.optimizer import OptimizationResult, Optimizer, OptimizerOptions
+from sep_control.design.settings import DesignSettings
+from sep_control.design.tvera import Identification, extend_nominal, markov_relative_error
+
+#: Levenberg-Marquardt trials per belief-space iteration. Each is an EnKF run, and the Gauss-Newton
+#: model of J_b holds the belief's spread fixed: when the first (least damped) trial raises J_b the
+#: spread's own gradient, which the model misses, outweighs the mean's, and more damping does not
+#: fix a missing gradient (plate 64^2: the model predicted -1.6e-5, -1.5e-5, -1.2e-5, -7e-6
+#: relative for lambda 1e-3 .. 6.4e-2, the EnKF gave +1.7e-5, +1.2e-5, +5e-6, +4e-7)
+BELIEF_TRIALS = 1
+
+#: the optimizer's identifications far from the optimum only propose steps (the true objective
+#: accepts them): forward impulses (about half the runs) and a field basis to 1e-6 of the largest
+#: response (the forward differences' round-off stays out of it) serve as well there. Halving the
+#: Hankel blocks too (p = q = 8, experiments of 16 steps) was tried: the same optimum on the slab,
+#: but on the Burgers example the proposals then stalled (J 0.369 after max_iter instead of 0.00156)
+PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6}
+
+
+@dataclass
+class StageContext:
+    """What every stage shares: progress bars, the log, the experiments' engine, the timings."""
+
+    show_progress: bool = True
+    log: Callable[[str], None] = print
+    engine: object = None                  # `sep_control.compute.engine` (None: in-process)
+    timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, summed over passes
+
+    def took(self, key: str, t0: float) -> None:
+        """Add the time since `t0` to timings[key]."""
+        self.timings[key] = self.timings.get(key, 0.0) + time.perf_counter() - t0
+
+
+@dataclass
+class NominalResult:
+    """The open-loop nominal: the mean-only optimum and its belief-space refinement."""
+
+    U: np.ndarray                              # (N, n_u) the nominal input
+    mean_only: OptimizationResult              # the mean-only optimizer's result
+    refinement: OptimizationResult | None      # the belief-space refinement's (None: not refined)
+    belief: EnKFResult                         # the EnKF belief at U
+    jacobian: str                              # the mean-only optimizer's Jacobian ("sensitivity" or "rom")
+
+    @property
+    def last(self) -> OptimizationResult:
+        """The result U comes from."""
+        return self.refinement if self.refinement is not None else self.mean_only
+
+    @property
+    def cost(self) -> float:
+        """The final objective (belief cost when refined, else the nominal cost)."""
+        return self.last.cost
+
+    @property
+    def belief_history(self) -> list[float]:
+        return self.refinement.history if self.refinement is not None else []
+
+    @property
+    def experiments(self) -> int:
+        """Black-box runs both optimizers used."""
+        return self.mean_only.experiments + (self.refinement.experiments if self.refinement is not None else 0)
+
+
+@dataclass
+class IdentificationStage:
+    """The design's ROM: a TV-ERA identification at the nominal input."""
+
+    identification: Identification
+    reused: bool                  # the optimizer's last identification (made at this input), not a new one
+    markov_rel_error: float       # `markov_relative_error` of the model on its own experiments
+
+
+@dataclass
+class DesignPass:
+    """One pass of the stages (the limit-margin loop runs several)."""
+
+    nominal: NominalResult
+    identification: IdentificationStage
+    gains: GainsResult            # on the identified model (full field map)
+    lqg: LQG                      # the design's LQG: those gains, the compressed field map
+
+
+def mean_only_jacobian(st: DesignSettings, kind: str, engine=None) -> Jacobian:
+    """The mean-only optimizer's strategy for the resolved Jacobian `kind`: "rom", or
+    "sensitivity" (switching to the ROM near the optimum when `st.jacobian` is "auto")."""
+    rom = st.rom(engine)
+    proposal = replace(rom, **PROPOSAL_ROM) if st.coarse_proposals else None
+    rom_jacobian = RomJacobian(rom, proposal, relinearize_rtol=st.relinearize_rtol)
+    if kind == "rom":
+        return rom_jacobian
+    if kind != "sensitivity":
+        raise ValueError(f"jacobian must be 'sensitivity' or 'rom', got {kind!r}")
+    sensitivity = SensitivityJacobian(st.fd_eps)
+    return AutoJacobian(sensitivity, rom_jacobian) if st.jacobian == "auto" else sensitivity
+
+
+def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext,
+                  U0: np.ndarray | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> NominalResult:
+    """Stage 1: the open-loop nominal (mean-only optimum, then the belief-space refinement),
+    from U0 (None: u_init) inside `bounds` (None: the problem's limits)."""
+    t0 = time.perf_counter()
+    kind = st.resolved_jacobian_for(plant, problem.n_steps)
+    options = OptimizerOptions(method=st.method, max_iter=st.max_iter, tol=st.tol, step_size=st.step_size,
+                               bounds=bounds, show_progress=ctx.show_progress)
+    opt = Optimizer(plant, problem, options, mean_only_jacobian(st, kind, ctx.engine)).run(U0)
+    ctx.log(f"mean-only {st.method} ({', '.join(opt.linearizations)} Jacobians): J = {opt.cost:.6g} after "
+            f"{opt.iterations} iterations ({opt.experiments} experiments, {opt.seconds:.2f} s; stopped: {opt.stop})")
+    refined = None
+    if st.belief:
+        # the belief refinement moves U by ~1e-4 relative and its Jacobian is the nominal's to first
+        # order: a chord on one ROM, the mean-only optimizer's last one when it used the ROM
+        # Jacobian (identified at its optimum or within relinearize_rtol of it), else one
+        # identified at the mean-only optimum
+        options = OptimizerOptions(objective="belief", max_iter=st.belief_iter, tol=st.tol, members=st.ensemble,
+                                   enkf_seed=st.enkf_seed, max_trials=BELIEF_TRIALS, bounds=bounds,
+                                   memory_budget=st.memory_budget, show_progress=ctx.show_progress)
+        chord = RomJacobian(st.rom(ctx.engine), chord=True, start=opt.identification)
+        refined = Optimizer(plant, problem, options, chord).run(opt.U)
+        ctx.log(f"belief-space gn: J_b = {refined.history[0]:.8g} -> {refined.cost:.8g} "
+                f"({refined.iterations} iterations, {refined.seconds:.2f} s; stopped: {refined.stop})")
+    ctx.took("optimize_s", t0)
+    last = refined if refined is not None else opt
+    belief = last.belief if last.belief is not None else run_belief(plant, last.U, problem, st.ensemble,
+                                                                    st.enkf_seed, st.memory_budget)
+    return NominalResult(last.U, opt, refined, belief, kind)
+
+
+def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResult,
+                         ctx: StageContext) -> IdentificationStage:
+    """Stage 2: TV-ERA around the nominal; the optimizer's last identification when it was made
+    at this very input with the design's own settings (not a coarse proposal model)."""
+    U, t0 = nominal.U, time.perf_counter()
+    ident = nominal.last.identification
+    reused = ident is not None and same_input(ident.U, U) and ident.made_with(st.impulse_scheme, p=st.p, q=st.q)
+    if not reused:
+        ident = st.rom(ctx.engine).identify(plant, U, ctx.show_progress)
+    elif not np.array_equal(ident.U, U):
+        ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],
+                        U=U.copy())     # the same linear model; the nominal of the final input
+    ctx.took("identify_s", t0)
+    err = markov_relative_error(ident.model, ident.data.Y)
+    ctx.log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
+            f"experiments{' (the optimizer’s last identification, reused)' if reused else ''}, Markov relative "
+            f"error {err:.2e}")
+    return IdentificationStage(ident, reused, err)
+
+
+def gains_stage(identified: IdentificationStage, problem: Problem, ctx: StageContext) -> GainsResult:
+    """Stage 3: the TV-LQR and Kalman gains on the identified ROM (`design_lqg`)."""
+    t0 = time.perf_counter()
+    gains = design_lqg(identified.identification.model, problem)
+    ctx.took("gains_s", t0)
+    return gains
+
+
+def field_map_stage(gains: GainsResult, st: DesignSettings, ctx: StageContext) -> LQG:
+    """Stage 4: the design's LQG, its field map compressed at `st.field_map_tol` against the
+    spread the gains give the ROM state (`sep_control.design.field_map.compressed_lqg`)."""
+    t0 = time.perf_counter()
+    lqg = compressed_lqg(gains, st.field_map_tol)
+    ctx.took("gains_s", t0)
+    return lqg
+
+
+def design_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext,
+                U0: np.ndarray | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DesignPass:
+    """The four stages in order: nominal, identification, gains, field map."""
+    nominal = nominal_stage(plant, problem, st, ctx, U0, bounds)
+    identified = identification_stage(plant, st, nominal, ctx)
+    gains = gains_stage(identified, problem, ctx)
+    return DesignPass(nominal, identified, gains, field_map_stage(gains, st, ctx))
