@@ -565,3 +565,86 @@ def test_belief_statistics_are_stored_in_float32_and_read_as_float64(tmp_path, m
     bad[1, 1] = np.inf
     refused(rewrite(path, tmp_path / "inf.npz", belief_std=bad), "belief_std")
     refused(rewrite(path, tmp_path / "f32.npz", target=d.objective.target.astype(np.float32)), "target")
+
+
+# ------------------------------------------------------------- source record
+def test_saved_design_records_its_sources_and_their_digest(design_path):
+    from sep_estimator.design_source import source_digest
+
+    meta = load_design(design_path).meta
+    src = meta["source"]
+    assert set(src) == {"format_version", "plant", "plant_files", "problem", "settings"}
+    assert src["format_version"] == VERSION and src["plant_files"] == {}
+    assert src["plant"] == {"type": "slab", **json.loads(json.dumps(SCENARIO.plant_config))}
+    assert src["problem"] == SCENARIO.problem.resolved().to_dict()
+    assert src["settings"] == {"n_r": N_R, "method": "gn"}
+    assert meta["source_digest"] == source_digest(src) and len(meta["source_digest"]) == 64
+
+
+def test_source_differences_name_each_changed_input(design_path):
+    from sep_estimator.design_file import source_differences
+
+    d = load_design(design_path)
+    same = {"n_r": N_R, "method": "gn"}
+    assert source_differences(d, SCENARIO, same) == []
+    # what does not change a design is not recorded: the memory budget
+    assert source_differences(d, SCENARIO, {**same, "memory_budget": 1 << 30}) == []
+    diff = source_differences(d, SCENARIO.replace(target=151.0, w_std=0.2), {**same, "n_r": 4})
+    assert diff == ["problem.target: 150.0 != 151.0", "problem.w_std: 0.3 != 0.2", "settings.n_r: 3 != 4"]
+    assert source_differences(d, SCENARIO.with_plant(n_x=9), same) == ["plant.n_x: 8 != 9"]
+    assert source_differences(d, SCENARIO, {**same, "jacobian_used": "rom"}) == \
+        ["settings.jacobian_used: missing != 'rom'"]
+
+
+def test_source_record_missing_or_edited(design_path, tmp_path):
+    from sep_estimator.design_file import source_differences
+
+    same = {"n_r": N_R, "method": "gn"}
+    old = rewrite(design_path, tmp_path / "old.npz",
+                  edit_meta=lambda m: {k: v for k, v in m.items() if k not in ("source", "source_digest")})
+    assert "no source record" in source_differences(load_design(old), SCENARIO, same)[0]
+    edited = rewrite(design_path, tmp_path / "edited.npz",
+                     edit_meta=lambda m: {**m, "source": {**m["source"], "settings": {"n_r": 99}}})
+    assert "does not match its digest" in source_differences(load_design(edited), SCENARIO, same)[0]
+
+
+def test_plant_files_are_recorded_by_content(tmp_path):
+    """A plant that reads a file (`source_files()`): the file's SHA-256 is part of the record, so
+    new content under the same name is a difference."""
+    import hashlib
+
+    from sep_estimator.design_file import source_differences
+
+    table = tmp_path / "table.txt"
+    table.write_text("0.1\n")
+    s = Scenario.from_dict({"plant": {"type": "file_plants:FileToy", "table": str(table)}, "n_steps": 5,
+                            "band_window": [3, 5], "target": 1.0})
+    path = save_design(tmp_path / "f.npz", synthetic_design(s))
+    d = load_design(path)
+    assert d.meta["source"]["plant_files"] == {"table.txt": hashlib.sha256(b"0.1\n").hexdigest()}
+    assert source_differences(d, s, {"n_r": N_R, "method": "gn"}) == []
+    table.write_text("0.2\n")
+    diff = source_differences(d, s, {"n_r": N_R, "method": "gn"})
+    old, new = hashlib.sha256(b"0.1\n").hexdigest(), hashlib.sha256(b"0.2\n").hexdigest()
+    assert diff == [f"plant file table.txt: sha256 {old[:12]} != {new[:12]}"]
+    table.unlink()
+    assert "unreadable" in source_differences(d, s, {"n_r": N_R, "method": "gn"})[0]
+
+
+def test_check_matches_refuses_problem_keys_but_the_run_time_ones():
+    """Only the plant's noise and input limits may differ at run time (RUN_TIME_KEYS); any
+    other problem key is a different problem, named with both values."""
+    from sep_estimator.design_file import RUN_TIME_KEYS
+
+    d = synthetic_design()
+    assert RUN_TIME_KEYS == ("w_std", "v_std", "u_min", "u_max")
+    check_matches(d, SCENARIO.replace(w_std=0.1, v_std=0.5, u_min=-1.0, u_max=3.0))
+    for change, text in [(dict(target=151.0), "problem.target: 150.0 != 151.0"),
+                         (dict(band=2.0), "problem.band: 3.0 != 2.0"),
+                         (dict(band_window=(2, 5)), "problem.band_window: [3, 5] != [2, 5]"),
+                         (dict(r_u=0.2), "problem.r_u: 0.1 != 0.2"),
+                         (dict(lqr_k_switch=3), "problem.lqr_k_switch: 2 != 3"),
+                         (dict(u_init=0.2), "problem.u_init: 0.1 != 0.2")]:
+        with pytest.raises(DesignFileError) as exc:
+            check_matches(d, SCENARIO.replace(**change))
+        assert text in str(exc.value) and "another plant or problem" in str(exc.value), str(exc.value)

@@ -285,3 +285,38 @@ def test_shipped_scenarios_load_and_their_plants_conform(path):
     assert Scenario.from_json(scen.to_json(), canonical=True) == scen.canonical()
     st = DesignSettings.for_scenario(scen)
     assert st.n_r == scen.design.get("n_r", DesignSettings().n_r)
+
+
+@pytest.mark.parametrize("text,changes", [
+    ("u_min: 0.0\n", dict(u_min=0.0)),
+    ("target: 149.0\n", dict(target=149.0)),
+    ("u_min: 0.0\nu_max: 0.6\nw_std: 0.2\n", dict(u_min=0.0, u_max=0.6, w_std=0.2)),
+    ("n_steps: 100\n", dict(n_steps=100)),        # the window: the last 40 % (flat files: k_band 150)
+    ("design: {n_r: 12}\nr_u: 0.2\n", dict(r_u=0.2)),
+])
+def test_a_file_of_problem_keys_is_the_reference_plant_with_them(tmp_path, text, changes):
+    s = load_scenario(write(tmp_path, text))
+    assert s.plant_type == "slab" and s.plant_config == reference().plant_config
+    assert s.problem == reference().problem.replace(band_window=None, lqr_k_switch=None, **changes).resolved()
+    if "n_steps" in changes:
+        assert s.problem.window == (60, 100)
+
+
+def test_flat_only_keys_select_the_flat_format(tmp_path):
+    """k_band, t_target, q_late, q_early or a slab key mean sep 0.1's flat file (its window and
+    LQR switch defaults); a current-format key beside them is named with what to do."""
+    s = load_scenario(write(tmp_path, "t_target: 149\nn_steps: 200\nk_band: 120\n"))
+    assert s.problem.target == 149.0 and s.problem.window == (120, 200) and s.problem.k_switch == 120
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(write(tmp_path, "n_x: 40\ntarget: 149.0\n"))
+    msg = str(exc.value)
+    assert "['target']" in msg and "flat slab format" in msg and "['n_x']" in msg and "plant:" in msg
+
+
+def test_infinity_strings_are_read_in_one_place(tmp_path):
+    from sep_plant import problem, scenario
+
+    assert problem.decode_inf(["-inf", ".inf", " +Inf ", "x", 1.0]) == [-math.inf, math.inf, math.inf, "x", 1.0]
+    assert not hasattr(scenario, "_decode_inf") and not hasattr(problem, "_decode")
+    s = load_scenario(write(tmp_path, "n_x: 40\nu_min: -.inf\nu_max: [inf, 1, 1, 1, 1]\n"))
+    assert s.problem.u_min == -math.inf and s.problem.u_max == (math.inf, 1.0, 1.0, 1.0, 1.0)

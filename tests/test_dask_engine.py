@@ -11,7 +11,7 @@ import pytest
 
 from core_helpers import flat
 from dask_plants import KillsWorkerOnce, RaisesOnWorker
-from sep_control.cli import design as design_cli
+from sep_control.cli.main import main as sep
 from sep_control.design import tvera
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.compute.engine import EngineError, InProcess, TaskError, open_engine, parse_dask
@@ -62,9 +62,9 @@ def test_design_cli_dask_local2_writes_the_same_arrays(tmp_path, capsys):
     scen = tmp_path / "small.yaml"
     scen.write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))
     fast = ["--p", "5", "--q", "5", "--n-r", "10", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
-    assert design_cli.main(["--scenario", str(scen), "--out", str(tmp_path / "a.npz"), "--dask", "local:2"] + fast) == 0
+    assert sep(["design", "--scenario", str(scen), "--out", str(tmp_path / "a.npz"), "--dask", "local:2"] + fast) == 0
     assert "dashboard" in capsys.readouterr().err
-    assert design_cli.main(["--scenario", str(scen), "--out", str(tmp_path / "b.npz")] + fast) == 0
+    assert sep(["design", "--scenario", str(scen), "--out", str(tmp_path / "b.npz")] + fast) == 0
     a, b = np.load(tmp_path / "a.npz", allow_pickle=False), np.load(tmp_path / "b.npz", allow_pickle=False)
     assert sorted(a.files) == sorted(b.files)
     floats = [k for k in a.files if a[k].dtype.kind == "f"]
@@ -106,7 +106,7 @@ def test_unreachable_scheduler_exits_2(capsys, tmp_path):
         port = s.getsockname()[1]
     t0 = time.perf_counter()
     with pytest.raises(SystemExit) as exc:
-        design_cli.main(["--out", str(tmp_path / "x.npz"), "--dask", f"tcp://127.0.0.1:{port}", "--quiet"])
+        sep(["design", "--out", str(tmp_path / "x.npz"), "--dask", f"tcp://127.0.0.1:{port}", "--quiet"])
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in err and "dask scheduler" in err
@@ -114,13 +114,20 @@ def test_unreachable_scheduler_exits_2(capsys, tmp_path):
     assert not (tmp_path / "x.npz").exists()
 
 
-@pytest.mark.parametrize("bad", ["banana", "local:0", "tcp://nohost", "local:two"])
-def test_bad_dask_values_are_refused(bad, capsys, tmp_path):
-    with pytest.raises(EngineError):
+@pytest.mark.parametrize("bad,message", [
+    ("banana", "--dask must be local, local:N"),
+    ("local:0", "--dask local:N needs N >= 1, got 'local:0'"),
+    ("tcp://nohost", "--dask must be local, local:N"),           # no port
+    ("local:two", "--dask must be local, local:N"),
+])
+def test_bad_dask_values_are_refused(bad, message, capsys, tmp_path):
+    with pytest.raises(EngineError, match="--dask"):
         parse_dask(bad)
     with pytest.raises(SystemExit) as exc:
-        design_cli.main(["--out", str(tmp_path / "x.npz"), "--dask", bad, "--quiet"])
-    assert exc.value.code == 2 and "--dask must be" in capsys.readouterr().err or bad == "local:0"
+        sep(["design", "--out", str(tmp_path / "x.npz"), "--dask", bad, "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"sep design: error: {message}" in err, err
+    assert not (tmp_path / "x.npz").exists()
 
 
 def test_in_process_engine_names_the_failing_task():
@@ -157,20 +164,16 @@ def test_evaluate_and_validate_clis_on_a_cluster_match_in_process(tmp_path, caps
     """`evaluate --dask local:2` and `validate --dask local:2` print what they print in-process."""
     import json
 
-    from sep_control.cli import evaluate as evaluate_cli
-
-    from sep_control.cli import validate as validate_cli
-
     scen = tmp_path / "small.yaml"
     scen.write_text("".join(f"{k}: {v}\n" for k, v in SMALL.items()))
     fast = ["--p", "5", "--q", "5", "--n-r", "10", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
-    assert design_cli.main(["--scenario", str(scen), "--out", str(tmp_path / "d.npz")] + fast) == 0
+    assert sep(["design", "--scenario", str(scen), "--out", str(tmp_path / "d.npz")] + fast) == 0
     out = {}
     for tag, extra in (("here", []), ("there", ["--dask", "local:2"])):
         ev = ["--design", str(tmp_path / "d.npz"), "--runs", "30", "--controllers", "open_loop", "rom_lqg",
               "--quiet", "--json", str(tmp_path / f"{tag}.json")] + extra
-        assert evaluate_cli.main(ev) == 0
-        assert validate_cli.main(["--design", str(tmp_path / "d.npz"), "--lags", "12",
+        assert sep(["evaluate", *ev]) == 0
+        assert sep(["validate", "--design", str(tmp_path / "d.npz"), "--lags", "12",
                                   "--json", str(tmp_path / f"{tag}_val.json")] + extra) == 0
         out[tag] = (json.loads((tmp_path / f"{tag}.json").read_text()),
                     json.loads((tmp_path / f"{tag}_val.json").read_text()))

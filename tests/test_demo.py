@@ -11,7 +11,7 @@ from sep_control.evaluation.metrics import JSON_KEYS
 pytestmark = pytest.mark.ros
 
 
-@pytest.mark.parametrize('extra', [[], ['--no-record', '--three', '--mode', 'realtime', '--rtf', '10']],
+@pytest.mark.parametrize('extra', [[], ['--no-record', '--three', '--mode', 'realtime', '--real-time-factor', '10']],
                          ids=['lqg+record', 'three-processes-realtime'])
 def test_demo_small(launcher, small_case, tmp_path, extra):
     out = tmp_path / 'demo'
@@ -36,6 +36,41 @@ def test_demo_small(launcher, small_case, tmp_path, extra):
                             '--no-record', '--timeout', '120', name='demo_again')
         assert p2.wait(180) == 0, p2.output()
         assert 'reusing design file' in p2.output()
+
+
+SMALL_YAML = """\
+plant: {type: slab, n_x: 20}
+n_steps: 40
+band_window: [24, 40]
+lqr_k_switch: 20
+target: TARGET
+"""
+
+
+def test_demo_redesigns_when_the_scenario_changed(launcher, tmp_path):
+    """Two demos into one folder, the scenario's target changed from 150 to 151 in between: the
+    second names the difference and designs again (nothing stale runs); a third with the same
+    scenario reuses the new design."""
+    from sep_estimator.design_file import load_design
+
+    out, scen = tmp_path / 'demo', tmp_path / 'small.yaml'
+
+    def demo(target, name):
+        scen.write_text(SMALL_YAML.replace('TARGET', target))
+        p = launcher.start('demo', '--out', str(out), '--scenario', str(scen), '--no-record', '--timeout', '120',
+                           name=name)
+        assert p.wait(180) == 0, p.output()
+        return p.output()
+
+    first = demo('150.0', 'demo_150')
+    assert 'designing for' in first and 'rom_lqg (topics)' in first
+    assert load_design(out / 'design.npz').problem.target == 150.0
+    second = demo('151.0', 'demo_151')
+    assert 'was made from other inputs; redesigning' in second and 'problem.target: 150.0 != 151.0' in second, second
+    assert 'reusing design file' not in second and 'rom_lqg (topics)' in second
+    d = load_design(out / 'design.npz')
+    assert d.problem.target == 151.0 and float(d.objective.target[0]) == 151.0
+    assert 'reusing design file' in demo('151.0', 'demo_151_again')
 
 
 # A coarse sep_plant/scenarios/plate.yaml (same plant defaults: 3 x 3 lamps, 5 sensors, held edge
@@ -99,7 +134,7 @@ def test_demo_timeout_reports_where_the_nodes_are(launcher, small_case, tmp_path
     node's log tail with its Python stacks (asked for with SIGUSR1), so a hang says where it is."""
     out = tmp_path / 'demo'
     p = launcher.start('demo', '--out', str(out), '--scenario', str(small_case.scenario_file), '--no-record',
-                       '--mode', 'realtime', '--rtf', '1', '--timeout', '8')      # a 10 s episode
+                       '--mode', 'realtime', '--real-time-factor', '1', '--timeout', '8')      # a 10 s episode
     assert p.wait(120) == 1, p.output()
     text = p.output()
     assert 'has not finished after --timeout 8 s' in text, text

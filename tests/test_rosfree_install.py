@@ -156,7 +156,7 @@ def test_every_module_outside_ros_imports_without_ros(rosfree, tmp_path):
     assert got['rclpy_blocked'], 'the ROS blocker did not block rclpy'
     # the Dask engine and every layer of sep_control are among them
     for name in ('sep_control.compute.engine', 'sep_control.design.pipeline', 'sep_control.cli.design',
-                 'sep_control.evaluation.montecarlo', 'sep_control.bags.bag_io',
+                 'sep_control.evaluation.montecarlo', 'sep_control.bags.storage',
                  'sep_estimator.design_file', 'sep_plant.scenario'):
         assert name in got['modules'], name
     assert not any('ros' in n.split('.') for n in got['modules'])

@@ -3,7 +3,8 @@
 A design file is a numpy `.npz` archive read with ``allow_pickle=False`` (no code execution on
 load). Member ``meta`` holds a UTF-8 JSON document (format version, the scenario — plant type,
 plant keys and problem —, the plant's description, design settings, validation numbers,
-provenance); every other member is a float64/int64 array listed below with its expected
+provenance, and the source record of everything the design was made from with its SHA-256,
+``source`` and ``source_digest``: `sep_estimator.design_source`); every other member is a float64/int64 array listed below with its expected
 shape (the two belief statistics float32, see below). Loading checks the format version, every member's presence, dtype, shape and
 finiteness, and the zip CRCs, and raises `DesignFileError` with a message that says what is
 wrong. Loading never imports the plant's code: the file is self-contained data.
@@ -36,14 +37,17 @@ import json
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
-from sep_plant.problem import Objective
+from sep_plant.plants import PlantTypeError, resolve
+from sep_plant.problem import Objective, Problem
 from sep_plant.protocol import PlantInfo
-from sep_plant.scenario import Scenario, ScenarioError
+from sep_plant.scenario import Scenario, ScenarioError, same_value
 
+from sep_estimator.design_source import (JACOBIAN_USED, plant_file_digests, record_differences, source_digest,
+                                         source_record)
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
 
@@ -57,6 +61,13 @@ TRAJECTORY_TOL = 1e-11
 TRAJECTORIES = ("field_nom", "belief_mean", "belief_std", "field_std")
 #: members written as float32 (ensemble statistics) and never SVD-compressed
 SINGLE = ("belief_mean", "belief_std")
+
+#: problem keys a node may take from the plant's own scenario at run time: the noise the plant
+#: draws (w_std, v_std) and the input limits its node applies (u_min, u_max) belong to the plant
+#: (a robustness run varies them). Every other problem key (n_steps, target, band, band_window,
+#: q_*, r_u, lqr_*, u_init) shaped the nominal and the gains: a plant with another value runs
+#: another problem than the one designed for, and the nodes refuse it (`check_matches`)
+RUN_TIME_KEYS = ("w_std", "v_std", "u_min", "u_max")
 
 #: members every version-2/3 file has (Bw only for plants whose noise is not on the inputs)
 ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", "field_xyz", "rom_dims", "A",
@@ -148,15 +159,17 @@ def arrays_of(d: Design) -> dict[str, np.ndarray]:
 
 
 def save_design(path: str | Path, d: Design) -> Path:
-    """Write `d` to `path` (.npz, compressed); the file appears atomically."""
+    """Write `d` to `path` (.npz, compressed) with its source record (`design_source`); the file
+    appears atomically."""
     path = Path(path)
     arrays = arrays_of(d)
     expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays))
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
+    source = design_source(d)
     meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": d.scenario.to_dict(),
-            "plant_info": d.info.to_dict(), "n_r": d.n_r}
+            "plant_info": d.info.to_dict(), "n_r": d.n_r, "source": source, "source_digest": source_digest(source)}
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
     for name in SINGLE:
         arrays[name] = arrays[name].astype(np.float32)
@@ -332,12 +345,80 @@ def _check_members(path: Path) -> None:
 
 
 def check_matches(design: Design, plant: Scenario, where: str = "design file") -> None:
-    """Raise `DesignFileError` naming every plant value where design and plant differ."""
-    diff = design.scenario.plant_mismatches(plant)
+    """Raise `DesignFileError` naming every value where the plant's scenario differs from the
+    design's: the plant type and keys, and every problem key but the `RUN_TIME_KEYS`."""
+    diff = design.scenario.plant_mismatches(plant) + problem_mismatches(design.problem, plant.problem)
     if diff:
-        raise DesignFileError(f"{where} was designed for another plant: " + "; ".join(diff) +
+        raise DesignFileError(f"{where} was designed for another plant or problem: " + "; ".join(diff) +
                               ". Re-run `design` with this plant's scenario, or run the plant with the "
-                              "design's scenario")
+                              f"design's scenario (only {', '.join(RUN_TIME_KEYS)} may differ at run time)")
+
+
+def problem_mismatches(designed: Problem, running: Problem) -> list[str]:
+    """"problem.KEY: designed != running" for each resolved problem key but n_steps (a plant
+    mismatch, `Scenario.plant_mismatches`) and the `RUN_TIME_KEYS`."""
+    a, b = designed.resolved().to_dict(), running.resolved().to_dict()
+    return [f"problem.{k}: {a[k]!r} != {b[k]!r}" for k in a
+            if k not in RUN_TIME_KEYS and k != "n_steps" and not same_value(a[k], b[k])]
+
+
+# ------------------------------------------------------------------ source record
+def design_source(d: Design) -> dict[str, Any]:
+    """The source record of a design (`sep_estimator.design_source`): its scenario's plant and
+    resolved problem, the digests of the plant's files, its settings (``meta["settings"]``) with
+    the Jacobian it used (``meta["optimizer"]["jacobian"]``), and this format's version."""
+    settings = dict(d.meta.get("settings", {}))
+    used = d.meta.get("optimizer", {}).get("jacobian")
+    if used is not None:
+        settings[JACOBIAN_USED] = used
+    files = _plant_files(d.scenario)
+    if files is None:       # the plant's code is not importable here: keep what was recorded
+        files = d.meta.get("source", {}).get("plant_files", {})
+    return source_record(d.scenario.plant_type, d.scenario.plant_config, files, d.problem.resolved().to_dict(),
+                         settings, VERSION)
+
+
+def source_differences(design: Design, scenario: Scenario, settings: Mapping[str, Any]) -> list[str]:
+    """What differs between the inputs a design file was made from and `scenario` + `settings`.
+
+    Parameters
+    ----------
+    design : Design
+        A loaded design (its ``meta["source"]`` and ``meta["source_digest"]``).
+    scenario : Scenario
+        The scenario to design for now (canonical: complete plant keys).
+    settings : mapping
+        The design settings as a design would record them: ``dataclasses.asdict(settings)``
+        with ``jacobian_used``, the Jacobian 'auto' resolves to for this plant
+        (`sep_control.cli.design.recorded_settings`).
+
+    Returns
+    -------
+    list of str
+        Empty when the digest of the expected record equals the file's; else one line per
+        difference, e.g. "problem.target: 150.0 != 151.0" (the file's value first).
+    """
+    recorded, digest = design.meta.get("source"), design.meta.get("source_digest")
+    if not isinstance(recorded, Mapping) or not isinstance(digest, str):
+        return ["the design file has no source record (written by a sep that did not record its inputs)"]
+    if source_digest(recorded) != digest:
+        return ["the design file's source record does not match its digest (its metadata was edited)"]
+    files = _plant_files(scenario)
+    expected = source_record(scenario.plant_type, scenario.plant_config, {} if files is None else files,
+                             scenario.problem.resolved().to_dict(), settings, VERSION)
+    if source_digest(expected) == digest:
+        return []
+    return record_differences(recorded, expected) or [f"source digest {digest[:12]} != {source_digest(expected)[:12]}"]
+
+
+def _plant_files(scenario: Scenario) -> dict[str, str] | None:
+    """Digests of the scenario's plant files ({} for plant classes without `source_files`, None
+    when the plant type cannot be resolved here); builds the plant only when it has files."""
+    try:
+        cls = resolve(scenario.plant_type)
+    except PlantTypeError:
+        return None
+    return plant_file_digests(scenario.plant) if hasattr(cls, "source_files") else {}
 
 
 def _plain(v: Any) -> Any:

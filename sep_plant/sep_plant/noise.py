@@ -15,6 +15,9 @@ import numpy as np
 from sep_plant.problem import Problem
 from sep_plant.protocol import PlantInfo
 
+#: the noise seed of a Monte Carlo and of a plant episode when none is given (`--seed`, `seed`)
+DEFAULT_SEED = 1
+
 
 def run_generator(seed: int, run: int) -> np.random.Generator:
     """The generator of run `run` of seed `seed`."""

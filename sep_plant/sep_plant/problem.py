@@ -64,7 +64,7 @@ class Problem:
 
     def __post_init__(self) -> None:
         for f in fields(self):            # lists -> tuples, ints -> floats ... (also via replace)
-            object.__setattr__(self, f.name, _coerce(f.name, _decode(getattr(self, f.name)), "problem"))
+            object.__setattr__(self, f.name, _coerce(f.name, decode_inf(getattr(self, f.name)), "problem"))
         problems = list(_problems(self))
         if problems:
             raise ProblemError("invalid problem: " + "; ".join(problems))
@@ -166,7 +166,7 @@ class Problem:
         if unknown:
             raise ProblemError(f"{source}: unknown key(s) {unknown}; problem keys: {sorted(known)} "
                                "(plant keys go under `plant:`)")
-        kwargs = {k: _coerce(k, _decode(v), source) for k, v in data.items()}
+        kwargs = {k: _coerce(k, decode_inf(v), source) for k, v in data.items()}
         try:
             return cls(**kwargs)
         except ProblemError as exc:
@@ -281,11 +281,13 @@ def _encode(v: Any) -> Any:
     return v
 
 
-def _decode(v: Any) -> Any:
+def decode_inf(v: Any) -> Any:
+    """A scenario value with the strings 'inf', '+inf', '.inf', '-inf', '-.inf' (any case, in
+    lists too) as floats: YAML and strict JSON have no literal for infinity."""
     if isinstance(v, str) and v.strip().lower() in ("inf", "+inf", ".inf", "-inf", "-.inf"):
         return -math.inf if v.strip().startswith("-") else math.inf
     if isinstance(v, list):
-        return [_decode(x) for x in v]
+        return [decode_inf(x) for x in v]
     return v
 
 

@@ -12,9 +12,12 @@ scenario's defaults for the design tool (e.g. ``n_r: 40``; command-line options 
     target: 150.0
     band_window: [150, 250]
 
-Files in the earlier flat format (every key of the slab and its problem at the top level, as in
-sep 0.1's ``reference.yaml``) are still read: they mean the slab. Unknown keys and out-of-range
-values are refused with a `ScenarioError` that names the key.
+A file without a ``plant:`` section means the default plant (the slab of the reference
+scenario) with its problem keys: ``u_min: 0.0`` alone is the reference with that limit. Files
+in the earlier flat format (every key of the slab and its problem at the top level, as in sep
+0.1's ``reference.yaml``) are still read, recognised by a key only that format has (a slab
+key such as ``n_x``, or ``t_target``, ``q_late``, ``q_early``, ``k_band``): they mean the slab.
+Unknown keys and out-of-range values are refused with a `ScenarioError` that names the key.
 
 `load_scenario` builds the plant once (its constructor checks its keys), checks that the
 problem fits it (vector lengths, target), and stores the plant's complete configuration, so
@@ -34,7 +37,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sep_plant.plants import PlantConfigError, PlantTypeError, make_plant
-from sep_plant.problem import Problem, ProblemError
+from sep_plant.problem import Problem, ProblemError, decode_inf
 from sep_plant.protocol import PlantInfo, noise_channels
 
 FORMAT = "sep-scenario"
@@ -49,6 +52,10 @@ LEGACY_PROBLEM_KEYS = {"n_steps": "n_steps", "t_target": "target", "band": "band
                        "u_min": "u_min", "u_max": "u_max", "lqr_k_switch": "lqr_k_switch",
                        "lqr_q_late": "lqr_q_late", "lqr_q_early": "lqr_q_early", "lqr_r": "lqr_r",
                        "u_init": "u_init"}
+#: keys that only the flat format has: a file without `plant:` holding one of them is a flat file
+LEGACY_ONLY_KEYS = frozenset(LEGACY_PLANT_KEYS) | {k for k, v in LEGACY_PROBLEM_KEYS.items() if k != v} | {"k_band"}
+#: the plant of a scenario that names none (the reference scenario's)
+DEFAULT_PLANT = "slab"
 
 
 class ScenarioError(ValueError):
@@ -59,7 +66,7 @@ class ScenarioError(ValueError):
 class Scenario:
     """A plant (type + its own keys) and a problem. Equality and hash follow `to_json`."""
 
-    plant_type: str = "slab"
+    plant_type: str = DEFAULT_PLANT
     plant_config: Mapping[str, Any] = field(default_factory=dict)
     problem: Problem = field(default_factory=Problem)
     #: the scenario's own defaults for the design tool (`design:` section: DesignSettings keys,
@@ -120,8 +127,9 @@ class Scenario:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str = "scenario", canonical: bool = True) -> "Scenario":
-        """Parse a scenario mapping (current or flat sep 0.1 format). With `canonical`, build the
-        plant to check it and store its complete configuration."""
+        """Parse a scenario mapping (current or flat sep 0.1 format; no `plant:` and no flat-only
+        key: the default plant). With `canonical`, build the plant to check it and store its
+        complete configuration."""
         if not isinstance(data, Mapping):
             raise ScenarioError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
         data = dict(data)
@@ -129,7 +137,10 @@ class Scenario:
         if not isinstance(design, Mapping) or not all(isinstance(k, str) for k in design):
             raise ScenarioError(f"{source}: `design:` must be a mapping of design settings (e.g. n_r: 40), "
                                 f"got {design!r}")
-        scen = _parse_current(data, source) if "plant" in data else _parse_legacy(data, source)
+        if "plant" not in data and LEGACY_ONLY_KEYS.intersection(data):
+            scen = _parse_legacy(data, source)
+        else:   # a file of problem keys only (or none) means the default plant
+            scen = _parse_current({"plant": {"type": DEFAULT_PLANT}, **data}, source)
         scen = Scenario(scen.plant_type, scen.plant_config, scen.problem, plain_config(design))
         if canonical:
             try:
@@ -159,7 +170,7 @@ class Scenario:
             if k not in a or k not in b:
                 out.append(f"plant.{k}: {'missing' if k not in a else repr(a[k])} != "
                            f"{'missing' if k not in b else repr(b[k])}")
-            elif not _same(a[k], b[k]):
+            elif not same_value(a[k], b[k]):
                 out.append(f"plant.{k}: {a[k]!r} != {b[k]!r}")
         if self.problem.n_steps != other.problem.n_steps:
             out.append(f"n_steps: {self.problem.n_steps} != {other.problem.n_steps}")
@@ -226,10 +237,16 @@ def _parse_legacy(data: dict, source: str) -> Scenario:
     known = set(LEGACY_PLANT_KEYS) | set(LEGACY_PROBLEM_KEYS) | {"k_band"}
     unknown = sorted((str(k) for k in data if k not in known))
     if unknown:
+        flat_only = sorted(str(k) for k in LEGACY_ONLY_KEYS.intersection(data))
+        if any(k in Problem.__dataclass_fields__ for k in unknown):   # current keys beside flat ones
+            raise ScenarioError(f"{source}: unknown key(s) {unknown} for sep 0.1's flat slab format, which "
+                                f"the key(s) {flat_only} select; in the current format the plant keys go under "
+                                f"`plant:` (e.g. plant: {{type: slab, {flat_only[0]}: ...}}) beside the problem "
+                                f"keys {sorted(Problem.__dataclass_fields__)}")
         raise ScenarioError(f"{source}: unknown key(s) {unknown}; a scenario has a `plant:` section "
                             f"(type and plant keys) and the problem keys {sorted(Problem.__dataclass_fields__)}; "
                             f"the flat slab format knows {sorted(known)}")
-    plant = {k: _decode_inf(data[k]) for k in LEGACY_PLANT_KEYS if k in data}
+    plant = {k: decode_inf(data[k]) for k in LEGACY_PLANT_KEYS if k in data}
     prob = {LEGACY_PROBLEM_KEYS[k]: data[k] for k in LEGACY_PROBLEM_KEYS if k in data}
     # the flat format's semantics: band from k_band (default 150) to N, LQR switch default 120
     prob["band_window"] = [data.get("k_band", 150), prob.get("n_steps", Problem().n_steps)]
@@ -239,12 +256,6 @@ def _parse_legacy(data: dict, source: str) -> Scenario:
     except ProblemError as exc:
         raise ScenarioError(str(exc)) from None
     return Scenario("slab", plain_config(plant), problem)
-
-
-def _decode_inf(v: Any) -> Any:
-    if isinstance(v, str) and v.strip().lower() in ("inf", "+inf", ".inf", "-inf", "-.inf"):
-        return -math.inf if v.strip().startswith("-") else math.inf
-    return v
 
 
 def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
@@ -263,15 +274,17 @@ def _plain(v: Any) -> Any:
     raise TypeError(f"not JSON serializable: {type(v).__name__}")
 
 
-def _same(a: Any, b: Any) -> bool:
+def same_value(a: Any, b: Any) -> bool:
+    """Equal scenario values: numbers to 1e-12 (a float round trip is not a difference), lists
+    and mappings element by element, anything else by ==."""
     if isinstance(a, bool) or isinstance(b, bool):
         return a == b
     if isinstance(a, (int, float)) and isinstance(b, (int, float)):
         return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=1e-12)
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(same_value(x, y) for x, y in zip(a, b))
     if isinstance(a, Mapping) and isinstance(b, Mapping):
-        return set(a) == set(b) and all(_same(a[k], b[k]) for k in a)
+        return set(a) == set(b) and all(same_value(a[k], b[k]) for k in a)
     return a == b
 
 

@@ -1,4 +1,4 @@
-"""`analyze BAG... [--design FILE] [--out DIR] [--json PATH]`: report on recorded episodes.
+"""`sep analyze BAG... [--design FILE] [--out DIR] [--json PATH]`: report on recorded episodes.
 
 Any plant: one bag gives its metrics (docs/method.md) and the paper's figures (lines for 1-D
 plants, heat maps for grid plants, a frame of the image topic when the bag has one); several
@@ -17,75 +17,92 @@ from pathlib import Path
 
 from sep_plant.topics import NAMESPACE
 
-EXIT_BAD_INPUT = 2
+from sep_control.cli.common import fail, groups, legacy_main
+from sep_control.compute.progress import RunSteps, bars_wanted
+
+HELP = "report on recorded episodes (rosbag2 bags): metrics, figures, JSON"
+DESCRIPTION = ("Analyse rosbag2 bags recorded from the sep topic graph: metrics (docs/method.md), a Markdown "
+               "report with figures, optional JSON. Works for any plant of the plant protocol; several bags "
+               "give one row per episode and pooled statistics.\n\n"
+               "Example:  sep analyze out/demo/bag --design out/demo/design.npz")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="analyze",
-        description="Analyse rosbag2 bags recorded from the sep topic graph: metrics (docs/method.md), "
-                    "Markdown report with figures, optional JSON. Works for any plant of the plant protocol.")
-    p.add_argument("bags", nargs="+", metavar="BAG",
-                   help="bag directory (metadata.yaml + .mcap/.db3) or a lone .mcap/.db3 file")
-    p.add_argument("--design", metavar="FILE",
-                   help="design file (.npz): its objective and nominal (default: the bag's scenario, no nominal)")
-    p.add_argument("--out", metavar="DIR",
-                   help="report directory (default: <BAG>_report for one bag, <parent>/aggregate_report for many)")
-    p.add_argument("--json", metavar="PATH", help="write the metrics as JSON (metrics (docs/method.md))")
-    p.add_argument("--namespace", default=None,
-                   help=f"topic namespace of the graph (default: the bag's own, found from its measurements topic; "
-                        f"{NAMESPACE} for sep's nodes, slab for bags of sep 0.1)")
-    p.add_argument("--allow-mismatch", action="store_true",
-                   help="analyse bags of another plant than the design file (flagged in the report)")
-    p.add_argument("--allow-truncated", action="store_true",
-                   help="analyse what can be recovered from a truncated bag (crash during recording)")
-    p.add_argument("--no-figures", action="store_true", help="write report.md without figures")
-    return p
+def configure(parser: argparse.ArgumentParser) -> None:
+    """The options of `sep analyze`."""
+    basic, advanced = groups(parser)
+    basic.add_argument("bags", nargs="+", metavar="BAG",
+                       help="bag directory (metadata.yaml + .mcap/.db3) or a lone .mcap/.db3 file")
+    basic.add_argument("--design", metavar="FILE",
+                       help="design file (.npz): its objective and nominal (default: the bag's scenario, no nominal)")
+    basic.add_argument("--out", metavar="DIR",
+                       help="report directory (default: <BAG>_report for one bag, <parent>/aggregate_report for many)")
+    basic.add_argument("--json", metavar="PATH", help="write the metrics as JSON (metrics (docs/method.md))")
+    basic.add_argument("--quiet", action="store_true",
+                       help="no progress bar (drawn over the bags only when stderr is a terminal)")
+    advanced.add_argument("--namespace", default=None,
+                          help=f"topic namespace of the graph (default: the bag's own, found from its measurements "
+                               f"topic; {NAMESPACE} for sep's nodes, slab for bags of sep 0.1)")
+    advanced.add_argument("--allow-mismatch", action="store_true",
+                          help="analyse bags of another plant than the design file (flagged in the report)")
+    advanced.add_argument("--allow-truncated", action="store_true",
+                          help="analyse what can be recovered from a truncated bag (crash during recording)")
+    advanced.add_argument("--no-figures", action="store_true", help="write report.md without figures")
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run(args: argparse.Namespace) -> int:
+    from sep_control.bags.report import LATENCY_NOTE, write_report
     from sep_control.evaluation import metrics as M
-    from sep_control.bags.analysis import AnalysisError, aggregate, analyze
-    from sep_control.bags.storage import BagError
 
     t0 = time.perf_counter()
-    try:
-        design = None
-        if args.design:
-            from sep_estimator.design_file import DesignFileError, load_design
-
-            try:
-                design = load_design(args.design)
-            except DesignFileError as exc:
-                raise AnalysisError(str(exc)) from None
-        kw = dict(allow_mismatch=args.allow_mismatch, allow_truncated=args.allow_truncated,
-                  namespace=args.namespace)
-        if len(args.bags) == 1:
-            rep = analyze(args.bags[0], design, **kw)
-            rows = {rep.name: rep.metrics}
-            default_out = Path(str(Path(args.bags[0]).resolve()).removesuffix(".mcap").removesuffix(".db3") + "_report")
-        else:
-            rep = aggregate(args.bags, design, **kw)
-            rows = {**rep.rows, "all episodes": rep.metrics}
-            default_out = Path(args.bags[0]).resolve().parent / "aggregate_report"
-    except (BagError, AnalysisError) as exc:
-        print(f"analyze: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    rep, rows, default_out = analysed(args)
     t_analysis = time.perf_counter() - t0
-
-    from sep_control.bags.report import LATENCY_NOTE, write_report
-
     out = Path(args.out) if args.out else default_out
     try:
         path = write_report(rep, out, figures=not args.no_figures)
         if args.json:
             M.write_json(args.json, rows)
     except OSError as exc:
-        print(f"analyze: error: cannot write the report: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        fail(f"cannot write the report: {exc}")
     keys = [k for k in M.JSON_KEYS if any(r.get(k) is not None for r in rows.values())]
     print(M.format_table(rows, keys))
+    print_notes(rep)
+    print(f"({LATENCY_NOTE})")
+    print(f"analysis {t_analysis:.2f} s, total {time.perf_counter() - t0:.2f} s")
+    print(f"report: {path}")
+    if args.json:
+        print(f"json: {args.json}")
+    return 0
+
+
+def analysed(args: argparse.Namespace):
+    """(report, metric rows, default report directory) of the bags; exit 2 on a bad bag or design."""
+    from sep_control.bags.analysis import AnalysisError, aggregate, analyze
+    from sep_control.bags.storage import BagError
+    from sep_estimator.design_file import DesignFileError, load_design
+
+    try:
+        design = load_design(args.design) if args.design else None
+        kw = dict(allow_mismatch=args.allow_mismatch, allow_truncated=args.allow_truncated, namespace=args.namespace)
+        # counted in run-steps (N per episode) when the design gives N, else in bags
+        steps = design.n_steps if design is not None else 1
+        with RunSteps(len(args.bags) * steps, "analyze (run-steps)" if design is not None else "analyze (bags)",
+                      bars_wanted(args.quiet) and len(args.bags) > 1) as bar:
+            reports = []
+            for bag in args.bags:
+                reports.append(analyze(bag, design, **kw))
+                bar.add(1, steps)
+        if len(reports) == 1:
+            rep = reports[0]
+            default = Path(str(Path(args.bags[0]).resolve()).removesuffix(".mcap").removesuffix(".db3") + "_report")
+            return rep, {rep.name: rep.metrics}, default
+        rep = aggregate(reports, design, **kw)
+        return rep, {**rep.rows, "all episodes": rep.metrics}, Path(args.bags[0]).resolve().parent / "aggregate_report"
+    except (BagError, AnalysisError, DesignFileError) as exc:
+        fail(str(exc))
+
+
+def print_notes(rep) -> None:
+    """Missing topics, plant mismatches and truncated bags, one line each."""
     for r in getattr(rep, "reports", [rep]):
         if r.episode.missing:
             print(f"note: {r.name}: missing topics {', '.join(r.episode.missing)}")
@@ -93,12 +110,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"WARNING: {r.name}: the bag's plant differs from the design file's: {'; '.join(r.mismatch)}")
         if not r.episode.complete:
             print(f"note: {r.name}: truncated bag, analysed what was recovered")
-    print(f"({LATENCY_NOTE})")
-    print(f"analysis {t_analysis:.2f} s, total {time.perf_counter() - t0:.2f} s")
-    print(f"report: {path}")
-    if args.json:
-        print(f"json: {args.json}")
-    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The old `analyze` command: `sep analyze` with a deprecation line."""
+    return legacy_main("analyze", argv)
 
 
 if __name__ == "__main__":

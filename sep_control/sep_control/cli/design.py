@@ -1,17 +1,22 @@
-"""`design`: the offline design tool (scenario in, design file out)."""
+"""`sep design`: the offline design tool (scenario in, design file out)."""
 from __future__ import annotations
 
 import argparse
 import json
 import sys
 import time
+from dataclasses import asdict
+from typing import Any
 
-from sep_estimator.design_file import save_design
+from sep_estimator.design_file import design_source, save_design
+from sep_estimator.design_source import source_digest
 
-from sep_control.cli.common import (Formatter, add_dask, add_device, add_memory_budget, add_threads, blas_threads,
-                         engine_or_exit, fail, memory_budget_or_exit, plant_or_exit, scenario_or_exit)
+from sep_control.cli.common import (add_compute_options, add_deprecated, blas_threads, engine_or_exit, fail, groups,
+                                    legacy_main, memory_budget_or_exit, plant_or_exit, scenario_or_exit, stderr_log)
+from sep_control.compute.progress import bars_wanted
 from sep_control.design.pipeline import DesignSettings, run_design
 
+HELP = "design a data-driven LQG for a plant (scenario in, design file out)"
 DESCRIPTION = """\
 Design a data-driven LQG for a plant (the heat slab by default; any plant of the plant
 protocol through --scenario) from the black-box simulator only:
@@ -20,19 +25,26 @@ protocol through --scenario) from the black-box simulator only:
      an EnKF belief),
   2. identify the reduced-order LTV model with TV-ERA (and the field map on a POD basis),
   3. design the time-varying LQR and Kalman filter on the ROM,
-and write everything to one design file (.npz, read without pickles).
+and write everything to one design file (.npz, read without pickles; docs/reference/design-file.md),
+with a record of everything it was made from.
 
 With no --scenario the shipped reference scenario (docs/method.md) is used. The plant is
 checked against the plant protocol first (exit 2 with what to fix).
-Examples: design --out out/design.npz
-          design --scenario sep_plant/scenarios/plate.yaml --out out/plate.npz
+Examples: sep design --out out/design.npz
+          sep design --scenario sep_plant/scenarios/plate.yaml --out out/plate.npz
 """
 
+#: DesignSettings keys of the flags whose setting has another name (none today; one table for renames)
+SETTING_KEY = {"enkf_seed": "enkf_seed"}
 
-#: command-line options of DesignSettings keys: (flags, settings key, type/action, help)
+#: command-line options of DesignSettings keys: (flag, settings key, type/action, help, basic)
 SETTINGS_OPTIONS = (
+    ("--n-r", "n_r", dict(type=int), "ROM order cap n_r", True),
+    ("--ensemble", "ensemble", dict(type=int), "EnKF members (even)", True),
+    ("--enkf-seed", SETTING_KEY["enkf_seed"], dict(type=int), "EnKF random seed", True),
+    ("--max-iter", "max_iter", dict(type=int), "optimizer iterations", True),
     ("--method", "method", dict(choices=["gn", "gd"]),
-     "optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent"),
+     "optimizer: gn = Gauss-Newton/Levenberg-Marquardt, gd = the paper's gradient descent", False),
     ("--jacobian", "jacobian", dict(choices=["auto", "sensitivity", "rom"]),
      "Gauss-Newton Jacobian: sensitivity = N n_u impulse-sensitivity experiments per iteration and a "
      "dense (N n_u)^2 step; rom = a TV-ERA model identified per iteration (see --relinearize-rtol), the "
@@ -40,95 +52,121 @@ SETTINGS_OPTIONS = (
      "final input); auto = rom when N + 1 > 5 (p + q), "
      "where it is measured faster, or when the sensitivity batch would not fit the memory budget, else "
      "sensitivity until a step moves the input by 1 %% or less or lowers the cost by 1e-3 or less, and rom "
-     "from there (one identification near the optimum, which the belief refinement and the design reuse)"),
+     "from there (one identification near the optimum, which the belief refinement and the design reuse)", False),
     ("--relinearize-rtol", "relinearize_rtol", dict(type=float),
      "rom Jacobian: keep the last identification for the next step while the input moved by less than "
      "this, relative (max |dU| / max |U|, at most 0.1; near the optimum the steps move U by 1e-3 and less). The "
      "design's ROM is always identified at the final input (afresh, or the optimizer's last model when "
-     "made there); 1e-6 identifies after every step (the earlier behaviour)"),
-    ("--max-iter", "max_iter", dict(type=int), "optimizer iterations (default 10 gn, 60 gd)"),
+     "made there); 1e-6 identifies after every step", False),
     ("--tol", "tol", dict(type=float),
      "stop when an accepted trial lowers the cost by less than this, relative (that step is not taken); the "
-     "belief refinement also stops, without the trial's EnKF run, when the Gauss-Newton model predicts less"),
-    ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha"),
-    ("--belief-iter", "belief_iter", dict(type=int), "belief-space GN iterations"),
-    ("--ensemble", "ensemble", dict(type=int), "EnKF members (even)"),
-    ("--n-r", "n_r", dict(type=int), "ROM order cap n_r"),
-    ("--p", "p", dict(type=int), "Hankel block rows (future outputs)"),
-    ("--q", "q", dict(type=int), "Hankel block columns (past inputs)"),
-    ("--sv-tol", "sv_tol", dict(type=float), "relative Hankel singular-value cutoff"),
-    ("--impulse", "impulse", dict(type=float), "impulse amplitude relative to the RMS nominal input"),
+     "belief refinement also stops, without the trial's EnKF run, when the Gauss-Newton model predicts less", False),
+    ("--step-size", "step_size", dict(type=float), "gradient-descent step alpha", False),
+    ("--belief-iter", "belief_iter", dict(type=int), "belief-space GN iterations", False),
+    ("--p", "p", dict(type=int), "Hankel block rows (future outputs)", False),
+    ("--q", "q", dict(type=int), "Hankel block columns (past inputs)", False),
+    ("--sv-tol", "sv_tol", dict(type=float), "relative Hankel singular-value cutoff", False),
+    ("--impulse", "impulse", dict(type=float), "impulse amplitude relative to the RMS nominal input", False),
     ("--field-map-tol", "field_map_tol", dict(type=float),
      "the design's field map G_k = Phi g_k keeps the directions that move the field by more than this times "
      "its largest spread (the ROM state's covariance with and without the feedback); what is dropped changes the "
      "reconstructed field and its std by about that much (measured: <= 9.3e-4 of the largest std at 1e-5). The "
-     "gains do not use the map. Smaller keeps more of Phi: a larger file and a slower online reconstruction"),
+     "gains do not use the map. Smaller keeps more of Phi: a larger file and a slower online reconstruction",
+     False),
     ("--impulse-scheme", "impulse_scheme", dict(choices=["central", "forward"]),
      "TV-ERA impulse experiments: central = +- pairs (no first-order bias); forward = one run per "
      "impulse against an unperturbed copy in the same batch (about half the plant steps, a bias "
      "of O(amplitude): 4e-6 relative in the reference's Markov parameters at --impulse 0.01; a "
-     "smaller amplitude trades the bias for round-off in the field map, see README)"),
+     "smaller amplitude trades the bias for round-off in the field map, see docs/method.md)", False),
     ("--chunks", "chunks", dict(type=int),
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
      "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "
-     "tolerance) but never on --dask; use at least twice the cluster's workers"),
+     "tolerance) but never on --dask; use at least twice the cluster's workers", False),
     ("--limit-margin", "limit_margin", dict(type=float),
      "with input limits: re-optimize the nominal inside u_min + c sigma_u, u_max - c sigma_u (sigma_u: the "
      "designed LQG's closed-loop input std) so the feedback has room; 0 = none. On the reference with "
-     "u in [0, 0.6] any c that binds costs the band (see README)"),
-    ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin"),
-    ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude"),
-    ("--seed", "enkf_seed", dict(type=int), "EnKF random seed"),
+     "u in [0, 0.6] any c that binds costs the band (docs/robustness.md)", False),
+    ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin", False),
+    ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude", False),
 )
+#: on/off settings: (flag, settings key, help, basic)
+SWITCH_OPTIONS = (
+    ("--no-belief", "belief", "skip the belief-space refinement (mean-only nominal)", True),
+    ("--no-coarse-proposals", "coarse_proposals",
+     "rom Jacobian: identify every model with the full settings; by default the identifications far from the "
+     "optimum, which only propose Gauss-Newton steps, use forward impulses and a field basis to 1e-6 (about half "
+     "the plant steps), and the ones near it and the design's ROM the full ones", False),
+)
+_DEFAULT_TEXT = {"max_iter": "10 for gn, 60 for gd"}
+_DEST = "setting_"       # argparse dest prefix of the settings (apart from a demo's own --seed)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="design", description=DESCRIPTION, formatter_class=Formatter)
+def configure(parser: argparse.ArgumentParser) -> None:
+    """The options of `sep design`."""
+    basic, advanced = groups(parser)
+    basic.add_argument("--scenario", metavar="FILE",
+                       help="scenario YAML: a `plant:` section (type and keys), the problem keys that differ from "
+                            "the defaults (a file of problem keys only means the reference plant) and optionally "
+                            "a `design:` section with this scenario's defaults for the options below "
+                            "(docs/plants.md)")
+    basic.add_argument("--out", metavar="DESIGN_FILE", required=True, help="design file to write (.npz)")
+    basic.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
+    basic.add_argument("--quiet", action="store_true",
+                       help="no progress bars and no log lines (bars are drawn only when stderr is a terminal)")
+    add_design_options(basic, advanced)
+    add_deprecated(advanced, "--seed", "--enkf-seed", _DEST + SETTING_KEY["enkf_seed"], type=int)
+    add_compute_options(advanced)
+
+
+def add_design_options(basic, advanced) -> None:
+    """The DesignSettings options (`SETTINGS_OPTIONS`, `SWITCH_OPTIONS`), shared with `sep demo`.
+    An option not given leaves the setting to the scenario's `design:` section, else the default."""
     d = DesignSettings()
-    p.add_argument("--scenario", metavar="FILE",
-                   help="scenario YAML: a `plant:` section (type and keys), the problem keys that differ "
-                        "from the defaults (sep 0.1's flat slab files work too) and optionally a `design:` "
-                        "section with this scenario's defaults for the options below")
-    p.add_argument("--out", metavar="DESIGN_FILE", required=True, help="design file to write (.npz)")
-    for flag, key, kind, text in SETTINGS_OPTIONS:
-        default = getattr(d, key)
-        p.add_argument(flag, dest=key, default=argparse.SUPPRESS,
-                       help=f"{text} (default: the scenario's design section, else {default})", **kind)
-    p.add_argument("--no-belief", dest="belief", action="store_false", default=argparse.SUPPRESS,
-                   help="skip the belief-space refinement (mean-only nominal)")
-    p.add_argument("--no-coarse-proposals", dest="coarse_proposals", action="store_false",
-                   default=argparse.SUPPRESS,
-                   help="rom Jacobian: identify every model with the full settings; by default the "
-                        "identifications far from the optimum, which only propose Gauss-Newton steps, use "
-                        "forward impulses and a field basis to 1e-6 (about half the plant steps), and the "
-                        "ones near it and the design's ROM the full ones")
-    p.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    add_threads(p)
-    add_memory_budget(p)
-    add_dask(p)
-    add_device(p)
-    return p
+    for flag, key, kind, text, is_basic in SETTINGS_OPTIONS:
+        meta = {} if "choices" in kind else {"metavar": flag.lstrip("-").replace("-", "_").upper()}
+        default = _DEFAULT_TEXT.get(key, getattr(d, key))
+        (basic if is_basic else advanced).add_argument(
+            flag, dest=_DEST + key, default=argparse.SUPPRESS, **meta, **kind,
+            help=f"{text} (default: the scenario's design section, else {default})")
+    for flag, key, text, is_basic in SWITCH_OPTIONS:
+        (basic if is_basic else advanced).add_argument(flag, dest=_DEST + key, action="store_false",
+                                                       default=argparse.SUPPRESS, help=text)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    scenario = scenario_or_exit(args.scenario)
-    given = {key: getattr(args, key) for key in [k for _, k, _, _ in SETTINGS_OPTIONS] + ["belief", "coarse_proposals"]
-             if hasattr(args, key)}
+def settings_from_args(args: argparse.Namespace, scenario) -> DesignSettings:
+    """DesignSettings: the defaults, the scenario's `design:` section, then the options given
+    (exit 2 naming a bad value)."""
+    given = {k[len(_DEST):]: v for k, v in vars(args).items() if k.startswith(_DEST)}
     try:
-        settings = DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),
-                                               **given)
+        return DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),
+                                           **given)
     except (ValueError, TypeError) as exc:
         fail(str(exc))
-    log = (lambda msg: print(msg, file=sys.stderr)) if not args.quiet else (lambda msg: None)
+
+
+def recorded_settings(settings: DesignSettings, plant, n_steps: int) -> dict[str, Any]:
+    """The settings as a design made with them records them in its source record
+    (`sep_estimator.design_file.source_differences`): every setting and the Jacobian 'auto'
+    resolves to for this plant and horizon."""
+    return {**asdict(settings), "jacobian_used": settings.resolved_jacobian_for(plant, n_steps)}
+
+
+def make_design(plant, scenario, settings: DesignSettings, args: argparse.Namespace, log, show_progress: bool):
+    """`run_design` with the compute options of `args` (--threads, --dask)."""
+    with blas_threads(args.threads), engine_or_exit(args.dask, log=stderr_log()) as engine:
+        return run_design(plant, scenario.problem, settings, show_progress=show_progress, log=log, engine=engine)
+
+
+def run(args: argparse.Namespace) -> int:
+    scenario = scenario_or_exit(args.scenario)
+    settings = settings_from_args(args, scenario)
+    log = stderr_log(args.quiet)
     plant = plant_or_exit(scenario, args.scenario or "reference scenario", device=args.device)
     log(f"design: scenario {args.scenario or '(reference)'}: plant {scenario.plant_type}, n_x = {plant.n_x}, "
         f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
         f"{plant.n_y} outputs, plant steps on {args.device}")
     t0 = time.perf_counter()
-    with blas_threads(args.threads), engine_or_exit(args.dask, log=lambda m: print(m, file=sys.stderr)) as engine:
-        design = run_design(plant, scenario.problem, settings, show_progress=not args.quiet, log=log, engine=engine)
+    design = make_design(plant, scenario, settings, args, log, show_progress=bars_wanted(args.quiet))
     path = save_design(args.out, design)
     summary = design_summary(design)
     summary["wall_s"] = time.perf_counter() - t0
@@ -150,6 +188,7 @@ def design_summary(design) -> dict:
         "max_dev_in_band_window": m["validation"]["max_dev_in_band_window"],
         "markov_rel_error": m["validation"]["markov_rel_error"],
         "timings": m["timings"],
+        "source_digest": source_digest(design_source(design)),
     }
 
 
@@ -165,6 +204,11 @@ def format_summary(sm: dict, path: str) -> str:
         f"gains {t['gains_s']:.2f} s, total {t['total_s']:.2f} s",
     ]
     return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The old `design` command: `sep design` with a deprecation line."""
+    return legacy_main("design", argv)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,130 @@
+"""The source record of a design: everything a design was made from, and its SHA-256 digest.
+
+A design is a function of its plant (type and complete keys, and the contents of any file the
+plant reads), its resolved problem, the design settings that change the result, and the
+design-file format. The record lists exactly these, as plain JSON data::
+
+    {"format_version": 3,
+     "plant": {"type": "slab", "n_x": 100, ...},           # complete configuration
+     "plant_files": {"model.fmu": "<sha256 of its bytes>"},  # plant.source_files(), if any
+     "problem": {"n_steps": 250, "target": 150.0, ...},     # resolved (band_window, lqr_k_switch)
+     "settings": {"n_r": 20, "chunks": 4, ..., "jacobian_used": "sensitivity"}}
+
+and its digest is the SHA-256 of its canonical JSON (sorted keys, no spaces). Two designs with
+the same digest were made from the same inputs; a tool that would reuse a design file (`sep
+demo`) compares digests, and `record_differences` names what differs when they do not match.
+
+Settings that change how the work is spread but not the numbers beyond round-off are left out
+(`RESULT_NEUTRAL_SETTINGS`): the memory budget only splits batches of independent runs. It can
+also switch the 'auto' Jacobian to the ROM one when the sensitivity batch would not fit, so the
+record carries the Jacobian the design used (``jacobian_used``) instead. Threads, Dask and the
+device are not settings at all (same results to round-off, see docs/reference/cli.md).
+Pure Python: no ROS import.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+#: design settings left out of the record: they change the batching, not the design
+RESULT_NEUTRAL_SETTINGS = ("memory_budget",)
+#: the record's settings key of the Jacobian the design used ('auto' resolved)
+JACOBIAN_USED = "jacobian_used"
+
+_MISSING = object()
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks; 'unreadable: <reason>' if it cannot
+    be read (a difference, never an exception: the caller decides what a missing file means)."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    except OSError as exc:
+        return f"unreadable: {exc.strerror or exc}"
+    return h.hexdigest()
+
+
+def plant_file_digests(plant: Any) -> dict[str, str]:
+    """{name: SHA-256} of the files the plant reads, from its optional method
+    ``source_files() -> dict[str, path]`` (e.g. an FMU); {} for plants without files."""
+    files = getattr(plant, "source_files", None)
+    if files is None:
+        return {}
+    return {str(name): file_digest(path) for name, path in sorted(dict(files()).items(), key=lambda kv: str(kv[0]))}
+
+
+def source_record(plant_type: str, plant_config: Mapping[str, Any], plant_files: Mapping[str, str],
+                  problem: Mapping[str, Any], settings: Mapping[str, Any], format_version: int) -> dict[str, Any]:
+    """The source record (see the module docstring) as plain JSON data.
+
+    Parameters
+    ----------
+    plant_type, plant_config : str, mapping
+        The plant's type string and its complete configuration (``plant.config()``).
+    plant_files : mapping
+        {name: SHA-256} of the files the plant reads (`plant_file_digests`).
+    problem : mapping
+        The resolved problem as ``Problem.to_dict()`` writes it.
+    settings : mapping
+        The design settings (``dataclasses.asdict(DesignSettings)``) with ``jacobian_used``;
+        the `RESULT_NEUTRAL_SETTINGS` are dropped.
+    format_version : int
+        The design-file format version.
+
+    Returns
+    -------
+    dict
+        The record, normalized through JSON (tuples as lists, numpy values as numbers).
+    """
+    record = {"format_version": int(format_version), "plant": {"type": plant_type, **dict(plant_config)},
+              "plant_files": dict(plant_files), "problem": dict(problem),
+              "settings": {k: v for k, v in settings.items() if k not in RESULT_NEUTRAL_SETTINGS}}
+    return json.loads(json.dumps(record, default=_plain))
+
+
+def source_digest(record: Mapping[str, Any]) -> str:
+    """SHA-256 (hex) of the record's canonical JSON (sorted keys, compact separators)."""
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"), default=_plain)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def record_differences(recorded: Any, expected: Any, path: tuple[str, ...] = ()) -> list[str]:
+    """Every value where two source records differ, recorded first: "problem.target: 150.0 !=
+    151.0", "settings.n_r: 20 != 40", "plant file model.fmu: sha256 1f2e3d4c5b6a != ...".
+    Values compare exactly (type included: 1 and 1.0 have different digests)."""
+    if isinstance(recorded, Mapping) and isinstance(expected, Mapping):
+        out: list[str] = []
+        for key in sorted(set(recorded) | set(expected), key=str):
+            out += record_differences(recorded.get(key, _MISSING), expected.get(key, _MISSING), path + (str(key),))
+        return out
+    if type(recorded) is type(expected) and recorded == expected:
+        return []
+    if path[:1] == ("plant_files",) and len(path) == 2:
+        return [f"plant file {path[1]}: sha256 {_short(recorded)} != {_short(expected)}"]
+    label = {("format_version",): "design-file format version"}.get(path, ".".join(path))
+    return [f"{label}: {_show(recorded)} != {_show(expected)}"]
+
+
+def _show(v: Any) -> str:
+    return "missing" if v is _MISSING else repr(v)
+
+
+def _short(v: Any) -> str:
+    return "missing" if v is _MISSING else (v[:12] if isinstance(v, str) and len(v) == 64 else str(v))
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, tuple):
+        return list(v)
+    raise TypeError(f"not JSON serializable: {type(v).__name__}")
