@@ -216,7 +216,7 @@ def test_design_enkf_seed_and_its_old_spelling(tiny, tmp_path, capsys):
     for flags, seed, warned in ((["--enkf-seed", "5"], 5, False), (["--seed", "6"], 6, True)):
         out = tmp_path / f"s{seed}.npz"
         assert design_cli_main(["--scenario", str(scen), "--out", str(out)] + flags + FAST) == 0
-        assert load_design(out).meta["settings"]["seed"] == seed
+        assert load_design(out).meta["settings"]["enkf_seed"] == seed
         err = capsys.readouterr().err
         assert ("sep design: warning: --seed is deprecated; use --enkf-seed" in err) is warned, err
 
@@ -271,7 +271,7 @@ def test_demo_takes_the_design_options_and_the_new_names(tiny, capsys):
     assert (args.controller, args.real_time_factor, args.seed, args.run, args.dask, args.threads) == \
         ("rom_mpc", 5.0, 1, 0, "local:2", 2)
     st = settings_from_args(args, load_scenario(scen))
-    assert (st.n_r, st.seed, st.belief, st.memory_budget) == (8, 3, False, 1 << 30)
+    assert (st.n_r, st.enkf_seed, st.belief, st.memory_budget) == (8, 3, False, 1 << 30)
     assert build_parser().parse_args(["demo"]).controller == "rom_lqg"
     code, err = exit_code_and_stderr(capsys, sep, ["demo", "--controller", "oracle_lqg"])
     assert code == 2 and "invalid choice" in err
