@@ -191,14 +191,14 @@ def test_old_design_files_identified_after_every_step():
 
 def test_the_enkf_seed_was_called_seed():
     """DesignSettings.enkf_seed: a scenario's `design: {seed: ...}` is read as enkf_seed with a
-    DeprecationWarning naming the new key, a design file's recorded `seed` silently; the
+    FutureWarning naming the new key, a design file's recorded `seed` silently; the
     metadata then records enkf_seed, and the provenance the seed's value."""
     import dataclasses
 
     from sep_control.design.settings import DesignSettings
 
     old = dataclasses.replace(SC, design={"seed": 7, "n_r": 16})
-    with pytest.warns(DeprecationWarning, match="enkf_seed"):
+    with pytest.warns(FutureWarning, match="enkf_seed"):
         st = DesignSettings.for_scenario(old)
     assert st.enkf_seed == 7 and st.n_r == 16 and "seed" not in DesignSettings.__dataclass_fields__
     new = dataclasses.replace(SC, design={"enkf_seed": 7})

@@ -161,14 +161,14 @@ class DesignSettings:
     @classmethod
     def for_scenario(cls, scenario: Scenario, **overrides: Any) -> "DesignSettings":
         """The defaults, then the scenario's `design:` section, then `overrides` (ValueError naming
-        an unknown key; a renamed key, `seed` for `enkf_seed`, is read with a DeprecationWarning)."""
+        an unknown key; a renamed key, `seed` for `enkf_seed`, is read with a FutureWarning: a deprecation meant for users, shown by default)."""
         section = dict(scenario.design)
         for old, new in RENAMED.items():
             if old in section:
                 if new in section:
                     raise ValueError(f"scenario design section: give `{new}` only (`{old}` is its old name)")
                 warnings.warn(f"scenario design section: `{old}` is deprecated, write `{new}`",
-                              DeprecationWarning, stacklevel=2)
+                              FutureWarning, stacklevel=2)
                 section[new] = section.pop(old)
         known = cls.__dataclass_fields__
         unknown = sorted(k for k in section if k not in known)
