@@ -15,6 +15,9 @@ import numpy as np
 from sep_plant.problem import Problem
 from sep_plant.protocol import PlantInfo
 
+#: the default noise seed of Monte Carlo runs (`evaluate --seed`) and of the plant node (parameter seed)
+DEFAULT_SEED = 1
+
 
 def run_generator(seed: int, run: int) -> np.random.Generator:
     """The generator of run `run` of seed `seed`."""
