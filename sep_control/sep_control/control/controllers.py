@@ -153,6 +153,10 @@ class MpcLaw:
     def horizon(self) -> int:
         return self.mpc.H
 
+    def reset(self) -> None:
+        """A new episode: no warm starts (the counters in `stats` go on)."""
+        self._warm = None
+
     def command(self, k: int, estimate: np.ndarray) -> np.ndarray:
         single = np.ndim(estimate) == 1
         a = np.atleast_2d(estimate)[:, :self.n]

@@ -54,6 +54,7 @@ class MonteCarloResult:
 __all__ = ["CONTROLLER_NAMES", "MonteCarloResult", "portable", "simulate"]
 
 
+# ~65 lines: 38 of them the public function's numpydoc docstring
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
              oracle: LQG | None = None, keep_estimates: int | None = None,
              keep_trajectories: int | None = None, memory_budget: int | None = None,
@@ -61,11 +62,10 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
              mpc: MpcOptions | dict | None = None) -> MonteCarloResult:
     """Closed-loop Monte Carlo of `controller` on `plant`, every run stepped together.
 
-    Metrics are accumulated step by step over all runs; the full field trajectories (and
-    estimates) are kept for the first `keep_trajectories` (`keep_estimates`) runs. The runs go
-    in chunks that fit `memory_budget`, one task each on `engine`. Each run's noise is its own
-    (seed, run) stream and every per-run quantity is computed row by row, so the chunking
-    changes no result; the chunks' partial sums (the mean field) are added in chunk order.
+    Metrics are accumulated step by step over all runs. The runs go in chunks that fit
+    `memory_budget`, one task each on `engine`; each run's noise is its own (seed, run) stream
+    and every per-run quantity is computed row by row, so the chunking changes no result (the
+    chunks' partial sums, the mean field, are added in chunk order).
 
     Parameters
     ----------
@@ -81,25 +81,22 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     runs : int or iterable of int
         A count (runs 0..M-1) or the run indices.
     oracle : LQG, optional
-        The oracle's LQG for 'oracle_lqg' (computed from the plant's Jacobians when None).
+        The oracle's LQG for 'oracle_lqg' (from the plant's Jacobians when None).
     keep_estimates, keep_trajectories : int, optional
-        How many runs' reconstructed (true) field trajectories to keep; all by default. Keep few
-        on large grids: M N n_field numbers add up.
+        How many runs' reconstructed (true) field trajectories to keep; all by default (keep
+        few on large grids: M N n_field numbers add up).
     memory_budget : int, optional
         Bytes per chunk (`sep_control.compute.budget`; default a quarter of the free memory).
     engine : optional
-        `sep_control.compute.engine` engine; in this process by default (on a cluster also at
-        least two chunks per worker).
-    show_progress : bool
-        A progress bar over the chunks.
+        A `sep_control.compute.engine` engine; this process by default (on a cluster: at least
+        two chunks per worker). `show_progress`: a progress bar over the chunks.
     mpc : MpcOptions or dict, optional
-        Options of 'rom_mpc' (horizon, time_budget_s); its counts (QPs solved, fallbacks, solve
-        times) join the summary as the mpc_* keys of `MPCStats.as_dict`.
+        Options of 'rom_mpc'; its counts join the summary (`MPCStats.as_dict`, the mpc_* keys).
 
     Returns
     -------
     MonteCarloResult
-        Inputs and measurements of every run, the kept trajectories, and the metrics
+        Inputs and measurements of every run, the kept trajectories, the metrics
         (docs/method.md) in `summary`.
     """
     from sep_control.compute.engine import InProcess

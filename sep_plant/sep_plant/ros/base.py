@@ -1,14 +1,8 @@
 """What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front,
-parameters with descriptors, process exit codes, executors, BLAS thread limits, timing stats,
-the middleware watchdogs, `run_node`, and the node and process classes:
-
-* `NodeBase`: an rclpy node with /diagnostics (a steady-clock timer, and at once on a rejected
-  message, at most every REJECTION_DIAGNOSTICS_PERIOD_S), rejection reporting (logged the first
-  time per reason, then at most once a second), and the end-of-episode summary (log line,
-  summary_file JSON, publishers flushed);
-* `NodeProcess`: one or more such nodes on one executor in one process, spun until their
-  episodes are done (what `run_node` runs).
-
+parameters with descriptors, exit codes, executors, BLAS thread limits, timing stats, the
+middleware watchdogs, `run_node`; `NodeBase` (an rclpy node with /diagnostics, rejection
+reporting and the end-of-episode summary) and `NodeProcess` (nodes on one executor in one
+process, spun until their episodes are done).
 ROS-side module (imports rclpy); the pure algorithm modules never import it.
 """
 from __future__ import annotations
@@ -47,6 +41,9 @@ class StartError(Exception):
     exit_code = EXIT_CONFIG
 
 
+EXECUTORS = ('events', 'single')
+
+
 def parse_front(prog: str, description: str, argv: Sequence[str] | None,
                 add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
                 parameters: str = '') -> tuple[argparse.Namespace, list[str]]:
@@ -57,26 +54,15 @@ def parse_front(prog: str, description: str, argv: Sequence[str] | None,
 
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
-        prog=prog, description=description,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=(parameters + '\n\n' if parameters else '') + ROS_ARGS_HELP)
-    add_executor_option(parser)
-    if add_arguments:
-        add_arguments(parser)
-    own = remove_ros_args(args=argv)[1:]
-    opts = parser.parse_args(own)
-    return opts, argv
-
-
-EXECUTORS = ('events', 'single')
-
-
-def add_executor_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--executor', choices=EXECUTORS,
-                        default=os.environ.get('SEP_EXECUTOR', 'events'),
+    parser.add_argument('--executor', choices=EXECUTORS, default=os.environ.get('SEP_EXECUTOR', 'events'),
                         help="rclpy executor: 'events' (rclpy.experimental.EventsExecutor, C++ "
                              "event queue, the low-latency default) or 'single' "
                              "(SingleThreadedExecutor); env SEP_EXECUTOR sets the default")
+    if add_arguments:
+        add_arguments(parser)
+    return parser.parse_args(remove_ros_args(args=argv)[1:]), argv
 
 
 def make_executor(kind: str = 'events'):
@@ -326,7 +312,7 @@ def node_main(prog: str, description: str, argv: Sequence[str] | None, parameter
     BLAS limited to one thread, and `run_node` of the process `build(options)` makes
     (``use_sim_time`` defaulting to true when `sim_time`)."""
     opts, args = parse_front(prog, description, argv, add_arguments, parameters)
-    limit_blas_threads(1)
+    limit_blas_threads(1)   # the per-step linear algebra is tiny: extra threads only add latency
     return run_node(lambda a: build(opts), sim_time_default(args) if sim_time else args, prog)
 
 
@@ -461,7 +447,7 @@ class NodeBase:
         return summ
 
     def finish_label(self) -> str:
-        return self.role
+        return self.role   # the word that starts the end-of-episode log line
 
     def on_finish(self, summ: dict) -> None:
         """After the summary is written, before the flush (default: nothing)."""
