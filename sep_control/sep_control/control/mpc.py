@@ -22,7 +22,8 @@ LQR command, counted (`MPCStats`); the returned input is always clipped to the l
 solver meets them only to its tolerance). Beyond the horizon's end (k + H > N) the padded
 moves are fixed at zero.
 
-Pure numpy/scipy + osqp: no ROS import.
+The Monte Carlo and the nodes run it as the control law `sep_control.control.controllers.MpcLaw`
+(which keeps each run's warm start). Pure numpy/scipy + osqp: no ROS import.
 """
 from __future__ import annotations
 
