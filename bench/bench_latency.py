@@ -64,7 +64,7 @@ def pong_main(executor: str) -> int:
 
     rclpy.init()
     node = Node('pong')
-    names = [f'heater_{j}' for j in range(5)]
+    names = [f'input_{j}' for j in range(5)]
     pub = node.create_publisher(c.TOPIC_TYPES[c.COMMAND], 'bench_pong', c.LOOP_QOS)
 
     def on_ping(msg):
@@ -161,13 +161,13 @@ def loop_round_trip(design_file: Path, scenario_file: Path | None, env: dict, mo
 def compute_per_step(design, repeats: int = 20) -> dict:
     """Per-step compute of the estimator core + LQR law ('core'), and with the messages the lqg
     builds (command, estimate, field cloud) ('node')."""
-    from sep_control.design.gains import command
+    from sep_control.control.controllers import make_controller
     from sep_estimator.estimator_core import EstimatorCore
     from sep_plant.ros import contract as c
 
-    info, nom, K = design.info, design.nominal, design.lqg.K
+    info, nom = design.info, design.nominal
     N = design.n_steps
-    lo, hi = design.problem.limits(info.n_u)
+    law = make_controller('rom_lqg', design.lqg, design.problem, nom.u)
     rng = np.random.default_rng(0)
     y = nom.y + rng.normal(0, 1, (N + 1, info.n_y))
     labels = c.state_labels(design.n_r)
@@ -181,7 +181,7 @@ def compute_per_step(design, repeats: int = 20) -> dict:
                 t0 = time.perf_counter()
                 a, _ = est.measurement(k, y[k])
                 if k < N:
-                    u = command(nom.u[k], K[k], a, lo, hi)
+                    u = law.command(k, a)
                     if build_messages:
                         c.joint_state(k, info.dt, names, effort=u)
                 if build_messages:
@@ -196,38 +196,37 @@ def compute_per_step(design, repeats: int = 20) -> dict:
 
 def compute_mpc(design, plant, runs: int = 10, horizon: int = 20) -> dict:
     """Per-step time of the feedback law alone on closed-loop estimates (plant + KF, one run at a
-    time, the online path): the clipped LQR law vs the ROM-MPC's `command` (its steps without an
+    time, the online path): the clipped LQR law vs the ROM-MPC law (its steps without an
     active limit and those that solve a QP separately)."""
-    from sep_control.design.gains import command
-    from sep_control.control.mpc import RomMPC
+    from sep_control.control.controllers import MpcOptions, make_controller
     from sep_estimator.estimator_core import EstimatorCore
     from sep_plant.noise import noise_sequences
 
-    info, nom, K, problem = design.info, design.nominal, design.lqg.K, design.problem
+    info, nom, problem = design.info, design.nominal, design.problem
     N = design.n_steps
     lo, hi = problem.limits(info.n_u)
-    mpc = RomMPC(design.lqg, problem, nom.u, horizon=horizon)
+    lqr = make_controller('rom_lqg', design.lqg, problem, nom.u)
+    mpc = make_controller('rom_mpc', design.lqg, problem, nom.u, MpcOptions(horizon=horizon))
     t_lqr, t_free, t_qp = [], [], []
     for run in range(runs):
         w, v = noise_sequences(problem, info, 1, [run])
         est = EstimatorCore(design.lqg, nom.u, nom.y, nom.field)
+        mpc.reset()                          # a new episode: no warm start from the last run
         x = plant.initial_state(1)
-        warm = None
         for k in range(N):
             a, _ = est.measurement(k, plant.observe(x)[0] + v[0, k])
             t0 = time.perf_counter()
-            command(nom.u[k], K[k], a, lo, hi)
+            lqr.command(k, a)
             t_lqr.append(time.perf_counter() - t0)
             qp = mpc.stats.qp + mpc.stats.fallbacks
             t0 = time.perf_counter()
-            u, z = mpc.command(k, a, warm)
+            u = mpc.command(k, a)
             (t_qp if mpc.stats.qp + mpc.stats.fallbacks > qp else t_free).append(time.perf_counter() - t0)
-            warm = mpc.shift(z)
             est.applied(k, u)
             x = plant.step(x, u[None], w[:, k])
     return {'lqr': pct(t_lqr), 'mpc_free': pct(t_free), 'mpc_qp': pct(t_qp), 'mpc_all': pct(t_free + t_qp),
             'qp_share': len(t_qp) / max(1, len(t_free) + len(t_qp)), 'fallbacks': mpc.stats.fallbacks,
-            'horizon': mpc.H, 'n_r': design.n_r, 'limits': [float(lo.min()), float(hi.max())]}
+            'horizon': mpc.horizon, 'n_r': design.n_r, 'limits': [float(lo.min()), float(hi.max())]}
 
 
 def compute_threads(design) -> dict:

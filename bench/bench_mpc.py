@@ -9,7 +9,7 @@ common random numbers:
   fallbacks and QP solve time p50/p99;
 * the limit margin of the nominal (`design --limit-margin c`, c in --margins): nominal cost and
   ROM-LQG / ROM-MPC in band (--margin-runs each);
-* a figure (--figures DIR, default out/bench_mpc): each heater input of run 0 against its limits,
+* a figure (--figures DIR, default out/bench_mpc): each input of run 0 against its limits,
   for LQG+clip and MPC.
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_mpc.py [--runs 1000] [--horizon 20] [--quick]
@@ -22,6 +22,7 @@ from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
+from sep_control.control.controllers import MpcOptions
 from sep_control.evaluation import figures
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.metrics import format_table
@@ -43,7 +44,7 @@ def evaluate(scen, d, runs, horizon, label, rows, keep=None):
     lqg_cost = None
     for ctl in ("open_loop", "rom_lqg", "rom_mpc"):
         t0 = time.perf_counter()
-        r = simulate(scen.plant, d, ctl, 1, runs, keep_estimates=0, keep_trajectories=1, mpc={"horizon": horizon})
+        r = simulate(scen.plant, d, ctl, 1, runs, keep_estimates=0, keep_trajectories=1, mpc=MpcOptions(horizon))
         m = dict(r.summary, seconds=time.perf_counter() - t0)
         if ctl == "rom_lqg":
             lqg_cost = m["cost_mean"]
@@ -92,7 +93,7 @@ def main() -> None:
             row = {"nominal_cost": d_m.meta["optimizer"]["nominal_cost"], "design_s": t_m}
             for ctl in ("rom_lqg", "rom_mpc"):
                 m = simulate(lim.plant, d_m, ctl, 1, args.margin_runs, keep_estimates=0, keep_trajectories=0,
-                             mpc={"horizon": args.horizon}).summary
+                             mpc=MpcOptions(args.horizon)).summary
                 row[f"{ctl}_in_band"], row[f"{ctl}_cost"] = m["in_band"], m["cost_mean"]
             margin_rows[f"margin {c:g} sigma_u"] = row
     print(f"\nMonte Carlo, {args.runs} runs per row (seed 1, common random numbers), MPC horizon {args.horizon}:")

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ros_helpers import diagnostic_values, level_of, parse_field_cloud
+
 EXECUTABLES = {'plant': 'sep_plant', 'estimator': 'sep_estimator', 'lqr': 'sep_control',
                'lqg': 'sep_control', 'demo': 'sep_control', 'record': 'sep_control'}
 
@@ -223,8 +225,8 @@ class Probe:
         for arr in self.received(self.c.DIAGNOSTICS):
             for st in arr.status:
                 if name_part in st.name:
-                    d = self.c.diagnostic_values(st)
-                    d['_level'] = self.c.level_of(st)
+                    d = diagnostic_values(st)
+                    d['_level'] = level_of(st)
                     d['_message'] = st.message
                     out.append(d)
         return out
@@ -243,7 +245,6 @@ class Probe:
 def field_matrix(probe: Probe, topic: str, dt: float, n_steps: int, key: str = 'temperature', column: int | None = None):
     """(N+1, n_field) array of a field topic's channel `key` (or channel number `column`) by step
     (NaN rows for missing steps)."""
-    from sep_plant.ros.contract import parse_field_cloud
     msgs = probe.by_step(topic, dt)
     rows = []
     for k in range(n_steps + 1):

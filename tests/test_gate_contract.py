@@ -1,5 +1,6 @@
 """Unit tests of the pure message gate (sep_plant.gate) and the topic contract's message
-builders/parsers (sep_plant.ros.contract: stamps, fixed PointCloud2 layout, diagnostics)."""
+builders (sep_plant.ros.contract: stamps, fixed PointCloud2 layout, diagnostics), read back with
+the tests' parsers (tests/ros_helpers.py)."""
 import math
 
 import numpy as np
@@ -88,6 +89,8 @@ def test_gate_module_is_pure():
 
 # ------------------------------------------------------------------------ contract
 c = pytest.importorskip('sep_plant.ros.contract')
+from ros_helpers import (CloudLayoutError, all_topics, diagnostic_values, level_of,  # noqa: E402
+                         parse_field_cloud, topic)
 
 
 def test_stamps_are_integer_nanoseconds_without_drift():
@@ -131,18 +134,18 @@ def test_point_cloud_layout_fixed_and_decodable_without_ros():
     np.testing.assert_array_equal(rec['temperature'], T)
     np.testing.assert_array_equal(rec['temperature_std'], std)
     assert not rec['y'].any() and not rec['z'].any()
-    parsed = c.parse_field_cloud(m2)
+    parsed = parse_field_cloud(m2)
     np.testing.assert_array_equal(parsed['temperature'], T)
-    truth = c.parse_field_cloud(cloud.build(0, 0.25, T))
+    truth = parse_field_cloud(cloud.build(0, 0.25, T))
     assert not truth['temperature_std'].any()
     # another plant's field: its own channel name, 3-D coordinates
     xyz3 = np.random.default_rng(0).random((5, 3))
-    phi = c.parse_field_cloud(c.CloudBuilder(xyz3, 'phi').build(1, 0.5, np.arange(5.0)))
+    phi = parse_field_cloud(c.CloudBuilder(xyz3, 'phi').build(1, 0.5, np.arange(5.0)))
     assert list(phi) == ['x', 'y', 'z', 'phi', 'phi_std']
     np.testing.assert_array_equal(np.stack([phi['x'], phi['y'], phi['z']], axis=1), xyz3)
     m2.fields[3].datatype = PointField.FLOAT32
-    with pytest.raises(c.CloudLayoutError):
-        c.parse_field_cloud(m2)
+    with pytest.raises(CloudLayoutError):
+        parse_field_cloud(m2)
 
 
 def test_diagnostics_builder():
@@ -150,8 +153,8 @@ def test_diagnostics_builder():
                                                     values={'deadline_misses': 2, 'ok': True,
                                                             'by': {'stale': 1}, 'x': 0.5})])
     st = arr.status[0]
-    assert st.name == '/sep/plant' and st.message == '2 misses' and c.level_of(st) == c.WARN
-    assert c.diagnostic_values(st) == {'deadline_misses': '2', 'ok': 'true', 'by': '{"stale": 1}', 'x': '0.5'}
+    assert st.name == '/sep/plant' and st.message == '2 misses' and level_of(st) == c.WARN
+    assert diagnostic_values(st) == {'deadline_misses': '2', 'ok': 'true', 'by': '{"stale": 1}', 'x': '0.5'}
 
 
 def test_field_image_32fc1():
@@ -171,12 +174,12 @@ def test_scenario_roundtrip_and_topic_names():
     from sep_plant.scenario import parse_scenario_payload, scenario_payload
     s = flat(n_x=20, u_max=5.0)
     assert parse_scenario_payload(c.scenario_msg(scenario_payload(s, s.info)).data) == (s, s.info)
-    topics = c.all_topics()
+    topics = all_topics()
     assert topics['/sep/measurements'] == 'sensor_msgs/msg/JointState'
     assert topics['/sep/field'] == 'sensor_msgs/msg/PointCloud2'
     assert topics['/sep/field_image'] == 'sensor_msgs/msg/Image'
     assert topics['/clock'] == 'rosgraph_msgs/msg/Clock' and '/diagnostics' in topics
-    assert c.topic('command', 'other') == '/other/command'
+    assert topic('command', 'other') == '/other/command'
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
     assert c.SCENARIO_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL
     assert all(c.TOPIC_QOS[t].reliability == ReliabilityPolicy.RELIABLE

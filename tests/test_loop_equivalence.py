@@ -9,6 +9,7 @@ import pytest
 from node_harness import field_matrix, joint_matrix, launcher, probe, reference_case, small_case  # noqa: F401
 from sep_control.evaluation.montecarlo import simulate
 from sep_plant.ros import contract as c
+from ros_helpers import parse_field_cloud
 
 pytestmark = pytest.mark.ros
 
@@ -63,7 +64,7 @@ def check_equivalence(pr, case, seed, run):
     assert np.max(np.abs(F_std - ref.F_std)) <= 1e-9
     # the clouds carry the plant's node coordinates
     cloud = pr.by_step(c.FIELD, dt)[0]
-    xyz = np.stack([c.parse_field_cloud(cloud)[k] for k in ('x', 'y', 'z')], axis=1)
+    xyz = np.stack([parse_field_cloud(cloud)[k] for k in ('x', 'y', 'z')], axis=1)
     np.testing.assert_array_equal(xyz, d.field_xyz)
     return err
 

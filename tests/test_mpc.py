@@ -6,7 +6,7 @@
 * a QP that fails or runs past its budget falls back to the clipped LQR command, counted;
 * the limit-aware nominal stays inside the (tightened) bounds, and the closed-loop input spread
   it uses equals the Monte Carlo's;
-* over topics, lockstep plant + lqg with controller:=mpc equals the offline `simulate`
+* over topics, lockstep plant + lqg with controller:=rom_mpc equals the offline `simulate`
   (rom_mpc) within the solver's tolerance (OSQP eps 1e-8 with polishing: 1e-6 asserted).
 """
 import json
@@ -103,7 +103,7 @@ def test_failed_or_slow_qp_falls_back_to_the_clipped_lqr(limited):
     forced = RomMPC(d.lqg, sc.problem, d.nominal.u, horizon=6)
     u, z = forced.command(k, a, fail=True)
     np.testing.assert_array_equal(u, clipped)
-    assert forced.stats.as_dict()["fallback_reasons"] == {"forced": 1}
+    assert forced.stats.as_dict()["mpc_fallback_reasons"] == {"forced": 1}
 
 
 def test_mpc_without_limits_costs_what_lqg_costs(free):
@@ -147,7 +147,7 @@ def test_lockstep_mpc_over_topics_equals_offline(launcher, probe, tmp_path):
     case = make_case(tmp_path, "limited", settings=FAST, **SMALL, **LIMITS)
     pr = probe().subscribe(c.APPLIED_INPUT, c.DIAGNOSTICS)
     lqg = launcher.start('lqg', params={'design_file': case.design_file, 'wait_for_scenario_s': 20.0,
-                                        'summary_file': tmp_path / 'lqg.json', 'controller': 'mpc',
+                                        'summary_file': tmp_path / 'lqg.json', 'controller': 'rom_mpc',
                                         'mpc_horizon': 6})
     plant = launcher.start('plant', params={'scenario_file': case.scenario_file, 'seed': 7, 'run': 3,
                                             'wait_for_subscribers': 1, 'summary_file': tmp_path / 'plant.json',
@@ -161,5 +161,5 @@ def test_lockstep_mpc_over_topics_equals_offline(launcher, probe, tmp_path):
     lo, hi = case.scenario.problem.limits(case.design.info.n_u)
     assert z['U'].min() >= lo.min() and z['U'].max() <= hi.max()
     summ = json.loads((tmp_path / 'lqg.json').read_text())['lqr']
-    assert summ['controller'] == 'mpc' and summ['mpc_qp_steps'] > 0 and summ['mpc_fallbacks'] == 0
-    assert 'mpc' in lqg.output()
+    assert summ['controller'] == 'rom_mpc' and summ['mpc_qp_steps'] > 0 and summ['mpc_fallbacks'] == 0
+    assert summ['mpc_horizon'] == 6 and 'rom_mpc: horizon 6' in lqg.output()

@@ -8,6 +8,7 @@ import pytest
 
 from node_harness import _cached_case, launcher, probe  # noqa: F401
 from sep_plant.ros import contract as c
+from ros_helpers import parse_field_cloud
 from test_loop_equivalence import check_equivalence, run_episode
 
 pytestmark = pytest.mark.ros
@@ -74,7 +75,7 @@ def test_example_plant_design_evaluate_and_topics(launcher, probe, burgers_case,
     pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=2, run=4)
     assert summary["status"] == "completed" and summary["plant"] == "burgers"
     check_equivalence(pr, case, 2, 4)
-    cloud = c.parse_field_cloud(pr.by_step(c.FIELD, case.dt)[5])
+    cloud = parse_field_cloud(pr.by_step(c.FIELD, case.dt)[5])
     assert "velocity" in cloud and "velocity_std" in cloud
 
 
@@ -89,8 +90,8 @@ def test_grid_plant_lockstep_over_topics_with_images(launcher, probe, plate_case
     assert summary["status"] == "completed"
     check_equivalence(pr, case, 1, 0)
     # the live heat maps: 32FC1 images of the true and the estimated field (rows = x)
-    fields = {k: c.parse_field_cloud(m)["temperature"] for k, m in pr.by_step(c.FIELD, case.dt).items()}
-    estimates = {k: c.parse_field_cloud(m)["temperature"] for k, m in pr.by_step(c.FIELD_ESTIMATE, case.dt).items()}
+    fields = {k: parse_field_cloud(m)["temperature"] for k, m in pr.by_step(c.FIELD, case.dt).items()}
+    estimates = {k: parse_field_cloud(m)["temperature"] for k, m in pr.by_step(c.FIELD_ESTIMATE, case.dt).items()}
     for topic, ref in ((c.FIELD_IMAGE, fields), (c.FIELD_ESTIMATE_IMAGE, estimates)):
         imgs = images.wait_for(lambda: len(images.by_step(topic, case.dt)) >= case.n_steps, 10, f"{topic} images")
         imgs = images.by_step(topic, case.dt)

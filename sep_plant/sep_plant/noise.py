@@ -15,7 +15,7 @@ import numpy as np
 from sep_plant.problem import Problem
 from sep_plant.protocol import PlantInfo
 
-#: the noise seed of a Monte Carlo and of a plant episode when none is given (`--seed`, `seed`)
+#: the default noise seed of Monte Carlo runs (`evaluate --seed`) and of the plant node (parameter seed)
 DEFAULT_SEED = 1
 
 

@@ -17,10 +17,9 @@ from sep_estimator.design_file import Design, DesignFileError, load_design
 from sep_plant.protocol import PlantError
 from sep_plant.scenario import Scenario, ScenarioError, load_scenario
 
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+from sep_control.control.controllers import CONTROLLER_ALIASES  # old controller names, accepted with a warning
 
-#: old controller names (of `sep_control.evaluation.metrics.CONTROLLERS`), accepted with a warning
-CONTROLLER_ALIASES = {"lqr": "rom_lqg", "mpc": "rom_mpc"}
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
 _prog = ["sep"]
 

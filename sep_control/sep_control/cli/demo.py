@@ -28,6 +28,7 @@ from sep_control.cli.design import add_design_options, make_design, recorded_set
 from sep_control.cli.episode import episode_metrics, print_metrics, run_analysis
 from sep_control.cli.processes import Children, executable
 from sep_control.compute.progress import bars_wanted
+from sep_control.control.controllers import NODE_CONTROLLERS
 
 HELP = "design (or reuse), run plant + controller over ROS 2 topics, record and report one episode"
 DESCRIPTION = __doc__.split("\n\n")[0] + """
@@ -39,9 +40,6 @@ printed and the design runs again. The design options below are `sep design`'s.
 Example:  sep demo --out out/demo --scenario sep_plant/scenarios/plate.yaml
 """
 
-#: the nodes' `controller` parameter value of each controller. The nodes still name them lqr and
-#: mpc; where they take rom_lqg and rom_mpc (as every other tool does) this becomes the identity
-NODE_CONTROLLER = {"rom_lqg": "lqr", "rom_mpc": "mpc"}
 
 
 def log(msg: str) -> None:
@@ -56,7 +54,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     basic.add_argument('--design', metavar='FILE', help='design file to use/write (default DIR/design.npz)')
     basic.add_argument('--redesign', action='store_true',
                        help='run the design even if the design file was made from the same inputs')
-    basic.add_argument('--controller', choices=tuple(NODE_CONTROLLER), type=controller_name, default='rom_lqg',
+    basic.add_argument('--controller', choices=NODE_CONTROLLERS, type=controller_name, default='rom_lqg',
                        help='feedback law: rom_lqg (TV-LQR on the ROM estimate, commands clipped to the limits) or '
                             'rom_mpc (box-constrained MPC on the ROM)')
     basic.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep',
@@ -184,7 +182,7 @@ class DemoRun:
                 shutil.rmtree(self.bag)
             kids.start('record', [self.exes['record'], '--out', str(self.bag)])
         ctl = ['--ros-args', '-p', f'design_file:={design_file}',
-               '-p', f'controller:={NODE_CONTROLLER[args.controller]}']
+               '-p', f'controller:={args.controller}']
         if args.three:
             kids.start('estimator', [self.exes['estimator'], '--ros-args', '-p', f'design_file:={design_file}',
                                      '-p', f'summary_file:={files["estimator"]}'])

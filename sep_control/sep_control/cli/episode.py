@@ -77,4 +77,4 @@ def print_metrics(m: dict, design, name: str = 'rom_lqg') -> None:
           f"({horizon / m['wall_s']:.1f}x real time; {m['total_wall_s']:.1f} s with start-up); "
           f"LQR nominal fallbacks {m['lqr_fallbacks']}"
           + (f"; MPC: {m['mpc_qp_steps']} QPs (p99 {(m['mpc_qp_p99_s'] or 0) * 1e3:.2f} ms), "
-             f"{m['mpc_fallbacks']} fallbacks to the clipped LQR" if m.get('controller') in ('mpc', 'rom_mpc') else ''))
+             f"{m['mpc_fallbacks']} fallbacks to the clipped LQR" if m.get('controller') == 'rom_mpc' else ''))

@@ -17,7 +17,8 @@ from sep_control.cli.common import (add_compute_options, add_deprecated, blas_th
                                     memory_budget_or_exit, plant_or_exit)
 from sep_control.compute.progress import RunSteps, bars_wanted
 from sep_control.evaluation import figures
-from sep_control.evaluation.metrics import CONTROLLERS, format_table, write_json
+from sep_control.control.controllers import CONTROLLER_NAMES as CONTROLLERS
+from sep_control.evaluation.metrics import format_table, write_json
 from sep_control.evaluation.montecarlo import simulate
 from sep_control.evaluation.oracle import oracle_lqg
 from sep_control.evaluation.sweep import rom_sweep, sweep_run_steps

@@ -22,12 +22,14 @@ LQR command, counted (`MPCStats`); the returned input is always clipped to the l
 solver meets them only to its tolerance). Beyond the horizon's end (k + H > N) the padded
 moves are fixed at zero.
 
-Pure numpy/scipy + osqp: no ROS import.
+The Monte Carlo and the nodes run it as the control law `sep_control.control.controllers.MpcLaw`
+(which keeps each run's warm start). Pure numpy/scipy + osqp: no ROS import.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Iterable
 
 import numpy as np
 import scipy.linalg as sla
@@ -51,18 +53,35 @@ class MPCStats:
     """What the controller did: steps solved without the QP (unconstrained optimum feasible), by
     OSQP, and fallbacks to the clipped LQR (solver failure or over budget), with solve times."""
 
+    horizon: int | None = None
     unconstrained: int = 0
     qp: int = 0
     fallbacks: int = 0
     fallback_reasons: dict = field(default_factory=dict)
     qp_seconds: list = field(default_factory=list)
 
+    @classmethod
+    def merged(cls, parts: Iterable["MPCStats"]) -> "MPCStats":
+        """The counts of several controllers (the Monte Carlo's chunks) added up, in order."""
+        out = cls()
+        for p in parts:
+            out.horizon = p.horizon if out.horizon is None else out.horizon
+            out.unconstrained += p.unconstrained
+            out.qp += p.qp
+            out.fallbacks += p.fallbacks
+            for why, n in p.fallback_reasons.items():
+                out.fallback_reasons[why] = out.fallback_reasons.get(why, 0) + n
+            out.qp_seconds.extend(p.qp_seconds)
+        return out
+
     def as_dict(self) -> dict:
+        """The summary and /diagnostics values (the same keys offline and online)."""
         t = np.asarray(self.qp_seconds)
-        return {"unconstrained": self.unconstrained, "qp": self.qp, "fallbacks": self.fallbacks,
-                "fallback_reasons": dict(self.fallback_reasons),
-                "qp_p50_s": float(np.percentile(t, 50)) if t.size else None,
-                "qp_p99_s": float(np.percentile(t, 99)) if t.size else None}
+        return {"mpc_horizon": self.horizon, "mpc_unconstrained_steps": self.unconstrained,
+                "mpc_qp_steps": self.qp, "mpc_fallbacks": self.fallbacks,
+                "mpc_fallback_reasons": dict(self.fallback_reasons),
+                "mpc_qp_p50_s": float(np.percentile(t, 50)) if t.size else None,
+                "mpc_qp_p99_s": float(np.percentile(t, 99)) if t.size else None}
 
 
 class RomMPC:
@@ -103,7 +122,7 @@ class RomMPC:
         self._solved = osqp.SolverStatus.OSQP_SOLVED
         self._time_limit = osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED
         self._P_step = 0
-        self.stats = MPCStats()
+        self.stats = MPCStats(horizon=self.H)
 
     # ------------------------------------------------------------ offline
     def _condense(self, A, B, Q, R, S):

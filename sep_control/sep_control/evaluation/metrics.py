@@ -19,7 +19,6 @@ from sep_plant.problem import Objective
 #: window's first and last step
 JSON_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "n_runs",
              "coverage_2sigma", "deadline_misses", "rejected_messages", "latency_p50_s", "latency_p99_s")
-CONTROLLERS = ("open_loop", "rom_lqg", "oracle_lqg", "rom_mpc")
 
 
 def nominal_cost(F: np.ndarray, U: np.ndarray, obj: Objective) -> np.ndarray:

@@ -8,8 +8,9 @@ the same random numbers (common random numbers).
 
 Per step k = 0..N (as the ROS graph does it):
     y_k = h(x_k) + v_k;  ahat_{k|k} = KF update with y_k - ybar_k;
-    u_k = clip(ubar_k + K_k ahat_{k|k})   (open loop: u_k = clip(ubar_k), the filter still runs;
-                                          rom_mpc: the first move of `sep_control.control.mpc.RomMPC`);
+    u_k = controller.command(k, ahat_{k|k})   (`sep_control.control.controllers`: clip(ubar_k + K_k ahat),
+                                              clip(ubar_k) in open loop, where the filter still runs,
+                                              or the ROM-MPC's first move);
     x_{k+1} = f(x_k, u_k, w_k);           ahat_{k+1|k} = KF predict with u_k - ubar_k.
 Pure numpy: no ROS import.
 """
@@ -25,10 +26,11 @@ from sep_estimator.ltv import LQG
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.device import base_plant
 from sep_plant.noise import noise_sequences
-from sep_plant.protocol import Plant, clip_inputs
+from sep_plant.protocol import Plant
 
 from sep_control.compute.budget import runs_per_batch, worker_budget
-from sep_control.design.gains import command
+from sep_control.control.controllers import CONTROLLER_NAMES, Controller, MpcOptions, make_controller
+from sep_control.control.mpc import MPCStats
 from sep_control.evaluation.metrics import MetricsAccumulator
 from sep_control.evaluation.oracle import oracle_lqg
 
@@ -49,78 +51,111 @@ class MonteCarloResult:
         return dict(self.summary)
 
 
-CONTROLLER_NAMES = ("open_loop", "rom_lqg", "oracle_lqg", "rom_mpc")
+__all__ = ["CONTROLLER_NAMES", "MonteCarloResult", "portable", "simulate"]
 
 
+# ~65 lines: 38 of them the public function's numpydoc docstring
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
              oracle: LQG | None = None, keep_estimates: int | None = None,
              keep_trajectories: int | None = None, memory_budget: int | None = None,
-             engine=None, show_progress: bool = False, mpc: dict | None = None) -> MonteCarloResult:
-    """Run `controller` ('open_loop', 'rom_lqg', 'oracle_lqg' or 'rom_mpc') on `plant` for the given runs.
+             engine=None, show_progress: bool = False,
+             mpc: MpcOptions | dict | None = None) -> MonteCarloResult:
+    """Closed-loop Monte Carlo of `controller` on `plant`, every run stepped together.
 
-    'rom_mpc' is the box-constrained MPC on the design's ROM (`sep_control.control.mpc.RomMPC`, keyword
-    arguments `mpc`: horizon, time_budget_s); its counts (QPs solved, fallbacks, solve times)
-    join the summary as mpc_* keys.
+    Metrics are accumulated step by step over all runs. The runs go in chunks that fit
+    `memory_budget`, one task each on `engine`; each run's noise is its own (seed, run) stream
+    and every per-run quantity is computed row by row, so the chunking changes no result (the
+    chunks' partial sums, the mean field, are added in chunk order).
 
-    Metrics are accumulated step by step over all runs; the full field trajectories (and
-    estimates) are kept for the first `keep_trajectories` (`keep_estimates`) runs, all by
-    default. Keep few on large grids: M N n_field numbers add up. The runs go in chunks that
-    fit `memory_budget` bytes (`sep_control.compute.budget`; default a quarter of the free memory), one
-    task each on `engine` (`sep_control.compute.engine`; in this process by default; on a cluster also
-    at least two chunks per worker). Each run's noise is its own (seed, run) stream and every
-    per-run quantity is computed row by row, so the chunking changes no result; the chunks'
-    partial sums (the mean field) are added in chunk order.
+    Parameters
+    ----------
+    plant : Plant
+        The simulator (any plant of the plant protocol, docs/plants.md).
+    design : Design
+        The design file's contents: nominal, ROM, LQG, problem.
+    controller : str
+        'open_loop', 'rom_lqg', 'oracle_lqg' or 'rom_mpc' (`sep_control.control.controllers`).
+    seed : int
+        Base seed: run i draws `sep_plant.noise.noise_sequences(problem, info, seed, [i])`, the
+        numbers of a plant node started with seed, run = i.
+    runs : int or iterable of int
+        A count (runs 0..M-1) or the run indices.
+    oracle : LQG, optional
+        The oracle's LQG for 'oracle_lqg' (from the plant's Jacobians when None).
+    keep_estimates, keep_trajectories : int, optional
+        How many runs' reconstructed (true) field trajectories to keep; all by default (keep
+        few on large grids: M N n_field numbers add up).
+    memory_budget : int, optional
+        Bytes per chunk (`sep_control.compute.budget`; default a quarter of the free memory).
+    engine : optional
+        A `sep_control.compute.engine` engine; this process by default (on a cluster: at least
+        two chunks per worker). `show_progress`: a progress bar over the chunks.
+    mpc : MpcOptions or dict, optional
+        Options of 'rom_mpc'; its counts join the summary (`MPCStats.as_dict`, the mpc_* keys).
+
+    Returns
+    -------
+    MonteCarloResult
+        Inputs and measurements of every run, the kept trajectories, the metrics
+        (docs/method.md) in `summary`.
     """
     from sep_control.compute.engine import InProcess
 
     if controller not in CONTROLLER_NAMES:
         raise ValueError(f"unknown controller {controller!r}: use {', '.join(CONTROLLER_NAMES)}")
     engine = engine or InProcess()
-    problem, info, nom = design.problem, design.info, design.nominal
     idx = list(range(runs) if isinstance(runs, int) else runs)
-    M, N = len(idx), problem.n_steps
+    M = len(idx)
     lqg = (oracle if oracle is not None else oracle_lqg(design, plant)) if controller == "oracle_lqg" \
         else design.lqg
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
     n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
+    batch = _batch_size(design, engine, M, memory_budget)
+    chunks = [(a, idx[a:a + batch], max(0, min(batch, n_traj - a)), max(0, min(batch, n_keep - a)))
+              for a in range(0, M, batch)]
+    shared = dict(plant=engine.ship(plant), design=design if engine.local else portable(design), lqg=lqg,
+                  controller=controller, seed=seed, mpc=MpcOptions.of(mpc))
+    labels = [f"plant {type(base_plant(plant)).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
+              for c in chunks]
+    parts = engine.map(_mc_chunk, chunks, shared, labels, f"Monte Carlo {controller}",
+                       show_progress=show_progress and len(chunks) > 1)
+    return _assemble(design, controller, lqg, chunks, parts, n_traj, n_keep)
+
+
+def _batch_size(design: Design, engine, M: int, memory_budget: int | None) -> int:
+    """Runs per chunk: what fits the memory budget (a worker's on a cluster, with at least two
+    chunks per worker)."""
+    info = design.info
     in_process = engine.local
     budget = memory_budget if (memory_budget is not None or in_process) else worker_budget(engine)
     batch = runs_per_batch(info.n_x, info.n_field, budget)
     if not in_process:
         batch = min(batch, max(1, -(-M // (2 * engine.workers))))
-    chunks = [(a, idx[a:a + batch], max(0, min(batch, n_traj - a)), max(0, min(batch, n_keep - a)))
-              for a in range(0, M, batch)]
-    law = {"open_loop": "open", "rom_mpc": "mpc"}.get(controller, "lqr")
-    shared = dict(plant=engine.ship(plant), design=design if in_process else portable(design), lqg=lqg,
-                  law=law, seed=seed, mpc=dict(mpc or {}))
-    labels = [f"plant {type(base_plant(plant)).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
-              for c in chunks]
-    parts = engine.map(_mc_chunk, chunks, shared, labels, f"Monte Carlo {controller}",
-                       show_progress=show_progress and len(chunks) > 1)
-    acc = MetricsAccumulator(design.objective, nom.field, M)
+    return batch
+
+
+def _assemble(design: Design, controller: str, lqg: LQG, chunks: list, parts: list, n_traj: int,
+              n_keep: int) -> MonteCarloResult:
+    """The chunks' outputs in one result, in chunk order."""
+    info, N = design.info, design.problem.n_steps
+    M = sum(len(c[1]) for c in chunks)
+    acc = MetricsAccumulator(design.objective, design.nominal.field, M)
     F = np.empty((n_traj, N + 1, info.n_field))
     F_hat = np.empty((n_keep, N + 1, info.n_field))
     U = np.empty((M, N, info.n_u))
     Y = np.empty((M, N + 1, info.n_y))
     covered = 0
-    mpc_stats: list[dict] = []
     for (a, ids, nf, ne), part in zip(chunks, parts):
         rows = slice(a, a + len(ids))
         acc.merge(part["acc"], rows)
         U[rows], Y[rows] = part["U"], part["Y"]
         F[a:a + nf], F_hat[a:a + ne] = part["F"], part["F_hat"]
         covered += part["covered"]
-        if part["mpc"] is not None:
-            mpc_stats.append(part["mpc"])
     coverage = covered / (M * N * info.n_field)
     extra = {"coverage_2sigma": coverage}
-    if mpc_stats:
-        t = np.concatenate([s["qp_seconds"] for s in mpc_stats])
-        extra.update({"mpc_unconstrained_steps": sum(s["unconstrained"] for s in mpc_stats),
-                      "mpc_qp_steps": sum(s["qp"] for s in mpc_stats),
-                      "mpc_fallbacks": sum(s["fallbacks"] for s in mpc_stats),
-                      "mpc_qp_p50_s": float(np.percentile(t, 50)) if t.size else None,
-                      "mpc_qp_p99_s": float(np.percentile(t, 99)) if t.size else None})
+    stats = [part["stats"] for part in parts if part["stats"] is not None]
+    if stats:
+        extra.update(MPCStats.merged(stats).as_dict())
     summary = acc.result(extra)
     return MonteCarloResult(controller, F, U, Y, F_hat, lqg.field_std.copy(), acc.mean_traj, coverage, summary)
 
@@ -133,8 +168,10 @@ def portable(design: Design) -> Design:
     return replace(design, scenario=type(sc)(sc.plant_type, sc.plant_config, sc.problem, sc.design))
 
 
-def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, law: str, seed: int, mpc: dict) -> dict:
-    """Simulate one chunk (first row a, run ids, trajectories and estimates to keep)."""
+def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, controller: str, seed: int,
+              mpc: MpcOptions) -> dict:
+    """Simulate one chunk (first row a, run ids, trajectories and estimates to keep) with a
+    controller of its own (an MPC's warm starts are per run)."""
     from sep_control.compute.engine import local_plant
 
     a, run_ids, keep_f, keep_e = chunk
@@ -144,19 +181,10 @@ def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, law: str, seed: int
     acc = MetricsAccumulator(design.objective, nom.field, M)
     out = _Outputs(F=np.empty((keep_f, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
                    Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((keep_e, N + 1, info.n_field)))
-    ctl = None
-    if law == "mpc":
-        from sep_control.control.mpc import RomMPC
-
-        ctl = RomMPC(lqg, problem, nom.u, **mpc)
-    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out, ctl)
-    stats = None
-    if ctl is not None:
-        st = ctl.stats
-        stats = {"unconstrained": st.unconstrained, "qp": st.qp, "fallbacks": st.fallbacks,
-                 "qp_seconds": np.asarray(st.qp_seconds)}
+    law = make_controller(controller, lqg, problem, nom.u, mpc)
+    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out)
     return {"acc": acc.state(), "U": out.U, "Y": out.Y, "F": out.F, "F_hat": out.F_hat, "covered": covered,
-            "mpc": stats}
+            "stats": law.stats}
 
 
 @dataclass
@@ -167,21 +195,19 @@ class _Outputs:
     F_hat: np.ndarray
 
 
-def _run_batch(plant: Plant, design: Design, lqg: LQG, law: str, seed: int, run_ids: list[int],
-               rows: slice, acc: MetricsAccumulator, out: _Outputs, mpc=None) -> int:
-    """Simulate the runs `run_ids` (rows `rows` of the outputs) under `law` ('open', 'lqr' or
-    'mpc' with the controller `mpc`); returns the covered node-steps."""
+def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: int, run_ids: list[int],
+               rows: slice, acc: MetricsAccumulator, out: _Outputs) -> int:
+    """Simulate the runs `run_ids` (rows `rows` of the outputs) under `law`; returns the covered
+    node-steps."""
     problem, info, nom = design.problem, design.info, design.nominal
     w, v = noise_sequences(problem, info, seed, run_ids)
     M, N = len(run_ids), problem.n_steps
-    lo, hi = problem.limits(info.n_u)
     kf = KalmanFilter(lqg, batch=M)
     G = lqg.model.G
     a0 = rows.start
     keep_f = max(0, min(M, out.F.shape[0] - a0))           # kept trajectories in this batch
     keep_e = max(0, min(M, out.F_hat.shape[0] - a0))
     covered = 0
-    warm = None
     x = plant.initial_state(M)
     for k in range(N + 1):
         f = plant.field(x)
@@ -196,13 +222,7 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: str, seed: int, run_
             covered += int(np.count_nonzero(np.abs(est - f) <= 2.0 * lqg.field_std[k]))
         if k == N:
             break
-        if law == "mpc":
-            u, Z = mpc.command_batch(k, a, warm)
-            warm = mpc.shift(Z)
-        elif law == "lqr":
-            u = command(nom.u[k], lqg.K[k], a, lo, hi)
-        else:
-            u = clip_inputs(np.broadcast_to(nom.u[k], (M, info.n_u)), lo, hi)
+        u = law.command(k, a)
         out.U[rows, k] = u
         acc.add_input(k, u, rows)
         x = plant.step(x, u, w[:, k])

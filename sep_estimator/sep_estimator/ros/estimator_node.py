@@ -35,14 +35,13 @@ import sys
 
 import numpy as np
 
-from sep_plant.ros import contract as c
 from sep_plant import gate
-from sep_plant.ros.base import (SampleWindow, StartError, declare, fmt_s, limit_blas_threads, make_executor,
-                                 parse_front, run_node, sim_time_default, steady)
+from sep_plant.ros import contract as c
+from sep_plant.ros.base import NodeProcess, SampleWindow, StartError, declare, fmt_s, node_main, steady
 
 from sep_estimator.estimator_core import EstimatorCore
 from sep_estimator.ltv import FIELD_PRECISIONS
-from sep_estimator.ros.designed_node import DesignedNode, scenario_summary, spin_episode
+from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
 
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_estimator)/share/sep_estimator/config/estimator.yaml):
   design_file (str, required)      design file written by `design`
@@ -58,6 +57,7 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
   use_sim_time (bool, true)        time from the plant's /clock"""
+
 
 class EstimatorNode(DesignedNode):
     role = 'estimator'
@@ -242,32 +242,10 @@ class EstimatorNode(DesignedNode):
         return [p for p in (self.pub_est, self.pub_field, self.pub_image, self.pub_diag) if p is not None]
 
 
-class _Process:
-    """One estimator in its own process."""
-
-    def __init__(self, executor: str):
-        self.est = EstimatorNode()
-        self.executor = make_executor(executor)
-        self.executor.add_node(self.est.node)
-
-    def run(self) -> int:
-        rc = spin_episode(self.executor, [self.est])
-        self.finish('completed')
-        return rc
-
-    def finish(self, status: str, error: str | None = None) -> None:
-        self.est.finish(status, error)
-
-    def destroy_node(self) -> None:
-        self.executor.shutdown(timeout_sec=0.1)
-        self.est.destroy_node()
-
-
 def main(argv: list[str] | None = None) -> int:
-    opts, args = parse_front('estimator', 'ROM Kalman filter node (sep_estimator): estimates the '
-                          'slab state and field from measurements.', argv, None, PARAMETERS)
-    limit_blas_threads(1)
-    return run_node(lambda a: _Process(opts.executor), sim_time_default(args), 'estimator')
+    return node_main('estimator', 'ROM Kalman filter node (sep_estimator): estimates the ROM state and '
+                     'the field from measurements.', argv, PARAMETERS,
+                     lambda opts: NodeProcess([EstimatorNode()], opts.executor))
 
 
 if __name__ == '__main__':

@@ -1,6 +1,8 @@
-"""Helpers shared by the ROS 2 nodes of sep (plant, estimator, LQR, lqg): command-line front,
-parameter declaration with descriptors, process exit codes, BLAS thread limits, timing stats.
-
+"""What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front,
+parameters with descriptors, exit codes, executors, BLAS thread limits, timing stats, the
+middleware watchdogs, `run_node`; `NodeBase` (an rclpy node with /diagnostics, rejection
+reporting and the end-of-episode summary) and `NodeProcess` (nodes on one executor in one
+process, spun until their episodes are done).
 ROS-side module (imports rclpy); the pure algorithm modules never import it.
 """
 from __future__ import annotations
@@ -12,19 +14,25 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-# Process exit codes of the nodes (documented in the README).
+from sep_plant.episode import EXIT_TIMEOUT, EpisodeError  # noqa: F401  (ROS-free: the plant's episode raises it)
+from sep_plant.ros import contract as c
+
+# Process exit codes of the nodes (docs/reference/cli.md).
 EXIT_OK = 0
 EXIT_FAILURE = 1          # unexpected error (traceback logged)
 EXIT_CONFIG = 2           # bad parameter, missing/corrupt/mismatched design or scenario file
-EXIT_TIMEOUT = 3          # lockstep: no command / no peer in time
+# EXIT_TIMEOUT = 3        lockstep: no command / no peer in time (sep_plant.episode)
 EXIT_INTERRUPTED = 130    # Ctrl-C / SIGTERM before the episode ended
 
 ROS_ARGS_HELP = ("ROS arguments follow --ros-args, e.g. --ros-args --params-file FILE "
                  "-p NAME:=VALUE -r __ns:=/NAMESPACE --log-level debug")
+
+#: at most this often a rejected message triggers an immediate /diagnostics message
+REJECTION_DIAGNOSTICS_PERIOD_S = 0.2
 
 
 class StartError(Exception):
@@ -33,12 +41,7 @@ class StartError(Exception):
     exit_code = EXIT_CONFIG
 
 
-class EpisodeError(Exception):
-    """The episode cannot go on (e.g. lockstep command timeout): logged, non-zero exit."""
-
-    def __init__(self, message: str, exit_code: int = EXIT_TIMEOUT):
-        super().__init__(message)
-        self.exit_code = exit_code
+EXECUTORS = ('events', 'single')
 
 
 def parse_front(prog: str, description: str, argv: Sequence[str] | None,
@@ -51,26 +54,15 @@ def parse_front(prog: str, description: str, argv: Sequence[str] | None,
 
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
-        prog=prog, description=description,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=(parameters + '\n\n' if parameters else '') + ROS_ARGS_HELP)
-    add_executor_option(parser)
-    if add_arguments:
-        add_arguments(parser)
-    own = remove_ros_args(args=argv)[1:]
-    opts = parser.parse_args(own)
-    return opts, argv
-
-
-EXECUTORS = ('events', 'single')
-
-
-def add_executor_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--executor', choices=EXECUTORS,
-                        default=os.environ.get('SEP_EXECUTOR', 'events'),
+    parser.add_argument('--executor', choices=EXECUTORS, default=os.environ.get('SEP_EXECUTOR', 'events'),
                         help="rclpy executor: 'events' (rclpy.experimental.EventsExecutor, C++ "
                              "event queue, the low-latency default) or 'single' "
                              "(SingleThreadedExecutor); env SEP_EXECUTOR sets the default")
+    if add_arguments:
+        add_arguments(parser)
+    return parser.parse_args(remove_ros_args(args=argv)[1:]), argv
 
 
 def make_executor(kind: str = 'events'):
@@ -252,9 +244,9 @@ class _Watchdog:
 
 
 def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str) -> int:
-    """rclpy.init, build the node with `make`, call its ``run()`` (returns an exit code), and
-    always destroy it and shut rclpy down.  Start errors and episode errors are logged as one
-    clear line; Ctrl-C / SIGTERM exit EXIT_INTERRUPTED after the node's ``interrupted()``.
+    """rclpy.init, build the process with `make` (a `NodeProcess`), call its ``run()`` (returns an
+    exit code), and always destroy it and shut rclpy down. Start errors and episode errors are
+    logged as one clear line; Ctrl-C / SIGTERM exit EXIT_INTERRUPTED after ``finish('interrupted')``.
     The start (rclpy.init and `make`) and the final teardown are bounded by watchdogs
     (`startup_watchdog_s()`, TEARDOWN_WATCHDOG_S): a middleware that blocks there ends the process
     with its stacks in the log, EXIT_TIMEOUT at start-up, the episode's own exit code at teardown.
@@ -268,41 +260,60 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
     start = _Watchdog(bound, f'{logger_name}: the node did not start within {bound:g} s (rclpy.init, '
                       f'its DDS entities, the plant or design file; SEP_STARTUP_WATCHDOG_S sets the bound)',
                       lambda: EXIT_TIMEOUT)
-    node = None
+    proc = None
     rc = EXIT_FAILURE
     try:
         try:
             rclpy.init(args=args)
-            node = make(args)
+            proc = make(args)
         finally:
             start.disarm()
-        rc = node.run()
+        rc = proc.run()
     except StartError as exc:
         get_logger(logger_name).error(f'refusing to start: {exc}')
         rc = exc.exit_code
     except EpisodeError as exc:
         get_logger(logger_name).error(str(exc))
-        if node is not None and hasattr(node, 'finish'):
-            node.finish(status='error', error=str(exc))
+        if proc is not None:
+            proc.finish(status='error', error=str(exc))
         rc = exc.exit_code
     except (KeyboardInterrupt, ExternalShutdownException):
-        if node is not None and hasattr(node, 'finish'):
-            node.finish(status='interrupted')
+        if proc is not None:
+            proc.finish(status='interrupted')
         else:
             get_logger(logger_name).warning('interrupted')
         rc = EXIT_INTERRUPTED
     finally:
-        stop = _Watchdog(TEARDOWN_WATCHDOG_S, f'{logger_name}: the ROS middleware did not shut down within '
-                         f'{TEARDOWN_WATCHDOG_S:g} s (exit code {rc} kept)', lambda: rc)
-        if node is not None:
-            try:
-                node.destroy_node()
-            except Exception:  # noqa: BLE001 - shutdown must not mask the exit code
-                pass
-        if rclpy.ok():
-            rclpy.shutdown()
-        stop.disarm()
+        _teardown(proc, rc, logger_name)
     return rc
+
+
+def _teardown(proc: Any, rc: int, logger_name: str) -> None:
+    """Destroy the process's nodes and shut rclpy down, within TEARDOWN_WATCHDOG_S."""
+    import rclpy
+
+    stop = _Watchdog(TEARDOWN_WATCHDOG_S, f'{logger_name}: the ROS middleware did not shut down within '
+                     f'{TEARDOWN_WATCHDOG_S:g} s (exit code {rc} kept)', lambda: rc)
+    if proc is not None:
+        try:
+            proc.destroy_node()
+        except Exception:  # noqa: BLE001 - shutdown must not mask the exit code
+            pass
+    if rclpy.ok():
+        rclpy.shutdown()
+    stop.disarm()
+
+
+def node_main(prog: str, description: str, argv: Sequence[str] | None, parameters: str,
+              build: Callable[[argparse.Namespace], 'NodeProcess'],
+              add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+              sim_time: bool = True) -> int:
+    """The ``main`` of a node executable: the command-line front (``--help`` lists `parameters`),
+    BLAS limited to one thread, and `run_node` of the process `build(options)` makes
+    (``use_sim_time`` defaulting to true when `sim_time`)."""
+    opts, args = parse_front(prog, description, argv, add_arguments, parameters)
+    limit_blas_threads(1)   # the per-step linear algebra is tiny: extra threads only add latency
+    return run_node(lambda a: build(opts), sim_time_default(args) if sim_time else args, prog)
 
 
 class SampleWindow:
@@ -330,18 +341,6 @@ class SampleWindow:
         return out
 
 
-def log_rejection(logger, rejections, rej, text: str) -> None:
-    """Count a rejected message in `rejections` (a gate.RejectionLog) and log it: the first of
-    each kind at once, later ones at most once a second (a storm of bad messages must not flood
-    the log)."""
-    rejections.add(rej)
-    line = f'{text}: {rej} ({rejections.total} rejected so far)'
-    if rejections.counts[rej.category] == 1:
-        logger.warning(line)
-    else:
-        logger.warning(line, throttle_duration_sec=1.0)
-
-
 class Throttle:
     """At most one event per `period` seconds (steady clock): rate-limits the diagnostics sent
     on rejected messages, so a storm of bad messages cannot flood /diagnostics or the loop."""
@@ -356,3 +355,154 @@ class Throttle:
             return False
         self._next = now + self.period
         return True
+
+
+# ------------------------------------------------------------------------------- nodes
+class NodeBase:
+    """An rclpy Node (``self.node``, namespace sep) with /diagnostics, rejection reporting and the
+    end-of-episode summary.
+
+    Subclasses set ``dt`` and ``frame_id`` (the stamps of /diagnostics), implement ``health()``,
+    ``summary(status)`` and ``summary_line(summary)``, set ``done`` when their episode is over
+    and put a StartError in ``fatal`` to stop the process; ``prepare(executor)`` runs before
+    the episode, ``on_finish(summary)`` after the summary is written.
+    """
+
+    role = 'node'
+
+    def __init__(self, node_name: str):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.clock import Clock, ClockType
+        from rclpy.node import Node
+
+        self.node = node = Node(node_name, namespace=c.NAMESPACE)
+        self.log = node.get_logger()
+        self.summary_file = declare(node, 'summary_file', '', 'end-of-episode summary JSON')
+        self.diag_period = declare(node, 'diagnostics_period_s', 1.0,
+                                   '/diagnostics period (wall seconds)', lo=0.01, hi=3600.0)
+        self.dt, self.frame_id = 1.0, c.FRAME_ID
+        self.last_k = -1                    # newest step seen (the stamp of /diagnostics)
+        self.exit_at_end = True
+        self.done = False
+        self.fatal: StartError | None = None
+        self.finished = False
+        self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
+        self.pub_diag = node.create_publisher(DiagnosticArray, c.DIAGNOSTICS, c.DIAGNOSTICS_QOS)
+        self.diag_timer = node.create_timer(self.diag_period, self.publish_diagnostics,
+                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def prepare(self, executor) -> None:
+        """Before the episode, with the executor spinning (default: nothing)."""
+
+    # -------------------------------------------------------- diagnostics
+    def health(self) -> c.Health:  # pragma: no cover - overridden
+        return c.Health(name=self.node.get_fully_qualified_name())
+
+    def publish_diagnostics(self) -> None:
+        try:
+            self.pub_diag.publish(c.diagnostics(c.stamp(max(self.last_k, 0), self.dt),
+                                                [self.health()], self.frame_id))
+        except Exception:  # noqa: BLE001 - context gone during shutdown
+            pass
+
+    def reject(self, what: str, rej, rejections, k: int | None = None) -> None:
+        """Count a rejected message in `rejections` (a gate.RejectionLog) and report it."""
+        rejections.add(rej)
+        self.report_rejection(what, rej, rejections, k)
+
+    def report_rejection(self, what: str, rej, rejections, k: int | None = None) -> None:
+        """Log a rejected message already counted in `rejections`: the first of each reason at
+        once, later ones at most once a second; and send /diagnostics at once, at most every
+        REJECTION_DIAGNOSTICS_PERIOD_S (a storm of bad messages costs neither memory nor the loop)."""
+        line = f"rejected {what}{'' if k is None else f' (step {k})'}: {rej} ({rejections.total} rejected so far)"
+        if rejections.counts[rej.category] == 1:
+            self.log.warning(line)
+        else:
+            self.log.warning(line, throttle_duration_sec=1.0)
+        if self.diag_throttle.ready():
+            self.publish_diagnostics()
+
+    # -------------------------------------------------------------- finish
+    def summary(self, status: str) -> dict:  # pragma: no cover - overridden
+        return {'node': self.role, 'status': status}
+
+    def summary_line(self, summ: dict) -> str:  # pragma: no cover - overridden
+        return str(summ)
+
+    def finish(self, status: str = 'completed', error: str | None = None) -> dict:
+        """The end of the episode: summary (with `error`), last /diagnostics, one log line, the
+        summary file, then the publishers flushed. Once; returns the summary ({} later)."""
+        if self.finished:
+            return {}
+        self.finished = True
+        summ = self.summary(status)
+        if error:
+            summ['error'] = error
+        self.publish_diagnostics()
+        self.log.info(f'{self.finish_label()} {status}: ' + self.summary_line(summ))
+        if self.summary_file:
+            write_json(self.summary_file, summ)
+        self.on_finish(summ)
+        self.flush()
+        return summ
+
+    def finish_label(self) -> str:
+        return self.role   # the word that starts the end-of-episode log line
+
+    def on_finish(self, summ: dict) -> None:
+        """After the summary is written, before the flush (default: nothing)."""
+
+    def publishers(self) -> Iterable:
+        return [self.pub_diag]
+
+    def flush(self, budget_s: float = 0.5) -> None:
+        """Let reliable subscribers receive the last messages before the writers go away."""
+        flush_publishers([p for p in self.publishers() if p is not None], budget_s)
+
+    def destroy_node(self) -> None:
+        self.node.destroy_node()
+
+
+class NodeProcess:
+    """One or more nodes on one executor in this process (what `run_node` runs).
+
+    ``run()`` runs `episode(executor)` when given (a node that drives its own episode: the
+    plant), else prepares the nodes and spins until every node's episode is done (those with
+    exit_at_end) or one reports a fatal error (raised); then it finishes the nodes."""
+
+    def __init__(self, nodes: Sequence[NodeBase], executor: str = 'events',
+                 episode: Callable[[Any], int] | None = None):
+        self.nodes = list(nodes)
+        self.executor = make_executor(executor)
+        for n in self.nodes:
+            self.executor.add_node(n.node)
+        self._episode = episode
+        self.finished = False
+
+    def run(self) -> int:
+        rc = self._episode(self.executor) if self._episode is not None else self.spin()
+        self.finish('completed')
+        return rc
+
+    def spin(self) -> int:
+        for n in self.nodes:
+            n.prepare(self.executor)
+        while True:
+            for n in self.nodes:
+                if n.fatal is not None:
+                    raise n.fatal
+            if all(n.done and n.exit_at_end for n in self.nodes):
+                return EXIT_OK
+            self.executor.spin_once(timeout_sec=0.2)
+
+    def finish(self, status: str, error: str | None = None) -> None:
+        if self.finished:
+            return
+        self.finished = True
+        for n in self.nodes:
+            n.finish(status, error)
+
+    def destroy_node(self) -> None:
+        self.executor.shutdown(timeout_sec=0.1)
+        for n in reversed(self.nodes):
+            n.destroy_node()

@@ -46,7 +46,7 @@ from std_msgs.msg import Header, String
 from sep_plant import topics as T
 from sep_plant.topics import (CLOCK, DIAGNOSTICS, FIELD, FIELD_ESTIMATE, FIELD_ESTIMATE_IMAGE, FIELD_IMAGE,  # noqa: F401
                      FRAME_ID, APPLIED_INPUT, COMMAND, MEASUREMENTS, NAMESPACE, SCENARIO, STATE_ESTIMATE,
-                     CloudLayoutError, dt_ns, stamp_ns, topic_name)
+                     dt_ns, stamp_ns)
 
 _CLASSES = {T.JOINT_STATE: JointState, T.POINT_CLOUD2: PointCloud2, T.IMAGE: Image, T.STRING: String,
             T.CLOCK_TYPE: Clock, T.DIAGNOSTIC_ARRAY: DiagnosticArray}
@@ -71,16 +71,6 @@ DIAGNOSTICS_QOS = TOPIC_QOS[DIAGNOSTICS]
 CLOCK_QOS = TOPIC_QOS[CLOCK]
 #: for subscribers of the field clouds and images that only display them (loss is fine)
 VIEWER_QOS = qos_profile_sensor_data
-
-
-def topic(name: str, namespace: str = NAMESPACE) -> str:
-    """Fully qualified name of a contract topic (absolute names are returned unchanged)."""
-    return topic_name(name, namespace)
-
-
-def all_topics(namespace: str = NAMESPACE) -> dict[str, str]:
-    """Fully qualified topic name -> ROS type name, for every topic of the contract."""
-    return {topic_name(t.name, namespace): t.type_name for t in T.TOPICS}
 
 
 def state_labels(n_r: int) -> list[str]:
@@ -152,15 +142,6 @@ class CloudBuilder:
         return msg
 
 
-def parse_field_cloud(msg: PointCloud2) -> dict[str, np.ndarray]:
-    """Arrays x, y, z, <field>, <field>_std of a contract PointCloud2 (layout checked)."""
-    names = [f.name for f in msg.fields]
-    T.check_cloud_layout(names, [f.datatype for f in msg.fields], [f.offset for f in msg.fields],
-                         msg.point_step, msg.height, msg.is_bigendian, msg.width, len(msg.data))
-    arr = T.parse_cloud_payload(msg.data, msg.width)
-    return {name: arr[:, i].copy() for i, name in enumerate(names)}
-
-
 # --------------------------------------------------------------------------- images
 def field_image(k: int, dt: float, values: np.ndarray, grid_shape: tuple[int, ...],
                 frame_id: str = FRAME_ID) -> Image:
@@ -220,13 +201,3 @@ def diagnostics(stamp_time: Time, statuses: Iterable[Health], frame_id: str = FR
         st.values = [KeyValue(key=str(k), value=_fmt_value(v)) for k, v in (h.values or {}).items()]
         arr.status.append(st)
     return arr
-
-
-def diagnostic_values(status: DiagnosticStatus) -> dict[str, str]:
-    """key -> value of a DiagnosticStatus."""
-    return {kv.key: kv.value for kv in status.values}
-
-
-def level_of(status: DiagnosticStatus) -> int:
-    lv = status.level
-    return lv[0] if isinstance(lv, (bytes, bytearray)) else int(lv)
