@@ -195,3 +195,17 @@ def one_blas_thread():
 
     with threadpool_limits(limits=1):
         yield
+
+
+#: a tiny but meaningful scenario (sep 0.1's flat slab keys): 20 nodes, 40 steps over the reference's
+#: 62.5 s, the band from 37.5 s; the CLI, packaging and install tests design it in about a second
+TINY_YAML = """\
+# tiny test scenario (keys that differ from the reference)
+n_x: 20
+n_steps: 40
+dt: 1.5625
+k_band: 24
+lqr_k_switch: 19
+w_std: 0.12
+v_std: 0.4
+"""

@@ -7,6 +7,7 @@ import pytest
 from sep_control.cli.main import main as sep
 from sep_estimator.design_file import load_design
 from sep_plant.scenario import load_scenario
+from core_helpers import TINY_YAML
 
 
 def design_cli_main(argv):
@@ -16,17 +17,6 @@ def design_cli_main(argv):
 def evaluate_cli_main(argv):
     return sep(["evaluate", *argv])
 
-# A tiny but meaningful scenario: 20 nodes, 40 steps over the same 62.5 s (band from 37.5 s).
-TINY_YAML = """\
-# tiny test scenario (keys that differ from the reference)
-n_x: 20
-n_steps: 40
-dt: 1.5625
-k_band: 24
-lqr_k_switch: 19
-w_std: 0.12
-v_std: 0.4
-"""
 FAST = ["--p", "5", "--q", "5", "--n-r", "10", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
 SECTION3_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "n_runs",
                  "coverage_2sigma")

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 import sep_plant
+from core_helpers import TINY_YAML
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ('sep_plant', 'sep_estimator', 'sep_control')
@@ -81,15 +82,6 @@ except ImportError as exc:
 print(json.dumps({'modules': names, 'outside': outside, 'ros': ros, 'rclpy_blocked': blocked}))
 '''
 
-TINY_SCENARIO = """\
-n_x: 20
-n_steps: 40
-dt: 1.5625
-k_band: 24
-lqr_k_switch: 19
-w_std: 0.12
-v_std: 0.4
-"""
 FAST = ['--p', '5', '--q', '5', '--n-r', '10', '--ensemble', '20', '--no-belief', '--quiet']
 
 
@@ -164,7 +156,7 @@ def test_every_module_outside_ros_imports_without_ros(rosfree, tmp_path):
 
 def test_sep_design_without_ros(rosfree, tmp_path):
     target, env = rosfree
-    (tmp_path / 'tiny.yaml').write_text(TINY_SCENARIO)
+    (tmp_path / 'tiny.yaml').write_text(TINY_YAML)
     out = tmp_path / 'tiny.npz'
     proc = run([str(target / 'bin' / 'sep'), 'design', '--scenario', 'tiny.yaml', '--out', str(out),
                 *FAST], env, tmp_path)

@@ -50,6 +50,7 @@ from sep_estimator.design_source import (JACOBIAN_USED, plant_file_digests, reco
                                          source_record)
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
+from sep_plant.scenario import json_default
 
 FORMAT = "sep-design"
 #: 3 (sep 0.4): belief statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64
@@ -176,7 +177,7 @@ def save_design(path: str | Path, d: Design) -> Path:
     for name in TRAJECTORIES:
         if name not in SINGLE and arrays[name].size > COMPRESS_ABOVE:
             arrays.update(_compressed(name, arrays.pop(name)))
-    arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
+    arrays["meta"] = np.frombuffer(json.dumps(meta, default=json_default).encode(), dtype=np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as fh:
@@ -420,10 +421,3 @@ def _plant_files(scenario: Scenario) -> dict[str, str] | None:
         return None
     return plant_file_digests(scenario.plant) if hasattr(cls, "source_files") else {}
 
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    raise TypeError(f"not JSON serializable: {type(v).__name__}")

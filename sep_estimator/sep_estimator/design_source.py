@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+from sep_plant.scenario import json_default
 
 #: design settings left out of the record: they change the batching, not the design
 RESULT_NEUTRAL_SETTINGS = ("memory_budget",)
@@ -86,12 +87,12 @@ def source_record(plant_type: str, plant_config: Mapping[str, Any], plant_files:
     record = {"format_version": int(format_version), "plant": {"type": plant_type, **dict(plant_config)},
               "plant_files": dict(plant_files), "problem": dict(problem),
               "settings": {k: v for k, v in settings.items() if k not in RESULT_NEUTRAL_SETTINGS}}
-    return json.loads(json.dumps(record, default=_plain))
+    return json.loads(json.dumps(record, default=json_default))
 
 
 def source_digest(record: Mapping[str, Any]) -> str:
     """SHA-256 (hex) of the record's canonical JSON (sorted keys, compact separators)."""
-    text = json.dumps(record, sort_keys=True, separators=(",", ":"), default=_plain)
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"), default=json_default)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -119,12 +120,3 @@ def _show(v: Any) -> str:
 def _short(v: Any) -> str:
     return "missing" if v is _MISSING else (v[:12] if isinstance(v, str) and len(v) == 64 else str(v))
 
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, tuple):
-        return list(v)
-    raise TypeError(f"not JSON serializable: {type(v).__name__}")

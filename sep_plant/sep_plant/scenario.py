@@ -117,7 +117,7 @@ class Scenario:
         return out
 
     def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True, default=_plain)
+        return json.dumps(self.to_dict(), sort_keys=True, default=json_default)
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Scenario) and self.to_json() == other.to_json()
@@ -261,16 +261,16 @@ def _parse_legacy(data: dict, source: str) -> Scenario:
 def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """YAML/JSON data as plain JSON types (numpy values -> numbers and lists, tuples -> lists),
     keys as given: what a scenario stores of a plant's configuration."""
-    return json.loads(json.dumps(dict(cfg), default=_plain))
+    return json.loads(json.dumps(dict(cfg), default=json_default))
 
 
-def _plain(v: Any) -> Any:
+def json_default(v: Any) -> Any:
+    """`json.dumps(..., default=json_default)`: numpy scalars and arrays as plain numbers and lists
+    (the one converter of sep's JSON outputs: scenarios, design files, summaries, metrics)."""
     if isinstance(v, np.generic):
         return v.item()
     if isinstance(v, np.ndarray):
         return v.tolist()
-    if isinstance(v, tuple):
-        return list(v)
     raise TypeError(f"not JSON serializable: {type(v).__name__}")
 
 
@@ -293,7 +293,7 @@ def scenario_payload(scenario: Scenario, info: PlantInfo) -> str:
     """The JSON the plant publishes on the scenario topic (and bags keep): the scenario and the
     plant's description, so that nodes, the recorder and the analysis need not import the plant."""
     return json.dumps({"scenario": scenario.to_dict(), "plant_info": info.to_dict()}, sort_keys=True,
-                      default=_plain)
+                      default=json_default)
 
 
 def parse_scenario_payload(text: str) -> tuple[Scenario, PlantInfo]:

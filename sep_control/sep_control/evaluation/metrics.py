@@ -14,6 +14,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from sep_plant.problem import Objective
+from sep_plant.scenario import json_default
 
 #: keys of the machine-readable results (docs/method.md); mean_dev_start/end: at the band
 #: window's first and last step
@@ -148,7 +149,7 @@ def write_json(path: str | Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
     """One object per controller/episode: {"name": ..., <§3 keys>}."""
     data = [{"name": name, **{k: v for k, v in r.items()}} for name, r in rows.items()]
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    Path(path).write_text(json.dumps(data, indent=2, default=json_default) + "\n")
 
 
 def _fmt(v: Any) -> str:
@@ -158,8 +159,3 @@ def _fmt(v: Any) -> str:
         return f"{v:.4g}" if abs(v) >= 1e-3 or v == 0 else f"{v:.2e}"
     return str(v)
 
-
-def _json_default(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    raise TypeError(f"not JSON serializable: {type(v).__name__}")

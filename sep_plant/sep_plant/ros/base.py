@@ -20,6 +20,7 @@ import numpy as np
 
 from sep_plant.episode import EXIT_TIMEOUT, EpisodeError  # noqa: F401  (ROS-free: the plant's episode raises it)
 from sep_plant.ros import contract as c
+from sep_plant.scenario import json_default
 
 # Process exit codes of the nodes (docs/reference/cli.md).
 EXIT_OK = 0
@@ -134,17 +135,10 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(p.name + '.tmp')
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=_plain) + '\n')
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=json_default) + '\n')
     tmp.replace(p)
     return p
 
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    raise TypeError(type(v).__name__)
 
 
 def sim_time_default(args: list[str], value: bool = True) -> list[str]:
