@@ -24,7 +24,7 @@ BUILTIN: dict[str, str] = {
     "plate": "sep_plant.plants.heat:HeatPlate",
     "block": "sep_plant.plants.heat:HeatBlock",
     "allen_cahn": "sep_plant.plants.allen_cahn:AllenCahnPlant",
-    "fmu": "sep_plant.plants.fmu:FMUPlant",
+    "fmu": "sep_plant.plants.fmu.plant:FMUPlant",
 }
 
 

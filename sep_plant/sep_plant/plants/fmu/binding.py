@@ -88,8 +88,9 @@ class Fmi2(Binding):
         """Arguments of fmi2SetReal / fmi2GetReal for one buffer."""
         return (self.c, refs, c_size_t(n_refs), ptr)
 
-    def step_args(self, t: float, h: c_double) -> tuple:
-        return (self.c, c_double(t), h, self._false)
+    def step_args(self, t: c_double, h: c_double) -> tuple:
+        """Arguments of fmi2DoStep from time t (a c_double the caller may update) by h."""
+        return (self.c, t, h, self._false)
 
     def step_status(self) -> None:
         return None
@@ -132,8 +133,9 @@ class Fmi3(Binding):
     def values_args(self, refs, n_refs: int, n_values: int, ptr: c_void_p) -> tuple:
         return (self.c, refs, c_size_t(n_refs), ptr, c_size_t(n_values))
 
-    def step_args(self, t: float, h: c_double) -> tuple:
-        return (self.c, c_double(t), h, self._false, byref(self._event), byref(self._term), byref(self._early),
+    def step_args(self, t: c_double, h: c_double) -> tuple:
+        """Arguments of fmi3DoStep from time t (a c_double the caller may update) by h."""
+        return (self.c, t, h, self._false, byref(self._event), byref(self._term), byref(self._early),
                 byref(self._last))
 
     def step_status(self) -> str | None:

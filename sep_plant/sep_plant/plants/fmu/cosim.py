@@ -25,12 +25,13 @@ Pure numpy/ctypes: no ROS import.
 from __future__ import annotations
 
 import zlib
+from collections import OrderedDict
 from ctypes import byref, c_double, c_size_t, c_void_p
 
 import numpy as np
 
 from sep_plant.plants.fmu.binding import WARNING, Binding, FMICallError, refs_array
-from sep_plant.plants.fmu.exchange import row_pointers
+from sep_plant.plants.fmu.exchange import KEEP_WORKSPACES, row_pointers
 
 #: bytes per float64 value of the payload (integers below 2^48 are exact)
 BYTES_PER_VALUE = 6
@@ -52,6 +53,27 @@ def decode(values: np.ndarray) -> np.ndarray:
     M, width = values.shape
     u = values.astype("<u8")
     return np.ascontiguousarray(u.view(np.uint8).reshape(M, width, 8)[:, :, :BYTES_PER_VALUE]).reshape(M, -1)
+
+
+class Workspace:
+    """Buffers of a batch of M runs and the prebuilt arguments of its per-run C calls (the
+    byte counts and times are c_size_t / c_double objects whose values change per step)."""
+
+    def __init__(self, st: "CoSimStepper", M: int) -> None:
+        b = st.b
+        cap = st.width * BYTES_PER_VALUE
+        self.raw, self.new = np.zeros((M, cap), np.uint8), np.zeros((M, cap), np.uint8)
+        self.V, self.reads = np.empty((M, max(st.n_in, 1))), np.empty((M, st.n_read))
+        self.sizes = [c_size_t(0) for _ in range(M)]
+        self.times = [c_double(0.0) for _ in range(M)]
+        h_in, h_out = byref(st._in_state), byref(st._out_state)
+        self.load = [(b.c, p, n, h_in) for p, n in zip(row_pointers(self.raw), self.sizes)]
+        self.inputs = [b.values_args(st._in_refs, st.n_in, st.n_in, p) for p in row_pointers(self.V)]
+        self.steps = [b.step_args(t, st._h) for t in self.times]
+        self.outs = [b.values_args(st._read_refs, st._n_read_refs, st.n_read, p) for p in row_pointers(self.reads)]
+        self.save = [(b.c, st._out_state, p, st._size) for p in row_pointers(self.new)]
+        self.get_state = (b.c, h_out)
+        self.size_of = (b.c, st._out_state, byref(st._size))
 
 
 class CoSimStepper:
@@ -79,10 +101,18 @@ class CoSimStepper:
         self._out_state = c_void_p()
         self._size = c_size_t(0)
         self.width = 0                         # payload values per row, fixed by `initial_row`
+        self._spaces: OrderedDict[int, Workspace] = OrderedDict()
 
     @property
     def n_x(self) -> int:
         return HEADER + self.n_read + self.width
+
+    def workspace(self, M: int) -> Workspace:
+        ws = self._spaces.pop(M, None) or Workspace(self, M)
+        self._spaces[M] = ws
+        while len(self._spaces) > KEEP_WORKSPACES:
+            self._spaces.popitem(last=False)
+        return ws
 
     # ------------------------------------------------------------------ states
     def initial_row(self, start_time: float) -> np.ndarray:
@@ -121,9 +151,8 @@ class CoSimStepper:
                              "whole numbers): states of a Co-Simulation FMU are opaque, copy them but do no "
                              "arithmetic on them")
         raw = decode(payload)
-        for m in range(X.shape[0]):
-            n = int(sizes[m])
-            if zlib.crc32(memoryview(raw[m, :n])) != int(X[m, 1]):
+        for m, (n, crc) in enumerate(zip(sizes.astype(np.int64).tolist(), X[:, 1].tolist())):
+            if zlib.crc32(memoryview(raw[m, :n])) != crc:
                 raise ValueError(f"FMU {self.b.label}: state row {m} fails its checksum: the row was altered "
                                  "(states of a Co-Simulation FMU are opaque: copy them, do no arithmetic)")
         return raw, sizes.astype(np.int64)
@@ -133,42 +162,40 @@ class CoSimStepper:
         """The rows after one step dt of every run: X (M, n_x), V (M, n_in) or (1, n_in)."""
         M = X.shape[0]
         raw, sizes = self._unpack(X)
-        V = np.ascontiguousarray(np.broadcast_to(V, (M, self.n_in)) if V.shape[0] != M else V, dtype=float)
-        out = np.empty((M, self.n_x))
-        new_raw = np.zeros_like(raw)
-        reads = np.empty((M, self.n_read))
+        ws = self.workspace(M)
+        ws.raw[...] = raw
+        ws.new[...] = 0
+        ws.V[...] = V
         b = self.b
-        cap = raw.shape[1]
-        src, dst, vin, rd = row_pointers(raw), row_pointers(new_raw), row_pointers(V), row_pointers(reads)
         deser, set_state, set_v, do_step = b.deserialize, b.set_state, b.set_reals, b.do_step
         get_r, get_state, size_of, ser = b.get_reals, b.get_state, b.state_size, b.serialize
-        h_in, h_out, size = self._in_state, self._out_state, self._size
-        times = X[:, 2]
-        for m in range(M):
-            st = deser(b.c, src[m], c_size_t(int(sizes[m])), byref(h_in)) | set_state(b.c, h_in)
-            st |= set_v(*b.values_args(self._in_refs, self.n_in, self.n_in, vin[m]))
-            st |= do_step(*b.step_args(float(times[m]), self._h))
+        h_in, size, cap = self._in_state, self._size, ws.raw.shape[1]
+        status = b.step_status if b.version == 3 else None          # fmi3DoStep's four results
+        n_bytes, crcs = [0] * M, [0] * M
+        for m, (n, t) in enumerate(zip(sizes.tolist(), X[:, 2].tolist())):
+            ws.sizes[m].value, ws.times[m].value = n, t
+            st = deser(*ws.load[m]) | set_state(b.c, h_in) | set_v(*ws.inputs[m]) | do_step(*ws.steps[m])
             if st > WARNING:
                 raise b.fail(f"stepping run {m} (deserialize / set FMU state / set inputs / do step)", st)
-            why = b.step_status()
+            why = status() if status is not None else None
             if why:
                 raise FMICallError(f"FMU {b.label}: do step of run {m}: {why}")
-            st = get_r(*b.values_args(self._read_refs, self._n_read_refs, self.n_read, rd[m]))
-            st |= get_state(b.c, byref(h_out)) | size_of(b.c, h_out, byref(size))
-            n = int(size.value)
+            st = get_r(*ws.outs[m]) | get_state(*ws.get_state) | size_of(*ws.size_of)
+            n = size.value
             if n > cap:
-                raise FMICallError(f"FMU {b.label}: its serialized state grew from {int(X[0, 0])} to {n} bytes; "
-                                   f"sep fixed the row length from the initial state ({cap} bytes): states of "
-                                   "changing size are not supported")
-            st |= ser(b.c, h_out, dst[m], size)
+                raise FMICallError(f"FMU {b.label}: its serialized state grew to {n} bytes; sep fixed the row "
+                                   f"length from the initial state ({cap} bytes): states of changing size are "
+                                   "not supported")
+            st |= ser(*ws.save[m])
             if st > WARNING:
                 raise b.fail(f"saving the state of run {m} (get reals / get FMU state / serialize)", st)
-            out[m, 0] = n
-            out[m, 1] = zlib.crc32(memoryview(new_raw[m, :n]))
-        out[:, 2] = times + self.dt
-        out[:, HEADER:HEADER + self.n_read] = reads
-        out[:, HEADER + self.n_read:] = encode(new_raw)
+            n_bytes[m], crcs[m] = n, zlib.crc32(memoryview(ws.new[m, :n]))
+        out = np.empty((M, self.n_x))
+        out[:, 0], out[:, 1] = n_bytes, crcs
+        out[:, 2] = X[:, 2] + self.dt
+        out[:, HEADER:HEADER + self.n_read] = ws.reads
+        out[:, HEADER + self.n_read:] = encode(ws.new)
         return out
 
 
-__all__ = ["BYTES_PER_VALUE", "CoSimStepper", "HEADER", "decode", "encode"]
+__all__ = ["BYTES_PER_VALUE", "CoSimStepper", "HEADER", "Workspace", "decode", "encode"]
