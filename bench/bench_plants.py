@@ -204,73 +204,72 @@ def alternating(fns: list, repeats: int, rounds: int = 3) -> list[float]:
     return best
 
 
-def fmu_table(repeats: int) -> None:
-    """Cost of the FMU plants next to the native rod and their floors (module docstring)."""
+def fmu_plants(tmp: Path):
+    """(label, plant, floor) of the native rod and the rod FMU (FMI 2.0 and 3.0, ME and CS),
+    built into `tmp`; None without a C compiler."""
     spec = importlib.util.spec_from_file_location("sep_example_build_fmu", ROOT / "examples" / "fmu_rod" / "build_fmu.py")
     build = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(build)
     if build.compiler() is None:
-        print("\nFMU plants: skipped (no C compiler to build examples/fmu_rod)")
-        return
+        return None
     sys.path.insert(0, str(ROOT / "tests"))
     from fmu_rod import RodPlant
 
     keys = {"inputs": ["heater_1", "heater_2", "heater_3"], "field": "T"}
+    plants = [("native rod (numpy RK4)", RodPlant(), None)]
+    for v in (2, 3):
+        path = str(build.build_fmu(tmp / f"rod{v}.fmu", fmi_version=v))
+        plants.append((f"FMI {v}.0 ME (sep RK4)", make_plant("fmu", {"path": path, **keys, "substeps": 4}), me_floor))
+        plants.append((f"FMI {v}.0 CS (FMU RK4)", make_plant("fmu", {"path": path, **keys, "interface": "co_simulation"}),
+                       cs_floor))
+    return plants
+
+
+def fmu_row(label: str, p, floor, M: int, U: np.ndarray, repeats: int) -> tuple[list[str], tuple]:
+    """One row: sep's step, the same FMU calls alone, doStep alone (CS) [s per batch step]."""
+    opaque = getattr(p, "state_is_opaque", False)
+    X = p.initial_state(M)
+    X = p.step(X, U) if opaque else X
+    fns = [lambda: p.step(X, U)] + ([floor(p, X, U)] if floor else []) + ([do_step_alone(p, M)] if opaque else [])
+    t = alternating(fns, repeats) + [None, None]
+    ns = [None if v is None else f"{v / (M * 50) * 1e9:.0f}" for v in t]
+    row = [label, str(p.n_x), str(M), f"{t[0] / M * 1e6:.1f}", ns[0], ns[1] or "-",
+           f"{t[0] / t[1]:.2f}x" if t[1] else "-", ns[2] or "-"]
+    return row, (label, t[0] / M, None if t[1] is None else t[1] / M, None if t[2] is None else t[2] / M)
+
+
+def fmu_table(repeats: int) -> None:
+    """Cost of the FMU plants next to the native rod and their floors (module docstring)."""
     rows, where = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        fmus = {v: build.build_fmu(Path(tmp) / f"rod{v}.fmu", fmi_version=v) for v in (2, 3)}
-        plants = [("native rod (numpy RK4)", RodPlant(), None)]
-        for v in (2, 3):
-            plants.append((f"FMI {v}.0 ME (sep RK4)", make_plant("fmu", {"path": str(fmus[v]), **keys, "substeps": 4}),
-                           me_floor))
-            plants.append((f"FMI {v}.0 CS (FMU RK4)", make_plant("fmu", {"path": str(fmus[v]), **keys,
-                                                                           "interface": "co_simulation"}), cs_floor))
+        plants = fmu_plants(Path(tmp))
+        if plants is None:
+            print("\nFMU plants: skipped (no C compiler to build examples/fmu_rod)")
+            return
         rng = np.random.default_rng(0)
         for M in FMU_BATCHES:
             U = 0.3 + 0.05 * rng.standard_normal((M, 3))
             for label, p, floor in plants:
-                X = p.initial_state(M)
-                if getattr(p, "state_is_opaque", False):
-                    X = p.step(X, U)
-                fns = [lambda p=p, X=X: p.step(X, U)]
-                if floor is not None:
-                    fns.append(floor(p, X, U))
-                    if getattr(p, "state_is_opaque", False):
-                        fns.append(do_step_alone(p, M))
-                times = alternating(fns, repeats)
-                t_sep = times[0]
-                row = [label, str(p.n_x), str(M), f"{t_sep / M * 1e6:.1f}", f"{t_sep / (M * 50) * 1e9:.0f}"]
-                if floor is None:
-                    rows.append(row + ["-", "-", "-"])
-                    continue
-                t_floor = times[1]
-                row += [f"{t_floor / (M * 50) * 1e9:.0f}", f"{t_sep / t_floor:.2f}x"]
-                if len(times) > 2:
-                    row.append(f"{times[2] / (M * 50) * 1e9:.0f}")
-                else:
-                    row.append("-")
-                if M == 64:
-                    where.append((label, t_sep / M, t_floor / M, times[2] / M if len(times) > 2 else None, p))
+                row, times = fmu_row(label, p, floor, M, U, repeats)
                 rows.append(row)
+                if M == 64 and floor is not None:
+                    where.append(times)
             print(f"FMU table: M = {M} done", file=sys.stderr, flush=True)
     print_table(f"FMU plants: the example rod (50 nodes, dt 0.25 s, RK4 4 substeps) [best of {repeats}; one core]; "
                 "floor = the same FMU calls alone in a tight loop",
                 ["plant", "n_x", "M", "us/run-step", "ns/node-step", "FMU calls alone (floor)", "sep / floor",
                  "doStep alone"], rows)
-    c_eval = None
-    for label, sep, floor, c, p in where:                       # CS first sets the C cost per evaluation
+    c_eval = next((c / 16 for *_, c in where if c is not None), None)   # 4 substeps x 4 stages per doStep
+    for label, sep, floor, c in where:
         if c is not None:
-            c_eval = c / 16                                     # 4 substeps x 4 RK4 stages per doStep
             print(f"  {label}, M = 64, per run-step: {sep * 1e6:.1f} us = the FMU's own RK4 in C {c * 1e6:.1f} us "
                   f"+ ctypes overhead of its 8 FMI calls {(floor - c) * 1e6:.1f} us + sep's Python/numpy "
                   f"(checksums, encoding) {(sep - floor) * 1e6:.1f} us")
-    for label, sep, floor, c, p in where:
-        if c is None and c_eval is not None:
-            calls = 3 * 16
+        elif c_eval is not None:
+            over = floor - 16 * c_eval
             print(f"  {label}, M = 64, per run-step: {sep * 1e6:.1f} us = 16 derivative evaluations in C "
-                  f"~{16 * c_eval * 1e6:.1f} us + ctypes overhead of {calls} FMI calls ~{(floor - 16 * c_eval) * 1e6:.1f} us "
-                  f"({(floor - 16 * c_eval) / calls * 1e9:.0f} ns per call) + sep's RK4 arithmetic (numpy) "
-                  f"{(sep - floor) * 1e6:.1f} us")
+                  f"~{16 * c_eval * 1e6:.1f} us + ctypes overhead of 48 FMI calls ~{over * 1e6:.1f} us "
+                  f"({over / 48 * 1e9:.0f} ns per call) + sep's RK4 arithmetic (numpy) {(sep - floor) * 1e6:.1f} us")
 
 
 def device_row(label: str, kind: str, cfg: dict, batch: int, xp, repeats: int) -> list[str]:

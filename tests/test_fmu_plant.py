@@ -194,6 +194,24 @@ def test_start_values_set_parameters(fmus):
     assert np.array_equal(plant.observe(X1), native.observe(X1))
 
 
+def test_structured_2d_array_gives_the_grid_shape(fmus, tmp_path):
+    """An FMI 2.0 array T[i,j] (structured naming) is a 2-D field whose grid_shape is its box."""
+    import re
+
+    def to_2d(text: str) -> str:
+        def name(m):
+            k = int(m.group(2)) - 1
+            return f"{m.group(1)}T[{k // 5 + 1},{k % 5 + 1}]"
+        return re.sub(r"(name=\"(?:der\()?)T\[(\d+)\]", name, text)
+
+    path = rewrite(fmus["rod"], tmp_path / "grid.fmu", to_2d)
+    plant = fmu(path, **{**ME, "field_coordinates": {"origin": [0.0, 0.0], "spacing": [0.1, 0.2]}})
+    assert plant.grid_shape == (10, 5) and plant.field_is_state and plant.field_name == "T"
+    assert np.allclose(plant.field_coordinates()[7], [0.1, 0.4, 0.0])
+    X = plant.step(plant.initial_state(1), np.full(3, 0.3))
+    assert np.array_equal(X, RodPlant().step(RodPlant().initial_state(1), np.full(3, 0.3)))
+
+
 def test_field_coordinates_and_grid_shape(fmus):
     p = fmu(fmus["rod"], **{**ME, "field_coordinates": {"origin": [0.0, 0.0], "spacing": [0.1, 0.2]},
                             "grid_shape": [10, 5]})
@@ -319,8 +337,24 @@ def test_scenario_path_is_relative_to_the_scenario_file(fmus, tmp_path):
         load_scenario(tmp_path / "c" / "scenario.yaml")
 
 
+def test_example_scenario_loads_and_conforms(fmus, tmp_path):
+    """examples/fmu_rod/scenario.yaml next to a built rod.fmu: the plant the README designs."""
+    shutil.copy(fmu_rod.EXAMPLE / "scenario.yaml", tmp_path / "scenario.yaml")
+    shutil.copy(fmus["rod"], tmp_path / "rod.fmu")
+    scen = load_scenario(tmp_path / "scenario.yaml")
+    plant = scen.plant
+    assert scen.plant_type == "fmu" and plant.interface == "model_exchange" and plant.n_x == 50
+    assert plant.field_name == "temperature" and scen.problem.n_steps == 250
+    check_plant(plant, np.full(3, 0.3), name="examples/fmu_rod")
+    back = type(scen).from_json(scen.to_json())               # plain data, as in a design file
+    assert back == scen and back.plant_mismatches(scen) == [] and back.plant.config() == plant.config()
+
+
 def test_source_files_and_config(fmus):
+    from sep_plant.plants import type_name_of
+
     plant = fmu(fmus["rod"], **ME)
+    assert type_name_of(plant) == "fmu"
     assert plant.source_files() == {"fmu": str(fmus["rod"])}
     from sep_plant.plants.fmu.archive import sha256_file
 
@@ -341,6 +375,8 @@ def test_pickles_with_its_bytes_and_rebuilds_without_the_file(fmus, tmp_path, mo
     assert np.array_equal(again.field(again.step(again.initial_state(2), np.full(3, 0.3))), plant.field(X))
     built = type(plant).from_bytes(fmus[name].read_bytes(), **plant.config())
     assert built.config() == {**plant.config(), "path": built.path}
+    with pytest.raises(PlantConfigError, match="expected"):             # other bytes than the config's FMU
+        type(plant).from_bytes(fmus["rod40"].read_bytes(), **plant.config())
 
 
 # ------------------------------------------------------------------ design
@@ -362,3 +398,55 @@ def test_short_design_agrees_with_the_native_rod(fmus):
     assert d_fmu.meta["optimizer"]["belief_history"] == pytest.approx(d_nat.meta["optimizer"]["belief_history"],
                                                                       rel=1e-6)
     assert np.allclose(d_fmu.nominal.belief_mean, d_nat.nominal.belief_mean, rtol=1e-9, atol=0)
+
+
+# ------------------------------------------------------------------ conformance of opaque states
+class OpaqueToy:
+    """broken_plants.ToyPlant with a state row that also carries a serial number, different on
+    every step (as a serialized FMU state may carry counters or addresses): equal states need
+    not be equal rows, so an opaque plant is compared by its outputs."""
+
+    state_is_opaque = True
+
+    def __init__(self, interact: bool = False):
+        from broken_plants import ToyPlant
+
+        self._toy, self.interact, self._serial = ToyPlant(), interact, 0
+        for a in ("dt", "n_u", "n_y", "n_field", "input_names", "output_names", "field_name", "field_unit"):
+            setattr(self, a, getattr(self._toy, a))
+        self.n_x = self._toy.n_x + 1
+
+    def config(self):
+        return {"interact": self.interact}
+
+    def initial_state(self, batch):
+        return np.zeros((batch, self.n_x))
+
+    def step(self, x, u, w=None):
+        self._serial += 1
+        out = np.empty_like(x)
+        out[:, :-1] = self._toy.step(x[:, :-1], u, w)
+        if self.interact:
+            out[:, :-1] += 0.01 * out[:, :-1].mean(axis=0)
+        out[:, -1] = self._serial
+        return out
+
+    def observe(self, x):
+        return self._toy.observe(x[:, :-1])
+
+    def field(self, x):
+        return x[:, :-1].copy()
+
+    def field_coordinates(self):
+        return self._toy.field_coordinates()
+
+
+def test_opaque_states_are_compared_by_their_outputs():
+    check_plant(OpaqueToy(), np.full(2, 0.1), name="OpaqueToy")      # rows differ, outputs agree
+    from sep_plant.conformance import conformance_problems
+
+    plain = OpaqueToy()
+    plain.state_is_opaque = False                                      # compared by value: refused
+    assert any("not deterministic" in p for p in conformance_problems(plain, np.full(2, 0.1)))
+    with pytest.raises(Exception, match="stepped one by one"):
+        check_plant(OpaqueToy(interact=True), np.full(2, 0.1), name="OpaqueToy")

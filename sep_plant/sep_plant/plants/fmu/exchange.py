@@ -23,7 +23,7 @@ from ctypes import c_size_t, c_void_p
 
 import numpy as np
 
-from sep_plant.plants.fmu.binding import WARNING, Binding, FMICallError, refs_array
+from sep_plant.plants.fmu.binding import WARNING, Binding, refs_array
 
 #: workspaces (batch sizes) kept per stepper
 KEEP_WORKSPACES = 4

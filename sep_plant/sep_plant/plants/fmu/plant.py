@@ -325,11 +325,27 @@ class FMUPlant:
             return self._stepper.read(X, list(self._field.refs), self.n_field)
 
     # ------------------------------------------------------------------ shipping
+    # How a cluster engine ships an FMU plant (sep_control.compute.engine; wired in phase 2): the
+    # plant's spec stays its type and config (JSON) as for every plant; the engine also reads the
+    # files of `source_files()` ONCE, scatters their bytes to every worker (broadcast), and a
+    # worker builds the plant with `rebuild(config, data)`: from its own copy of the file when it
+    # has one with the same SHA-256, else from the bytes, written once per machine to the cache
+    # (<cache>/<sha256>.fmu, sep_plant.plants.fmu.archive) and unpacked there once.
     @classmethod
     def from_bytes(cls, data: bytes, **config: Any) -> "FMUPlant":
         """The plant of `config` built from the FMU's bytes, where its file may be absent (a
         Dask worker): the bytes go to the cache as <sha256>.fmu (written once per machine), and
-        `path` is that file. With `path_sha256` in config, other bytes are refused."""
+        `path` is that file. With `path_sha256` in config, other bytes are refused.
+
+        Parameters
+        ----------
+        data : the FMU file's bytes (`fmu_bytes()` of the plant on the client).
+        **config : the plant's keys (`config()`).
+
+        Returns
+        -------
+        The plant, identical to the client's but for `path`.
+        """
         sha = config.get("path_sha256")
         try:
             path = archive.cached_copy(bytes(data), sha)
@@ -340,6 +356,15 @@ class FMUPlant:
     def fmu_bytes(self) -> bytes:
         """The FMU file's bytes (what a worker without the file needs, once)."""
         return Path(self.path).read_bytes()
+
+    @classmethod
+    def rebuild(cls, config: Mapping[str, Any], data: bytes) -> "FMUPlant":
+        """The plant of `config`: from its `path` when that file has the config's SHA-256, else
+        from the FMU's bytes `data` (`from_bytes`)."""
+        path = config.get("path")
+        if path and os.path.isfile(path) and archive.sha256_file(path) == config.get("path_sha256"):
+            return cls(**config)
+        return cls.from_bytes(data, **config)
 
     def __reduce__(self):
         """A plant pickles as its configuration and the FMU's bytes (never its instance)."""
@@ -358,10 +383,7 @@ def _index(sel: Selection, where: dict) -> np.ndarray | None:
 
 
 def _rebuild(config: dict, data: bytes) -> FMUPlant:
-    path = config.get("path")
-    if path and os.path.isfile(path) and archive.sha256_file(path) == config.get("path_sha256"):
-        return FMUPlant(**config)
-    return FMUPlant.from_bytes(data, **config)
+    return FMUPlant.rebuild(config, data)
 
 
 __all__ = ["FMUError", "FMUPlant"]
