@@ -52,6 +52,8 @@ def fmus(tmp_path_factory) -> dict[str, Path]:
         "rod3": fmu_rod.build(d / "rod3.fmu", fmi_version=3),
         "rod40": fmu_rod.build(d / "rod40.fmu", nodes=40),
         "cs_nostate": fmu_rod.build(d / "cs_nostate.fmu", interfaces=("co_simulation",), state=False),
+        "cs_nostate3": fmu_rod.build(d / "cs_nostate3.fmu", interfaces=("co_simulation",), state=False,
+                                     fmi_version=3),
         "me_events": fmu_rod.build(d / "me_events.fmu", interfaces=("model_exchange",), event_indicators=2),
     }
 
@@ -284,14 +286,29 @@ def test_refuses_unsuitable_variables(fmus):
     assert "start_values: T[3] cannot be set" in msg and "start_values: k0: a Real variable needs a number" in msg
 
 
-def test_refuses_a_co_simulation_fmu_without_fmu_state(fmus):
-    msg = refused(fmus["cs_nostate"], inputs=HEATERS)
+@pytest.mark.parametrize("name", ["cs_nostate", "cs_nostate3"], ids=["fmi2", "fmi3"])
+def test_refuses_a_co_simulation_fmu_without_fmu_state(fmus, name):
+    msg = refused(fmus[name], inputs=HEATERS)
     assert "cannot get and set its FMU state" in msg and "cannot serialize its FMU state" in msg
 
 
 def test_refuses_a_model_exchange_fmu_with_event_indicators(fmus):
     msg = refused(fmus["me_events"], inputs=HEATERS)
     assert "2 event indicator(s)" in msg and "co_simulation" in msg
+
+
+def test_refuses_inputs_that_cannot_be_set_per_stage(fmus, tmp_path):
+    once = rewrite(fmus["rod"], tmp_path / "once.fmu", lambda t: t.replace(
+        'name="heater_2" valueReference', 'name="heater_2" canHandleMultipleSetPerTimeInstant="false" valueReference'))
+    assert "input heater_2 cannot be set several times per time instant" in refused(once, **ME)
+    fmu(once, **CS)                                                     # Co-Simulation sets it once per step
+
+
+def test_a_closed_plant_reopens(fmus):
+    plant = fmu(fmus["rod"], **ME)
+    X = plant.step(plant.initial_state(1), np.full(3, 0.3))
+    plant.close()
+    assert np.array_equal(plant.step(plant.initial_state(1), np.full(3, 0.3)), X)
 
 
 def test_refuses_an_interface_it_does_not_have(fmus):

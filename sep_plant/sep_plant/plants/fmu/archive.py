@@ -46,7 +46,7 @@ def cache_dir() -> Path:
         except Exception:  # noqa: BLE001 - no user name (containers): the uid will do
             user = str(os.getuid()) if hasattr(os, "getuid") else "user"
         root = Path(tempfile.gettempdir()) / f"sep-fmu-{user}"
-    root.mkdir(parents=True, exist_ok=True)
+    root.mkdir(mode=0o700, parents=True, exist_ok=True)
     return root
 
 
@@ -77,14 +77,19 @@ def archive_problems(path: Path) -> list[str]:
     return out
 
 
-def unpacked(path: Path, sha256: str) -> Path:
+def unpacked(path: Path, sha256: str, required: tuple[str, ...] = ()) -> Path:
     """The folder holding the unpacked FMU of content `sha256` (unpacked on first use; the
     unpacking goes to a temporary folder renamed into place, so concurrent processes never
-    see half an FMU)."""
+    see half an FMU). A copy that lacks a `required` member (e.g. the binary) is unpacked anew."""
+    import shutil
+
     root = cache_dir()
     target = root / sha256
-    if (target / "modelDescription.xml").is_file():
+    members = ("modelDescription.xml",) + tuple(required)
+    if all((target / m).is_file() for m in members):
         return target
+    if target.exists():
+        shutil.rmtree(target, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{sha256[:12]}-", dir=root))
     try:
         with zipfile.ZipFile(path) as zf:
@@ -98,10 +103,8 @@ def unpacked(path: Path, sha256: str) -> Path:
             pass
     finally:
         if tmp.exists():
-            import shutil
-
             shutil.rmtree(tmp, ignore_errors=True)
-    if not (target / "modelDescription.xml").is_file():
+    if not all((target / m).is_file() for m in members):
         raise OSError(f"could not unpack {path} into {target}")
     return target
 

@@ -62,8 +62,9 @@ def platform_binary(version: int, model_identifier: str) -> str:
 class Description:
     """A model description and the problems found in it (see the module docstring)."""
 
-    def __init__(self, md: Any, members: set[str]):
+    def __init__(self, md: Any, members: set[str], single_set: frozenset[str] = frozenset()):
         self.md = md
+        self.single_set = single_set     # variables with canHandleMultipleSetPerTimeInstant = false
         self.version = _major(md.fmiVersion)
         self.problems: list[str] = []
         self.by_name = {v.name: v for v in md.modelVariables}
@@ -226,6 +227,14 @@ class Description:
         return [v.name for v in self.md.modelVariables if v.causality == "output" and v.type in REAL_TYPES
                 and _size(v) == 1]
 
+    def check_multiple_set(self, inputs: Selection) -> None:
+        """Model Exchange: sep sets every input once per run and RK4 stage at one time instant."""
+        for name in inputs.names:
+            if name in self.single_set:
+                self.problems.append(f"input {name} cannot be set several times per time instant "
+                                     "(canHandleMultipleSetPerTimeInstant = false): sep sets it for every run "
+                                     "and RK4 stage; use the Co-Simulation interface")
+
     def check_feedthrough(self, outputs: Selection, inputs: Sequence[int]) -> None:
         """Refuse outputs that the model structure declares to depend directly on a driven input:
         sep's outputs are y = h(x)."""
@@ -304,17 +313,23 @@ def _value_problem(v: Any, value: Any) -> str | None:
     return None
 
 
-def _sniff_version(path: Path) -> str | None:
-    """The fmiVersion attribute of the root element (None when the XML does not parse)."""
+def _sniff(path: Path) -> tuple[str | None, frozenset[str]]:
+    """The fmiVersion attribute of the root element and the variables that declare
+    canHandleMultipleSetPerTimeInstant = false (which fmpy does not read); (None, {}) when the
+    XML does not parse (fmpy then says why)."""
     import xml.etree.ElementTree as ET
 
+    version, single = None, set()
     try:
         with zipfile.ZipFile(path) as zf, zf.open("modelDescription.xml") as fh:
             for _, elem in ET.iterparse(fh, events=("start",)):
-                return elem.get("fmiVersion")
+                if version is None:
+                    version = elem.get("fmiVersion") or ""
+                if elem.get("canHandleMultipleSetPerTimeInstant") in ("false", "0") and elem.get("name"):
+                    single.add(elem.get("name"))
     except (ET.ParseError, KeyError, OSError, zipfile.BadZipFile):
-        return None
-    return None
+        return version or None, frozenset()
+    return version or None, frozenset(single)
 
 
 def describe(path: Path) -> Description:
@@ -326,7 +341,7 @@ def describe(path: Path) -> Description:
     """
     from fmpy import read_model_description
 
-    version = _sniff_version(path)
+    version, single_set = _sniff(path)
     if version is not None and _major(version) not in (2, 3):
         raise ValueError(f"FMI version {version!r} is not supported (sep reads FMI 2.0 and 3.0)")
     try:
@@ -336,7 +351,7 @@ def describe(path: Path) -> Description:
         raise ValueError(f"modelDescription.xml cannot be read: {type(exc).__name__}: {text}") from None
     with zipfile.ZipFile(path) as zf:
         members = set(zf.namelist())
-    return Description(md, members)
+    return Description(md, members, single_set)
 
 
 __all__ = ["Description", "INTERFACES", "REAL_TYPES", "Selection", "describe", "platform_binary"]

@@ -42,7 +42,7 @@ from sep_plant.plants import keys
 from sep_plant.plants.fmu import archive, layout
 from sep_plant.plants.fmu.binding import FMICallError, open_instance
 from sep_plant.plants.fmu.cosim import HEADER, CoSimStepper
-from sep_plant.plants.fmu.description import Description, Selection, describe
+from sep_plant.plants.fmu.description import Description, Selection, describe, platform_binary
 from sep_plant.plants.fmu.exchange import ExchangeStepper
 
 INTERFACE_KEYS = ("auto", "model_exchange", "co_simulation")
@@ -166,6 +166,9 @@ class FMUPlant:
         self._start_pairs = desc.check_start_values(self.start_values)
         if self._out is not None and self._in is not None:
             desc.check_feedthrough(self._out, list(self._in.refs) + list(noise.refs if noise else ()))
+        for driven in (self._in, noise):
+            if me and driven is not None:
+                desc.check_multiple_set(driven)
         self.dt = self._number(desc, "dt", dt, desc.default_experiment("stepSize"), positive=True)
         self.start_time = self._number(desc, "start_time", start_time, desc.default_experiment("startTime") or 0.0)
         if desc.problems:
@@ -219,7 +222,9 @@ class FMUPlant:
     def _open(self) -> None:
         """Unpack (once per content), instantiate and initialize; the steppers and x0."""
         try:
-            folder = archive.unpacked(Path(self.path), self.path_sha256)
+            attrs = self._md.modelExchange if self.interface == "model_exchange" else self._md.coSimulation
+            member = platform_binary(int(str(self._md.fmiVersion).split(".")[0]), attrs.modelIdentifier)
+            folder = archive.unpacked(Path(self.path), self.path_sha256, required=(member,))
             binding = open_instance(folder, self._md, self.interface, self._start_pairs, self.start_time, self.path)
         except ImportError:
             raise self._error([FMPY_HINT]) from None
@@ -246,12 +251,13 @@ class FMUPlant:
             raise self._error(["its initial state is not finite"])
 
     def _ready(self) -> None:
-        """A process that inherited this plant by fork opens its own instance."""
-        if self._pid != os.getpid():
+        """A process that inherited this plant by fork, or a closed plant, opens an instance."""
+        if self._pid != os.getpid() or not self._finalizer.alive:
             self._open()
 
     def close(self) -> None:
-        """Free the FMU instance now (it is freed when the plant is garbage-collected anyway)."""
+        """Free the FMU instance now (it is freed when the plant is garbage-collected anyway; a
+        closed plant opens a new one when it is used again)."""
         self._finalizer()
 
     # ------------------------------------------------------------------ protocol
