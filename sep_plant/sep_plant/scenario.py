@@ -128,10 +128,20 @@ class Scenario:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str = "scenario", canonical: bool = True,
                   base_dir: str | Path | None = None) -> "Scenario":
-        """Parse a scenario mapping (current or flat sep 0.1 format). With `canonical`, build the
-        plant to check it and store its complete configuration. `base_dir`: the folder that
-        relative file keys of the plant (its class's `path_keys`) are relative to (the scenario
-        file's; None leaves them as they are)."""
+        """Parse a scenario mapping (current or flat sep 0.1 format).
+
+        Parameters
+        ----------
+        data : the scenario's keys.
+        source : what to name in error messages (the file).
+        canonical : build the plant to check it and store its complete configuration.
+        base_dir : the folder that relative file keys of the plant (its class's `path_keys`)
+            are relative to (the scenario file's); None leaves them as they are.
+
+        Returns
+        -------
+        The scenario; `ScenarioError` naming the key when a value is wrong.
+        """
         if not isinstance(data, Mapping):
             raise ScenarioError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
         data = dict(data)

@@ -16,6 +16,7 @@ Pure Python: no ROS import (fmpy is imported when an FMU is read).
 """
 from __future__ import annotations
 
+import itertools
 import re
 import zipfile
 from dataclasses import dataclass, field
@@ -129,10 +130,7 @@ class Description:
                 self.problems.append(f"derivative {der.name} names no state variable")
                 continue
             states.append(der.derivative)
-        return self._selection([s.name for s in states], [s for s in states])
-
-    def derivative_refs(self) -> list[int]:
-        return [u.variable.valueReference for u in self.md.derivatives]
+        return self._selection([s.name for s in states], states)
 
     def select(self, key: str, names: str | Sequence[str], *, real: bool = True, scalar: bool = False,
                causality: tuple[str, ...] | None = None) -> Selection | None:
@@ -146,14 +144,12 @@ class Description:
                 return None
             label = [names] if var is not None else [v.name for v in found]
         else:
-            found, label = [], []
             missing = [n for n in names if n not in self.by_name]
             for n in missing:
                 self.problems.append(f"{key}: the FMU has no variable {n!r}{self._hint(n)}")
             if missing:
                 return None
-            found = [self.by_name[n] for n in names]
-            label = list(names)
+            found, label = [self.by_name[n] for n in names], list(names)
         ok = True
         for v in found:
             if real and v.type not in REAL_TYPES:
@@ -184,28 +180,25 @@ class Description:
         return Selection(tuple(names), tuple(v.valueReference for v in found), tuple(_size(v) for v in found),
                          shape, tuple(elements))
 
-    def _array_elements(self, base: str) -> list[Any]:
+    def _indexed(self, base: str) -> list[tuple[tuple[int, ...], Any]]:
+        """(indices, variable) of the elements base[i], base[i,j], ... sorted in C order."""
         pat = re.compile(rf"^{re.escape(base)}\[(\d+(?:,\s*\d+)*)\]$")
-        hits = []
-        for v in self.md.modelVariables:
-            m = pat.match(v.name)
-            if m:
-                hits.append((tuple(int(i) for i in m.group(1).split(",")), v))
-        hits.sort(key=lambda h: h[0])
-        return [v for _, v in hits]
+        hits = [(tuple(int(i) for i in m.group(1).split(",")), v)
+                for v, m in ((v, pat.match(v.name)) for v in self.md.modelVariables) if m]
+        return sorted(hits, key=lambda h: h[0])
+
+    def _array_elements(self, base: str) -> list[Any]:
+        return [v for _, v in self._indexed(base)]
 
     def _array_shape(self, base: str) -> tuple[int, ...] | None:
-        """The box of an FMI 2.0 structured array's indices; a problem when they leave gaps."""
-        pat = re.compile(rf"^{re.escape(base)}\[(\d+(?:,\s*\d+)*)\]$")
-        idx = sorted(tuple(int(i) for i in m.group(1).split(","))
-                     for m in (pat.match(v.name) for v in self.md.modelVariables) if m)
+        """The box of an FMI 2.0 structured array's indices (None for one axis); a problem when
+        they leave gaps."""
+        idx = [i for i, _ in self._indexed(base)]
         dims = {len(i) for i in idx}
         if len(dims) != 1:
             self.problems.append(f"array {base}: its elements mix {sorted(dims)} indices")
             return None
         shape = tuple(max(i[a] for i in idx) for a in range(dims.pop()))
-        import itertools
-
         full = list(itertools.product(*[range(1, s + 1) for s in shape]))
         if idx != full:
             self.problems.append(f"array {base}: its elements do not fill 1..{list(shape)} (found {len(idx)} of "

@@ -65,7 +65,30 @@ def _names(key: str, value: Any, *, allow_none: bool = True) -> list[str] | None
 
 
 class FMUPlant:
-    """An FMU as a plant of the plant protocol (see the module docstring for the keys)."""
+    """An FMU as a plant of the plant protocol (sep_plant.protocol).
+
+    Parameters
+    ----------
+    path : the .fmu file (absolute, or relative to the working directory; a scenario makes it
+        relative to the scenario file).
+    dt : plant step [s]; default the FMU's DefaultExperiment stepSize.
+    inputs, outputs : FMU variable names of u and y (Real scalars); defaults: every Real input
+        (not in `noise_inputs`) and every Real output.
+    field : an array's name or a list of variable names; default the states (Model Exchange)
+        or the outputs (Co-Simulation).
+    field_coordinates, grid_shape : where the field's nodes are (`sep_plant.plants.fmu.layout`).
+    field_name, field_unit : defaults: the array's name (else "value") and its declared unit.
+    start_values : {name: value} set before initialization (parameters, start values).
+    noise_inputs : input variables that take the process noise w; default None: w adds to u.
+    interface : "auto" (Model Exchange if present), "model_exchange" or "co_simulation".
+    substeps : RK4 steps per dt (Model Exchange only; default 1).
+    start_time : default the DefaultExperiment startTime, else 0.
+    path_sha256 : the SHA-256 the file must have (config() fills it in).
+
+    Raises
+    ------
+    FMUError (a PlantConfigError) naming the FMU and every problem found.
+    """
 
     #: constructor keys that are file paths (a scenario resolves them relative to its folder)
     path_keys = ("path",)
