@@ -54,7 +54,15 @@ class Binding:
         label = {2: "discard", 3: "error", 4: "fatal"}.get(status or 0, "failure")
         return FMICallError(f"FMU {self.label}: {what} failed" + (f" (status {status}, {label})" if status else ""))
 
-    def close(self) -> None:
+    def close(self, states: Sequence[c_void_p] = ()) -> None:
+        """Free the FMU states `states` (of get/deserialize FMU state), then the instance."""
+        free = "fmi2FreeFMUstate" if self.version == 2 else "fmi3FreeFMUState"
+        for handle in states:
+            if handle.value:
+                try:
+                    self.raw(free)(self.c, byref(handle))
+                except Exception:  # noqa: BLE001 - best effort at exit
+                    pass
         try:
             self.fmu.terminate()
         except Exception:  # noqa: BLE001 - best effort at exit

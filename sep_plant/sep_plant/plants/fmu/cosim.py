@@ -107,6 +107,11 @@ class CoSimStepper:
     def n_x(self) -> int:
         return HEADER + self.n_read + self.width
 
+    @property
+    def fmu_states(self) -> tuple[c_void_p, c_void_p]:
+        """The two FMU state objects this stepper reuses (to free with the instance)."""
+        return self._in_state, self._out_state
+
     def workspace(self, M: int) -> Workspace:
         ws = self._spaces.pop(M, None) or Workspace(self, M)
         self._spaces[M] = ws

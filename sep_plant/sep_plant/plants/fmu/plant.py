@@ -254,18 +254,23 @@ class FMUPlant:
         except (OSError, FMICallError) as exc:
             raise self._error([str(exc).replace(f"FMU {self.path}: ", "")]) from None
         self._binding, self._pid = binding, os.getpid()
-        self._finalizer = weakref.finalize(self, binding.close)
         in_refs = list(self._in.refs) + (list(self._noise.refs) if self._noise else [])
+        if self.interface == "model_exchange":
+            self.n_x = self._states.n
+            # fmpy reads FMI 2.0's completedIntegratorStepNotNeeded into this flag too
+            needs = bool(getattr(self._md.modelExchange, "needsCompletedIntegratorStep", False))
+            self._stepper = ExchangeStepper(binding, self.n_x, in_refs, self.dt, self.substeps, needs)
+            states = ()
+        else:
+            reads = list(self._out.refs) + list(self._field.refs)
+            self._stepper = CoSimStepper(binding, in_refs, reads, self.n_y + self.n_field, self.dt)
+            states = self._stepper.fmu_states
+        # the instance and its FMU states are freed when the plant goes (or on close())
+        self._finalizer = weakref.finalize(self, binding.close, states)
         try:
             if self.interface == "model_exchange":
-                self.n_x = self._states.n
-                # fmpy reads FMI 2.0's completedIntegratorStepNotNeeded into this flag too
-                needs = bool(getattr(self._md.modelExchange, "needsCompletedIntegratorStep", False))
-                self._stepper = ExchangeStepper(binding, self.n_x, in_refs, self.dt, self.substeps, needs)
                 self._x0 = binding.continuous_states(self.n_x)[None, :]
             else:
-                reads = list(self._out.refs) + list(self._field.refs)
-                self._stepper = CoSimStepper(binding, in_refs, reads, self.n_y + self.n_field, self.dt)
                 self._x0 = self._stepper.initial_row(self.start_time)
                 self.n_x = self._stepper.n_x
         except FMICallError as exc:
