@@ -9,6 +9,8 @@
 #   make bench   run every bench/*.py with the venv python (bench_scale.py as --quick)
 #   make bench-scale  bench/bench_scale.py: the scaling table across plants and grids (long;
 #                BENCH_SCALE_ARGS=--quick for the small rows)
+#   make fmu-rod build the example FMU examples/fmu_rod/rod.fmu from its C source (needs cc/gcc;
+#                FMU_ROD_ARGS are passed to build_fmu.py, e.g. --fmi-version 3)
 #   make clean   remove build/test/demo outputs and the venv's `sep` (keeps .venv;
 #                `make distclean` removes it too)
 #
@@ -53,7 +55,7 @@ SRC_PYTHONPATH := $(subst $(space),:,$(addprefix $(ROOT)/,$(PACKAGES)))
 COLCON_BUILD := PYTHONDONTWRITEBYTECODE= $(COLCON) --log-base $(WS)/log build \
 	--base-paths $(WS)/src --build-base $(WS)/build --install-base $(WS)/install
 
-.PHONY: all venv check-python build test demo bench bench-scale clean distclean
+.PHONY: all venv check-python build test demo bench bench-scale fmu-rod clean distclean
 
 all: build
 
@@ -132,6 +134,9 @@ bench: venv
 bench-scale: venv
 	cd "$(ROOT)" && OPENBLAS_NUM_THREADS=1 PYTHONPATH="$(SRC_PYTHONPATH)$${PYTHONPATH:+:$$PYTHONPATH}" \
 	  "$(PY)" bench/bench_scale.py $(BENCH_SCALE_ARGS)
+
+fmu-rod: venv
+	cd "$(ROOT)" && "$(PY)" examples/fmu_rod/build_fmu.py --out examples/fmu_rod/rod.fmu $(FMU_ROD_ARGS)
 
 clean:
 	rm -rf "$(WS)/build" "$(WS)/install" "$(WS)/log" "$(ROOT)/out" "$(ROOT)/.pytest_cache"

@@ -19,6 +19,15 @@ parallel cyclic reduction, the GPU's solver, here on the CPU).
 experiments' N n_u runs, a TV-ERA chunk's runs) stepped in one piece and in blocks of 2^15 to
 2^20 nodes (`sep_plant.plants.blocks`; the default block is marked), side by side in one run.
 
+FMU plants (sep_plant.plants.fmu): the example rod (examples/fmu_rod, 50 nodes, 3 heaters, RK4
+with 4 substeps per dt) is built from C source (needs a C compiler; skipped without one) and
+stepped as a Model Exchange FMU by sep and as a Co-Simulation FMU by itself, FMI 2.0 and 3.0,
+next to the same rod as a native numpy plant (tests/fmu_rod.py). "FMU calls alone" is the floor:
+the same C calls in a tight loop with the same prebuilt arguments (ME: set states, set inputs,
+get derivatives per run and RK4 stage; CS: deserialize, set state, set inputs, do step, get
+outputs, get state, size, serialize per run); "doStep alone" is the FMU's own integration in C.
+--only-fmu prints this table alone.
+
 --device cuda adds a table of batched steps on a GPU (CuPy, `sep_plant.device`) against one CPU
 core, side by side in one run, up to 10^6 states: the device step with the state's round trip
 over the bus (what `--device cuda` does), the step of a state resident on the device, and the
@@ -26,11 +35,17 @@ largest difference from the CPU step (relative to the field's change in the step
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_plants.py [--solvers] [--blocks] [--horizon 10] [--repeats 5]
     python bench/bench_plants.py --only-device --device cuda                 # on a machine with a GPU
+    python bench/bench_plants.py --only-fmu                                  # the FMU plants alone
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import sys
+import tempfile
 import time
+from ctypes import byref, c_size_t
+from pathlib import Path
 
 import numpy as np
 
@@ -83,6 +98,178 @@ def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> 
             plant.step(X, U)
         best = min(best, (time.perf_counter() - t0) / reps)
     return best / (batch * plant.n_x) * 1e9
+
+
+ROOT = Path(__file__).resolve().parent.parent
+FMU_BATCHES = (1, 64, 400)
+
+
+def best_seconds(fn, repeats: int, budget_s: float = 0.3) -> float:
+    """Best-of-`repeats` seconds of one call of fn()."""
+    fn()
+    t0 = time.perf_counter()
+    fn()
+    reps = max(1, int(budget_s / max(time.perf_counter() - t0, 1e-6) / repeats))
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / reps)
+    return best
+
+
+def me_floor(plant, X: np.ndarray, U: np.ndarray):
+    """The C calls of one Model Exchange step of the batch, alone: per RK4 stage and run, set
+    states, set inputs, get derivatives (the stepper's prebuilt arguments, no arithmetic)."""
+    st = plant._stepper
+    ws = st.workspace(X.shape[0])
+    ws.T[...], ws.V[...] = X, U
+    b = st.b
+    sx, sv, gd = b.set_states, b.set_reals, b.get_derivatives
+    stages = 4 * st.substeps
+
+    def run():
+        for _ in range(stages):
+            for a, v, d in zip(ws.on_T, ws.inputs, ws.into_K[0]):
+                sx(*a)
+                sv(*v)
+                gd(*d)
+
+    def run_shared():                                # one input row: set once per step, as sep does
+        sv(*ws.inputs[0])
+        for _ in range(stages):
+            for a, d in zip(ws.on_T, ws.into_K[0]):
+                sx(*a)
+                gd(*d)
+    return run_shared if U.shape[0] == 1 else run
+
+
+def cs_floor(plant, X: np.ndarray, U: np.ndarray):
+    """The C calls of one Co-Simulation step of the batch, alone (the stepper's prebuilt
+    arguments; no checks, no checksums, no encoding)."""
+    st = plant._stepper
+    b = st.b
+    M = X.shape[0]
+    ws = st.workspace(M)
+    raw, sizes = st._unpack(X)
+    ws.raw[...], ws.V[...] = raw, U
+    for m in range(M):
+        ws.sizes[m].value, ws.times[m].value = int(sizes[m]), X[m, 2]
+    h_in = st._in_state
+
+    def run():
+        for m in range(M):
+            b.deserialize(*ws.load[m])
+            b.set_state(b.c, h_in)
+            b.set_reals(*ws.inputs[m])
+            b.do_step(*ws.steps[m])
+            b.get_reals(*ws.outs[m])
+            b.get_state(*ws.get_state)
+            b.state_size(*ws.size_of)
+            b.serialize(*ws.save[m])
+    return run
+
+
+def do_step_alone(plant, M: int):
+    """M fmiDoStep calls of the FMU's own RK4 from one state (its integration in C)."""
+    from ctypes import c_double, c_void_p
+
+    st = plant._stepper
+    b = st.b
+    X0 = plant.initial_state(1)
+    raw, sizes = st._unpack(X0)
+    load = (b.c, c_void_p(raw.ctypes.data), c_size_t(int(sizes[0])), byref(st._in_state))
+    t = c_double(0.0)
+    args = b.step_args(t, st._h)
+
+    def run():                                       # from the initial state (other calls move the FMU)
+        status = b.deserialize(*load) | b.set_state(b.c, st._in_state)
+        t.value = X0[0, 2]
+        for _ in range(M):
+            status |= b.do_step(*args)
+            t.value += st.dt
+        assert status <= 1, "fmiDoStep failed"
+        assert raw is not None
+    return run
+
+
+def alternating(fns: list, repeats: int, rounds: int = 3) -> list[float]:
+    """Best seconds of each function, measured in alternating rounds (a shared machine's load
+    then hits them alike)."""
+    best = [np.inf] * len(fns)
+    for _ in range(rounds):
+        for i, fn in enumerate(fns):
+            best[i] = min(best[i], best_seconds(fn, repeats, budget_s=0.15))
+    return best
+
+
+def fmu_plants(tmp: Path):
+    """(label, plant, floor) of the native rod and the rod FMU (FMI 2.0 and 3.0, ME and CS),
+    built into `tmp`; None without a C compiler."""
+    spec = importlib.util.spec_from_file_location("sep_example_build_fmu", ROOT / "examples" / "fmu_rod" / "build_fmu.py")
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    if build.compiler() is None:
+        return None
+    sys.path.insert(0, str(ROOT / "tests"))
+    from fmu_rod import RodPlant
+
+    keys = {"inputs": ["heater_1", "heater_2", "heater_3"], "field": "T"}
+    plants = [("native rod (numpy RK4)", RodPlant(), None)]
+    for v in (2, 3):
+        path = str(build.build_fmu(tmp / f"rod{v}.fmu", fmi_version=v))
+        plants.append((f"FMI {v}.0 ME (sep RK4)", make_plant("fmu", {"path": path, **keys, "substeps": 4}), me_floor))
+        plants.append((f"FMI {v}.0 CS (FMU RK4)", make_plant("fmu", {"path": path, **keys, "interface": "co_simulation"}),
+                       cs_floor))
+    return plants
+
+
+def fmu_row(label: str, p, floor, M: int, U: np.ndarray, repeats: int) -> tuple[list[str], tuple]:
+    """One row: sep's step, the same FMU calls alone, doStep alone (CS) [s per batch step]."""
+    opaque = getattr(p, "state_is_opaque", False)
+    X = p.initial_state(M)
+    X = p.step(X, U) if opaque else X
+    fns = [lambda: p.step(X, U)] + ([floor(p, X, U)] if floor else []) + ([do_step_alone(p, M)] if opaque else [])
+    t = alternating(fns, repeats) + [None, None]
+    ns = [None if v is None else f"{v / (M * 50) * 1e9:.0f}" for v in t]
+    row = [label, str(p.n_x), str(M), f"{t[0] / M * 1e6:.1f}", ns[0], ns[1] or "-",
+           f"{t[0] / t[1]:.2f}x" if t[1] else "-", ns[2] or "-"]
+    return row, (label, t[0] / M, None if t[1] is None else t[1] / M, None if t[2] is None else t[2] / M)
+
+
+def fmu_table(repeats: int) -> None:
+    """Cost of the FMU plants next to the native rod and their floors (module docstring)."""
+    rows, where = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        plants = fmu_plants(Path(tmp))
+        if plants is None:
+            print("\nFMU plants: skipped (no C compiler to build examples/fmu_rod)")
+            return
+        rng = np.random.default_rng(0)
+        for M in FMU_BATCHES:
+            U = 0.3 + 0.05 * rng.standard_normal((M, 3))
+            for label, p, floor in plants:
+                row, times = fmu_row(label, p, floor, M, U, repeats)
+                rows.append(row)
+                if M == 64 and floor is not None:
+                    where.append(times)
+            print(f"FMU table: M = {M} done", file=sys.stderr, flush=True)
+    print_table(f"FMU plants: the example rod (50 nodes, dt 0.25 s, RK4 4 substeps) [best of {repeats}; one core]; "
+                "floor = the same FMU calls alone in a tight loop",
+                ["plant", "n_x", "M", "us/run-step", "ns/node-step", "FMU calls alone (floor)", "sep / floor",
+                 "doStep alone"], rows)
+    c_eval = next((c / 16 for *_, c in where if c is not None), None)   # 4 substeps x 4 stages per doStep
+    for label, sep, floor, c in where:
+        if c is not None:
+            print(f"  {label}, M = 64, per run-step: {sep * 1e6:.1f} us = the FMU's own RK4 in C {c * 1e6:.1f} us "
+                  f"+ ctypes overhead of its 8 FMI calls {(floor - c) * 1e6:.1f} us + sep's Python/numpy "
+                  f"(checksums, encoding) {(sep - floor) * 1e6:.1f} us")
+        elif c_eval is not None:
+            over = floor - 16 * c_eval
+            print(f"  {label}, M = 64, per run-step: {sep * 1e6:.1f} us = 16 derivative evaluations in C "
+                  f"~{16 * c_eval * 1e6:.1f} us + ctypes overhead of 48 FMI calls ~{over * 1e6:.1f} us "
+                  f"({over / 48 * 1e9:.0f} ns per call) + sep's RK4 arithmetic (numpy) {(sep - floor) * 1e6:.1f} us")
 
 
 def device_row(label: str, kind: str, cfg: dict, batch: int, xp, repeats: int) -> list[str]:
@@ -180,7 +367,11 @@ def main() -> None:
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                     help="cuda: also the table of batched steps on the GPU (CuPy)")
     ap.add_argument("--only-device", action="store_true", help="the device table alone")
+    ap.add_argument("--only-fmu", action="store_true", help="the FMU plants' table alone")
     args = ap.parse_args()
+    if args.only_fmu:
+        fmu_table(args.repeats)
+        return
     args.blocks = args.blocks or args.only_blocks
     if args.only_device and args.device == "cpu":
         ap.error("--only-device needs --device cuda")
@@ -235,6 +426,9 @@ def main() -> None:
         print_table(f"Batch in blocks [ns per node-step; (speed-up over one piece)]; default block 2^{default} nodes",
                     ["plant", "n_x", "runs", "one piece"]
                     + [f"2^{k}{' (default)' if k == default else ''}" for k in BLOCK_SIZES], rows)
+
+    if not args.only_blocks:
+        fmu_table(args.repeats)
 
     if args.device != "cpu":
         xp = array_module(args.device)

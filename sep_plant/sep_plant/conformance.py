@@ -11,6 +11,10 @@ batch and raises `PlantError` listing every problem found, each naming what to f
   and noise, whose batch differs from its runs stepped one by one, or (noise on the inputs)
   where step(x, u, w) differs from step(x, u + w).
 
+A plant whose states are opaque (`state_is_opaque`, e.g. a Co-Simulation FMU's serialized
+state) is compared by what its states do, never by their values: two states are the same when
+they give the same outputs and field now and after one more step under the same input.
+
 The design, evaluate, validate and the plant node call it first. Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -92,6 +96,24 @@ def _close(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.max(np.abs(a - b)) <= RTOL * scale)
 
 
+def _same(plant: Any, A: np.ndarray, B: np.ndarray, U: np.ndarray, out: list[str], exact: bool = False) -> bool:
+    """A and B hold the same states: equal (`exact`) or close. Opaque states: the same outputs
+    and field now and after one more step under the inputs U (see the module docstring)."""
+    if getattr(plant, "state_is_opaque", False):
+        A, B = _signature(plant, A, U, out), _signature(plant, B, U, out)
+    return bool(np.array_equal(A, B)) if exact else _close(A, B)
+
+
+def _signature(plant: Any, X: np.ndarray, U: np.ndarray, out: list[str]) -> np.ndarray:
+    """What opaque states do: outputs and field of X and of one step from X under U, per run."""
+    M = X.shape[0]
+    nxt = _array(out, "step() of opaque states", _call(out, "step()", plant.step, X.copy(), U.copy(), None),
+                 X.shape)
+    parts = [_call(out, "observe()", plant.observe, X), _call(out, "field()", plant.field, X),
+             _call(out, "observe()", plant.observe, nxt), _call(out, "field()", plant.field, nxt)]
+    return np.hstack([np.asarray(p, dtype=float).reshape(M, -1) for p in parts])
+
+
 def _describe(plant: Any, out: list[str]) -> None:
     missing = [a for a in REQUIRED_ATTRIBUTES if not hasattr(plant, a)]
     missing += [f"{m}()" for m in REQUIRED_METHODS if not callable(getattr(plant, m, None))]
@@ -139,6 +161,8 @@ def _describe(plant: Any, out: list[str]) -> None:
         out.append(f"n_w must be a positive integer, got {n_w!r}")
     if getattr(plant, "field_is_state", False) and plant.n_field != plant.n_x:
         out.append(f"field_is_state is true but n_field = {plant.n_field} != n_x = {plant.n_x}")
+    if getattr(plant, "field_is_state", False) and getattr(plant, "state_is_opaque", False):
+        out.append("field_is_state and state_is_opaque are both true: an opaque state cannot be the field")
     if out:
         raise _Abort
 
@@ -197,19 +221,19 @@ def _check(plant: Any, u: np.ndarray | None, batch: int, steps: int, out: list[s
                    "experiments from; return a new array")
         X = X_before
     X2 = _call(out, "step()", plant.step, X.copy(), U.copy(), W.copy())
-    if not np.array_equal(X1, X2):
+    if not _same(plant, X1, X2, U, out, exact=True):
         out.append("step() is not deterministic: the same state, input and noise gave different results "
                    "(every random number must come in through w)")
     rows = [_call(out, "step()", plant.step, X[i:i + 1].copy(), U[i:i + 1].copy(), W[i:i + 1].copy())
             for i in range(batch)]
     if all(isinstance(r, np.ndarray) and r.shape == (1, n_x) for r in rows):
-        if not _close(np.vstack(rows), X1):
+        if not _same(plant, np.vstack(rows), X1, U, out):
             out.append("step() of a batch differs from its runs stepped one by one (runs must not interact)")
     else:
         out.append(f"step() of one run (batch 1) must return shape (1, {n_x})")
     if getattr(plant, "noise_on_inputs", True) and n_w == n_u:
         Xn = _call(out, "step()", plant.step, X.copy(), U + W, None)
-        if not (isinstance(Xn, np.ndarray) and Xn.shape == X1.shape and _close(Xn, X1)):
+        if not (isinstance(Xn, np.ndarray) and Xn.shape == X1.shape and _same(plant, Xn, X1, U, out)):
             out.append("noise_on_inputs is true but step(x, u, w) differs from step(x, u + w): declare "
                        "noise_on_inputs = False, or add w to the inputs")
     Xb = _call(out, "step()", plant.step, X.copy(), U[0].copy(), None)

@@ -45,12 +45,33 @@ Optional attributes (defaults in brackets)::
                                             GPU module (CuPy) and returns that module's arrays,
                                             never converting to numpy: `--device cuda` may step
                                             it on a GPU (`sep_plant.device`)
+    state_is_opaque  bool  [False]          states are copied and restarted but no arithmetic is
+                                            done on them: a state row is data only the plant
+                                            understands (a Co-Simulation FMU's serialized
+                                            state). Rows must still be finite float64 of length
+                                            n_x. sep then compares states by their outputs,
+                                            never by value, and cannot use methods that do
+                                            arithmetic on states (the EnKF belief, the
+                                            full-order oracle)
+    path_keys        tuple [()]             constructor keys that are file paths: a scenario
+                                            resolves them relative to the scenario file's folder
+
+Optional method::
+
+    source_files() -> dict[str, str]          the files the plant's behaviour depends on, label ->
+                                              absolute path (e.g. {"fmu": "/.../rod.fmu"}): the
+                                              design file records their SHA-256 and refuses
+                                              another file. Such a plant also reports each file
+                                              in config() under a key K with its SHA-256 under
+                                              K_sha256, so that scenarios compare files by
+                                              content, not by path (`sep_plant.scenario`)
 
 State arrays must be copyable and restartable: a state is a float64 array; sep copies rows of
 it (nominal snapshots) and later starts experiments from those copies, so `step` must depend on
 nothing but its arguments (no hidden internal state, no random numbers of its own: every
 random number comes in through `w`). A batch must give the same result as its runs stepped one
 by one. `check_plant` (module `sep_plant.conformance`) tests all of this before any design work.
+Plants need not be written in Python: `sep_plant.plants.fmu` runs an FMU (FMI 2.0/3.0) as one.
 """
 from __future__ import annotations
 

@@ -23,6 +23,12 @@ Unknown keys and out-of-range values are refused with a `ScenarioError` that nam
 problem fits it (vector lengths, target), and stores the plant's complete configuration, so
 two scenarios that mean the same plant compare equal. Scenarios read from JSON (a design file,
 the scenario topic, a bag) are plain data: nothing is imported until `plant` is asked for.
+
+Files. A plant key that names a file (one the plant class lists in its `path_keys`, e.g. the
+fmu plant's ``path``) is resolved relative to the scenario file's folder when it is relative.
+A plant that reads a file reports it in its configuration by absolute path under a key K and
+the file's SHA-256 under ``K_sha256``; scenarios compare such a file by its SHA-256, not its
+path (the same FMU in two folders is the same plant, another FMU under the same name is not).
 Pure Python/numpy: no ROS import.
 """
 from __future__ import annotations
@@ -30,13 +36,14 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-from sep_plant.plants import PlantConfigError, PlantTypeError, make_plant
+from sep_plant.plants import PlantConfigError, PlantTypeError, make_plant, resolve
 from sep_plant.problem import Problem, ProblemError, decode_inf
 from sep_plant.protocol import PlantInfo, noise_channels
 
@@ -126,10 +133,23 @@ class Scenario:
         return hash(self.to_json())
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], source: str = "scenario", canonical: bool = True) -> "Scenario":
+    def from_dict(cls, data: Mapping[str, Any], source: str = "scenario", canonical: bool = True,
+                  base_dir: str | Path | None = None) -> "Scenario":
         """Parse a scenario mapping (current or flat sep 0.1 format; no `plant:` and no flat-only
-        key: the default plant). With `canonical`, build the plant to check it and store its
-        complete configuration."""
+        key: the default plant).
+
+        Parameters
+        ----------
+        data : the scenario's keys.
+        source : what to name in error messages (the file).
+        canonical : build the plant to check it and store its complete configuration.
+        base_dir : the folder that relative file keys of the plant (its class's `path_keys`)
+            are relative to (the scenario file's); None leaves them as they are.
+
+        Returns
+        -------
+        The scenario; `ScenarioError` naming the key when a value is wrong.
+        """
         if not isinstance(data, Mapping):
             raise ScenarioError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
         data = dict(data)
@@ -139,6 +159,8 @@ class Scenario:
                                 f"got {design!r}")
         if "plant" not in data and LEGACY_ONLY_KEYS.intersection(data):
             scen = _parse_legacy(data, source)
+        elif "plant" in data:
+            scen = _parse_current(data, source, base_dir)
         else:   # a file of problem keys only (or none) means the default plant
             scen = _parse_current({"plant": {"type": DEFAULT_PLANT}, **data}, source)
         scen = Scenario(scen.plant_type, scen.plant_config, scen.problem, plain_config(design))
@@ -161,12 +183,21 @@ class Scenario:
     def plant_mismatches(self, other: "Scenario") -> list[str]:
         """Where `other` means another plant or horizon than this scenario (empty when they
         match): the plant type, every plant key, and n_steps. Problem keys (noise, weights,
-        limits) may differ: each node uses its own."""
+        limits) may differ: each node uses its own. A file key K that both configurations carry
+        with its SHA-256 (``K_sha256``) compares by content: its paths may differ."""
         out = []
         if self.plant_type != other.plant_type:
             return [f"plant type: {self.plant_type!r} != {other.plant_type!r}"]
         a, b = dict(self.plant_config), dict(other.plant_config)
+        files = {k for k in set(a) & set(b) if isinstance(k, str) and f"{k}_sha256" in a and f"{k}_sha256" in b}
         for k in sorted(set(a) | set(b), key=str):
+            if k in files:
+                continue
+            if isinstance(k, str) and k.endswith("_sha256") and k[:-7] in files:
+                if a[k] != b[k]:
+                    out.append(f"plant.{k[:-7]}: another file ({a[k[:-7]]!r}, SHA-256 {str(a[k])[:12]}... != "
+                               f"{b[k[:-7]]!r}, SHA-256 {str(b[k])[:12]}...)")
+                continue
             if k not in a or k not in b:
                 out.append(f"plant.{k}: {'missing' if k not in a else repr(a[k])} != "
                            f"{'missing' if k not in b else repr(b[k])}")
@@ -210,11 +241,28 @@ def load_scenario(path: str | Path | None) -> Scenario:
         data = {}
     if isinstance(data, Mapping) and "scenario" in data and len(data) == 1:
         data = data["scenario"]
-    return Scenario.from_dict(data, str(p))
+    return Scenario.from_dict(data, str(p), base_dir=p.absolute().parent)
 
 
 # ---------------------------------------------------------------- internals
-def _parse_current(data: dict, source: str) -> Scenario:
+def _resolve_paths(plant_type: str, plant: dict, base_dir: str | Path | None) -> dict:
+    """`plant` with the relative file keys its class declares (`path_keys`) made absolute
+    against `base_dir` (an unknown type is left for the plant's construction to report)."""
+    if base_dir is None:
+        return plant
+    try:
+        cls = resolve(plant_type)
+    except PlantTypeError:
+        return plant
+    for key in getattr(cls, "path_keys", ()):
+        value = plant.get(key)
+        if isinstance(value, str) and value:
+            value = os.path.expanduser(value)
+            plant[key] = value if os.path.isabs(value) else os.path.abspath(os.path.join(str(base_dir), value))
+    return plant
+
+
+def _parse_current(data: dict, source: str, base_dir: str | Path | None = None) -> Scenario:
     plant = data.pop("plant")
     data.pop("format", None)
     version = data.pop("version", FORMAT_VERSION)
@@ -230,6 +278,7 @@ def _parse_current(data: dict, source: str) -> Scenario:
         problem = Problem.from_dict(data, source)
     except ProblemError as exc:
         raise ScenarioError(str(exc)) from None
+    plant = _resolve_paths(ptype.strip(), plant, base_dir)
     return Scenario(ptype.strip(), plain_config(plant), problem)
 
 

@@ -4,6 +4,10 @@ Experiments and Monte Carlo runs are batches in arrays; on a large grid a batch 
 does not fit. A batch costs about `RUN_COPIES` state vectors per run (the state, the plant's
 temporaries in `step`, the field and its estimate), so the budget in bytes sets the batch size.
 The default budget is a quarter of the memory available when the tool starts (at least 256 MB).
+n_x is a state row's real length, so plants whose states are not the physics' vector count
+right too: an opaque state (a Co-Simulation FMU's serialized state, `sep_plant.plants.fmu`) is
+its row of n_x float64, and an FMU plant steps a whole batch with one FMU instance per process,
+whose memory does not grow with the runs (its steps hold about 4 rows (CS) or 9 (ME) per run).
 Pure Python: no ROS import.
 """
 from __future__ import annotations

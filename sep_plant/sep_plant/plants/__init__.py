@@ -4,6 +4,7 @@ group, and any class named as ``"package.module:ClassName"``.
     make_plant("slab", {"n_x": 200})                     # built-in
     make_plant("burgers", {...})                         # an installed entry point
     make_plant("my_pkg.furnace:Furnace", {...})          # an importable class
+    make_plant("fmu", {"path": "model.fmu", ...})        # an FMU (sep_plant.plants.fmu)
 
 A type string resolves in that order. Constructing a plant runs its own key checks; every
 failure is a `PlantTypeError` / `PlantConfigError` whose message names the type and the key.
@@ -23,6 +24,7 @@ BUILTIN: dict[str, str] = {
     "plate": "sep_plant.plants.heat:HeatPlate",
     "block": "sep_plant.plants.heat:HeatBlock",
     "allen_cahn": "sep_plant.plants.allen_cahn:AllenCahnPlant",
+    "fmu": "sep_plant.plants.fmu.plant:FMUPlant",
 }
 
 
