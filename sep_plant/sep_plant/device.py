@@ -7,7 +7,7 @@ experiments, the EnKF belief, the rollouts, the Monte Carlo) then runs its plant
 GPU without a change, and the design's own work (POD updates, Hankel SVDs, Riccati passes) stays
 on the host. What a step costs on the device is the state's round trip over the bus (16 bytes per
 node-step, about 0.3-0.6 ns at 25-50 GB/s) plus the step itself; what it saves is the plant's
-20-120 ns per node-step on one CPU core (README, `bench/bench_plants.py`).
+20-120 ns per node-step on one CPU core (docs/benchmarks.md, `bench/bench_plants.py`).
 
 A plant may be stepped on a GPU when it says so (`device_capable = True`): its `step` must accept
 arrays of any numpy-compatible module and never turn them into numpy arrays; the built-in

@@ -247,7 +247,7 @@ def latency_metrics(lat_cmd: np.ndarray, lat_est: np.ndarray) -> dict[str, Any]:
 
 def episode_metrics(ep: Episode, obj: Objective | None, F_nom: np.ndarray | None
                     ) -> tuple[dict[str, Any], list[str], tuple[np.ndarray, np.ndarray]]:
-    """§3 metrics of one episode (None where the bag lacks what a metric needs), notes, and
+    """The metrics (docs/method.md#metrics) of one episode (None where the bag lacks what a metric needs), notes, and
     the (command, estimate) latencies."""
     notes: list[str] = []
     out: dict[str, Any] = {k: None for k in M.JSON_KEYS}

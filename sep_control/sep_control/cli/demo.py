@@ -237,8 +237,9 @@ class DemoRun:
         report = None
         if self.record and self.bag.exists():
             report, bag_metrics = run_analysis(kids, self.bag, design_file, self.out, log)
-            if bag_metrics.get('coverage_2sigma') is not None:
-                m['coverage_2sigma'] = bag_metrics['coverage_2sigma']
+            for key in ('coverage_2sigma', 'latency_p50_s', 'latency_p99_s'):   # measured on the bag
+                if bag_metrics.get(key) is not None:
+                    m[key] = bag_metrics[key]
         print_metrics(m, design, self.args.controller)
         if self.args.json:
             Path(self.args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from sep_plant.noise import DEFAULT_SEED
+
 from sep_control.cli.common import (add_compute_options, blas_threads, design_or_exit, engine_or_exit, fail, groups,
                                     legacy_main, plant_or_exit)
 from sep_control.compute.progress import RunSteps, bars_wanted
@@ -35,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     advanced.add_argument("--lags", type=int, default=60, help="impulse-response length for the Markov check")
     advanced.add_argument("--amplitude", type=float, default=0.01,
                           help="random input deviation std, relative to the RMS nominal input")
-    advanced.add_argument("--seed", type=int, default=0, help="seed of the random input deviation")
+    advanced.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the random input deviation")
     add_compute_options(advanced, memory_budget=False)
 
 

@@ -54,7 +54,7 @@ def coverage_2sigma(err: np.ndarray, std: np.ndarray) -> float:
 
 def summarize(F_runs: np.ndarray, U_runs: np.ndarray, F_nom: np.ndarray, obj: Objective,
               extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The §3 closed-loop metrics for a batch of runs (F_runs (M, N+1, n_field), U_runs (M, N, n_u))."""
+    """The closed-loop metrics (docs/method.md#metrics) for a batch of runs (F_runs (M, N+1, n_field), U_runs (M, N, n_u))."""
     J = nominal_cost(F_runs, U_runs, obj)
     k0, k1 = obj.window
     out: dict[str, Any] = {
@@ -146,7 +146,7 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], keys: Iterable[str] | No
 
 
 def write_json(path: str | Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
-    """One object per controller/episode: {"name": ..., <§3 keys>}."""
+    """One object per controller/episode: {"name": ..., <the keys of docs/method.md#metrics>}."""
     data = [{"name": name, **{k: v for k, v in r.items()}} for name, r in rows.items()]
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(data, indent=2, default=json_default) + "\n")
