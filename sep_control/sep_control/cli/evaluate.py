@@ -133,6 +133,12 @@ def run(args: argparse.Namespace) -> int:
         if args.sweep:
             sweep_rows = rom_sweep(plant, design, oracle, args.sweep_orders,
                                    args.sweep_runs, args.seed, engine, progress=bar)
+    write_outputs(args, design, truth, rows, results, sweep_rows)
+    return 0
+
+
+def write_outputs(args: argparse.Namespace, design, truth, rows: dict, results: dict, sweep_rows) -> None:
+    """The ROM-order sweep's table, --json (with both plants when a truth is given) and --figures."""
     if sweep_rows is not None:
         print_sweep(sweep_rows, args.sweep_runs, design)
     if args.json:
@@ -142,7 +148,6 @@ def run(args: argparse.Namespace) -> int:
     if args.figures:
         written = write_figures(Path(args.figures), design, results, sweep_rows)
         print(f"figures written to {args.figures}: " + ", ".join(p.name for p in written))
-    return 0
 
 
 def run_sweep(args: argparse.Namespace, design, budget) -> int:
