@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sep_plant.perturb import NEUTRAL
 from sep_plant.truth import Truth, TruthError
 
 from sep_control.cli.common import fail, plant_or_exit, scenario_or_exit
@@ -101,7 +102,7 @@ def run_robustness(args: argparse.Namespace, design, controllers: list[str], swe
     print(f"robustness of the design against the truth plant's {sweep.key}: {args.runs} runs per controller "
           f"and value, seed {args.seed}; {describe(design, truths[0])} (at the first value)")
     print(format_table(sweep_table(sweep, points), SWEEP_KEYS))
-    return {"sweep": {"key": sweep.key, "values": list(sweep.values)}, **plants_record(design, None),
+    return {"sweep": {"key": sweep.key, "values": list(sweep.values)}, "model": plants_record(design, None)["model"],
             "runs": args.runs, "seed": args.seed, "points": points}
 
 
@@ -126,10 +127,8 @@ def robustness_figure(out: Path, design, result: dict) -> Path:
     names = list(dict.fromkeys(n for pt in result["points"] for n in pt["controllers"]))
     rows = {n: [pt["controllers"].get(n) for pt in result["points"]] for n in names}
     name, _, entry = key.partition(".")
-    own = design.scenario.plant_config.get(name)
+    own = NEUTRAL.get(key, design.scenario.plant_config.get(name))       # the model's own value
     own = own.get(entry) if entry and isinstance(own, dict) else own
-    if key in ("input_gain", "input_offset", "sensor_bias"):
-        own = {"input_gain": 1.0}.get(key, 0.0)
     return figures.robustness_figure(out / "robustness.png", key, values, rows,
                                      own if isinstance(own, (int, float)) and not isinstance(own, bool) else None)
 
