@@ -23,8 +23,10 @@ Columns, all ROM-LQG on the truth with the same Monte Carlo seeds (seed 1, runs 
   PerturbedPlant for a perturbation), disturbance none: the best a design can do there;
 * oracle (slab, n_x <= 500): the full-order oracle on the truth (affine, along the design's nominal).
 
-For each: in band, mean cost, mean deviation at the window end, and against matched: in band
-difference and cost ratio. Targets (default disturbance setting): in band >= matched - 0.01 and
+For each: in band, mean cost, mean deviation at the window end (max over nodes of |mean field -
+that design's own nominal|: the matched design's nominal already bends where the truth does, so
+compare this column within a design, not across), and against matched: in band difference and
+cost ratio. Targets (default disturbance setting): in band >= matched - 0.01 and
 cost <= 1.15 x matched; on the unbiased scenario the cost within 1 % of the disturbance-none
 design with no loss in band. A row's last column says which targets it meets.
 
@@ -109,8 +111,9 @@ def truths_of(case: str, scen, design, slab_shifts: list[float]) -> list[tuple[s
         rows += [(f"t_right {cfg['t_right'] - d:g}", {"t_right": cfg["t_right"] - d}, {}) for d in (2.0, 3.0)]
     elif case == "plate":
         x_max = cfg["boundary_temperatures"]["x_max"]
-        rows += [(f"x_max {x_max - d:g}", {"boundary_temperatures": {**cfg["boundary_temperatures"], "x_max": x_max - d}},
-                  {}) for d in (2.0, 3.0)]
+        held = cfg["boundary_temperatures"]
+        rows += [(f"x_max {x_max - d:g}", {"boundary_temperatures": {**held, "x_max": x_max - d}}, {})
+                 for d in (2.0, 3.0)]
     else:
         k1 = design.objective.window[1]
         for (b, got), s in zip(burgers_offsets(scen.plant, design.nominal.u, k1, band, slab_shifts), slab_shifts):

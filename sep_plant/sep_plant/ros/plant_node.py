@@ -20,6 +20,11 @@ Modes:
   before the first command: the plant does not know the nominal; the LQR's own fallback to the
   nominal covers a missing estimate).
 
+Perturbation (a model-mismatch rehearsal, docs/robustness.md): the parameters input_gain,
+input_offset and sensor_bias wrap the scenario's plant in `sep_plant.perturb.PerturbedPlant`
+(u_applied = g (u + w) + b, y = h(x) + s); the non-neutral values go out with the scenario
+(and on /diagnostics and in the summary), so controllers and bag analyses see them.
+
 Bad commands (NaN/Inf, wrong length, unknown names, stamps off the step grid, stale, duplicate,
 for a future step) are rejected, counted per reason, logged and reported on /diagnostics.
 The field messages are built only while somebody subscribes to them.
