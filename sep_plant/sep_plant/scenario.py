@@ -338,11 +338,39 @@ def same_value(a: Any, b: Any) -> bool:
 
 
 # ------------------------------------------------------------- scenario topic
-def scenario_payload(scenario: Scenario, info: PlantInfo) -> str:
+def scenario_payload(scenario: Scenario, info: PlantInfo, perturbation: Mapping[str, Any] | None = None) -> str:
     """The JSON the plant publishes on the scenario topic (and bags keep): the scenario and the
-    plant's description, so that nodes, the recorder and the analysis need not import the plant."""
-    return json.dumps({"scenario": scenario.to_dict(), "plant_info": info.to_dict()}, sort_keys=True,
-                      default=json_default)
+    plant's description, so that nodes, the recorder and the analysis need not import the plant;
+    with a perturbation of its actuators and sensors (`sep_plant.perturb`: the non-neutral values
+    per key) also ``"perturbation"``, so that controllers and bag analyses see the plant they ran on."""
+    data: dict[str, Any] = {"scenario": scenario.to_dict(), "plant_info": info.to_dict()}
+    if perturbation:
+        data["perturbation"] = {str(k): v for k, v in perturbation.items()}
+    return json.dumps(data, sort_keys=True, default=json_default)
+
+
+def payload_perturbation(text: str) -> dict[str, list[float]]:
+    """The perturbation a scenario-topic message carries ({} for an unperturbed plant, and for
+    messages of plants that publish none); ScenarioError when it is not a mapping of numbers or
+    lists of numbers."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ScenarioError(f"scenario message: {exc}") from None
+    pert = data.get("perturbation", {}) if isinstance(data, Mapping) else {}
+    if not isinstance(pert, Mapping):
+        raise ScenarioError(f"scenario message: perturbation must be a mapping, got {pert!r}")
+    out = {}
+    for key, value in pert.items():
+        try:
+            arr = np.asarray(value, dtype=float) if not isinstance(value, (str, bytes, Mapping)) else None
+        except (TypeError, ValueError):
+            arr = None
+        if arr is None or arr.ndim > 1:
+            raise ScenarioError(f"scenario message: perturbation {key}: expected a number or a list of numbers, "
+                                f"got {value!r}")
+        out[str(key)] = np.atleast_1d(arr).tolist()
+    return out
 
 
 def parse_scenario_payload(text: str) -> tuple[Scenario, PlantInfo]:

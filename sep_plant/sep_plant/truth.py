@@ -21,7 +21,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from sep_plant.perturb import PerturbationError, PerturbedPlant, check_perturbation
+from sep_plant.perturb import NEUTRAL, PerturbationError, PerturbedPlant, check_perturbation
 from sep_plant.protocol import PlantInfo
 from sep_plant.scenario import Scenario, ScenarioError
 
@@ -108,7 +108,6 @@ def truth_plant(model: Scenario, keys: Mapping[str, Any] | None = None,
     except ScenarioError as exc:
         raise TruthError(f"truth plant: {exc}") from None
     _check_interface(model.info, PlantInfo.of(inner))
-    diffs = [d.replace(" != ", " -> ") for d in model.plant_mismatches(truth_scn) if not d.startswith("n_steps")]
     plant, pert = inner, {}
     if perturbation:
         try:
@@ -117,11 +116,26 @@ def truth_plant(model: Scenario, keys: Mapping[str, Any] | None = None,
         except PerturbationError as exc:
             raise TruthError(f"--perturb: {exc}") from None
         pert = plant.perturbation()
-        diffs += [f"{k}: {_short(v)}" for k, v in pert.items()]
-    return Truth(plant, truth_scn, tuple(diffs), pert)
+    return Truth(plant, truth_scn, tuple(plant_differences(model, truth_scn, pert)), pert)
 
 
-def _check_interface(model: PlantInfo, truth: PlantInfo) -> None:
+def plant_differences(model: Scenario, plant: Scenario, perturbation: Mapping[str, Any] | None = None) -> list[str]:
+    """How `plant` (and a perturbation of it) differs from the design's plant `model`, one entry
+    per key: "plant.t_right: 150.0 -> 147.0", "input_gain: 0.8" (empty: the model itself).
+
+    The vocabulary of `Truth.differences`, of the nodes' ``model_mismatch`` and of `sep analyze`.
+    The horizon is not compared (a problem key, not the plant's); neutral perturbation values
+    are left out.
+    """
+    diffs = [d.replace(" != ", " -> ") for d in model.plant_mismatches(plant) if not d.startswith("n_steps")]
+    neutral = {k: v for k, v in (perturbation or {}).items()
+               if not np.all(np.asarray(v, dtype=float) == NEUTRAL.get(k, np.nan))}
+    return diffs + [f"{k}: {_short(v)}" for k, v in neutral.items()]
+
+
+def interface_differences(model: PlantInfo, truth: PlantInfo) -> list[str]:
+    """Where the truth's interface (inputs, outputs, noise channels, field nodes) differs from the
+    model's, each naming both values (empty: a design of the model fits the truth)."""
     problems = []
     for attr in ("n_u", "n_y", "n_field", "noise_dim"):
         a, b = getattr(model, attr), getattr(truth, attr)
@@ -130,6 +144,11 @@ def _check_interface(model: PlantInfo, truth: PlantInfo) -> None:
     for attr in ("input_names", "output_names"):
         if getattr(model, attr) != getattr(truth, attr) and getattr(model, "n_u") == getattr(truth, "n_u"):
             problems.append(f"{attr} {list(getattr(truth, attr))} (the design's: {list(getattr(model, attr))})")
+    return problems
+
+
+def _check_interface(model: PlantInfo, truth: PlantInfo) -> None:
+    problems = interface_differences(model, truth)
     if problems:
         raise TruthError("the truth plant has another interface than the design's plant: " + "; ".join(problems)
                          + ". A design runs only on plants with its inputs, outputs and field nodes")
@@ -140,4 +159,5 @@ def _short(values: list) -> str:
     return f"{arr[0]:g}" if arr.size and np.all(arr == arr[0]) else "[" + ", ".join(f"{v:g}" for v in arr) + "]"
 
 
-__all__ = ["Truth", "TruthError", "parse_assignments", "truth_plant"]
+__all__ = ["Truth", "TruthError", "interface_differences", "parse_assignments", "plant_differences",
+           "truth_plant"]

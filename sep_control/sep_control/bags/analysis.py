@@ -30,6 +30,12 @@ Definitions (everything computed from the bag alone, plus the design for nominal
 * controller: rom_lqg or rom_mpc, from the LQR node's /diagnostics (None in bags of sep < 0.3,
   whose LQR did not report it: those ran the LQR); for rom_mpc also mpc_qp_steps and
   mpc_fallbacks (QPs solved, steps that fell back to the clipped LQR).
+* model_mismatch: how the plant the episode ran on differed from the design's model (a
+  sim-to-real rehearsal, docs/robustness.md): plant keys and the perturbation of its actuators
+  and sensors, from the bag's scenario message against the design (`sep_plant.truth.plant_differences`),
+  else what the controllers reported on /diagnostics (run with allow_model_mismatch); [] when
+  none. Such an episode is measured against the design's objective and nominal, the goal the
+  controllers had, without --allow-mismatch.
 
 Progress: `analyze` and `aggregate` take ``on_progress(steps_done, steps_total)``, called in
 run-steps (one bag of N steps is N run-steps; ``steps_total`` None while unknown).
@@ -39,6 +45,7 @@ Pure: no rclpy, no matplotlib (figures are in `sep_control.bags.figures`, the Ma
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -52,6 +59,7 @@ from sep_plant import topics as T
 from sep_plant.problem import Objective, ProblemError
 from sep_plant.protocol import PlantInfo
 from sep_plant.scenario import Scenario
+from sep_plant.truth import plant_differences
 
 
 #: ``on_progress(steps_done, steps_total)`` in run-steps; steps_total None while unknown
@@ -78,6 +86,7 @@ class EpisodeReport:
     latency_est_s: np.ndarray
     mismatch: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    model_mismatch: list[str] = field(default_factory=list)   # see the module docstring
 
     @property
     def inputs(self) -> np.ndarray:
@@ -149,6 +158,28 @@ def check_scenario(ep: Episode, design, allow_mismatch: bool, name: str) -> list
                             + "; ".join(diff) + ". Use the design file of that plant, or --allow-mismatch "
                             "to analyse it anyway (nominal comparisons are then skipped where shapes differ)")
     return diff
+
+
+def reported_mismatch(ep: Episode) -> list[str]:
+    """The model mismatch the controllers reported on /diagnostics (their ``model_mismatch``
+    values, JSON lists; the union in order of appearance)."""
+    out: list[str] = []
+    for d in ep.diagnostics.values():
+        try:
+            items = json.loads(d.get("model_mismatch") or "[]")
+        except json.JSONDecodeError:
+            items = [d["model_mismatch"]]
+        out += [str(i) for i in (items if isinstance(items, list) else [items]) if str(i) not in out]
+    return out
+
+
+def model_mismatch(ep: Episode, design, reported: list[str]) -> list[str]:
+    """How the episode's plant differed from the design's model: the bag's scenario (and
+    perturbation) against the design when both are there, else what the controllers reported."""
+    if design is None or ep.scenario is None or ep.scenario_source != "bag" \
+            or ep.scenario.plant_type != design.scenario.plant_type:
+        return list(reported)
+    return plant_differences(design.scenario, ep.scenario, ep.perturbation)
 
 
 def _fits(obj: Objective, ep: Episode) -> bool:
@@ -332,19 +363,26 @@ def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, 
     ep = read_episode(bag_path, scenario=design.scenario if design is not None else None,
                       info=design.info if design is not None else None,
                       namespace=namespace, allow_truncated=allow_truncated)
-    diff = check_scenario(ep, design, allow_mismatch, str(bag_path))
+    reported = reported_mismatch(ep)
+    diff = check_scenario(ep, design, True, str(bag_path))
+    if reported and all(d.startswith("plant.") for d in diff):
+        diff = []                  # a rehearsal: the design's goal applies on the other plant
+    elif diff and not allow_mismatch:
+        check_scenario(ep, design, False, str(bag_path))      # raises, naming the differences
+    mm = model_mismatch(ep, design, reported)
     notes = list(ep.notes)
     scen, obj, F_nom = objective_and_nominal(ep, design, diff, notes)
     m, mnotes, (lat_cmd, lat_est) = episode_metrics(ep, obj, F_nom)
     if diff:
         m["scenario_mismatch"] = diff
+    m["model_mismatch"] = mm
     if ep.missing:
         notes.append("missing topics: " + ", ".join(ep.missing))
     if on_progress is not None:
         on_progress(ep.n_steps, ep.n_steps)
     return EpisodeReport(name=_episode_name(bag_path, name), episode=ep, scenario=scen, design=design,
                          objective=obj, F_nom=F_nom, metrics=m, err=ep.F_hat - ep.F, latency_cmd_s=lat_cmd,
-                         latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes)
+                         latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes, model_mismatch=mm)
 
 
 def _unique_rows(reports: Sequence[EpisodeReport]) -> dict[str, dict[str, Any]]:
@@ -473,9 +511,10 @@ def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None
         vals = [r.metrics.get(key) for r in reports if r.metrics.get(key) is not None]
         out[key] = int(sum(vals)) if vals else None
     out["complete"] = all(r.metrics.get("complete") for r in reports)
+    out["model_mismatch"] = list(dict.fromkeys(d for r in reports for d in r.model_mismatch))
     return AggregateReport(reports=reports, scenario=first.scenario, design=design, objective=obj, metrics=out,
                            rows=_unique_rows(reports), notes=notes)
 
 
 __all__ = ["AnalysisError", "BagError", "EpisodeReport", "AggregateReport", "ProgressHook", "analyze",
-           "aggregate", "episode_metrics", "reports_of"]
+           "aggregate", "episode_metrics", "model_mismatch", "reported_mismatch", "reports_of"]

@@ -23,7 +23,7 @@ import numpy as np
 
 from sep_control.bags.messages import (IMAGE_TOPICS, NO_MESSAGES, VECTOR_TOPICS, Messages, PerStep, cloud_points,
                                        image_pixels, index_messages, joint_values, open_bag, read_diagnostics,
-                                       read_per_step, read_scenario)
+                                       read_per_step, read_perturbation, read_scenario)
 from sep_control.bags.storage import BagError
 from sep_plant import topics as T
 from sep_plant.protocol import PlantInfo
@@ -71,6 +71,8 @@ class Episode:
     complete: bool = True                 # False: truncated bag (only with allow_truncated)
     notes: list[str] = field(default_factory=list)
     scenario_source: str = "bag"          # 'bag', 'argument' or 'inferred'
+    perturbation: dict[str, list[float]] = field(default_factory=dict)  # the plant's actuator/sensor
+                                          # perturbation from its scenario message ({}: none)
 
     @property
     def n_field(self) -> int:
@@ -266,4 +268,4 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, info: Plant
         missing=[T.topic_name(t.name, namespace) for t in T.TOPICS
                  if not counts[t.name] and t.name not in T.OPTIONAL],
         ignored_topics=ignored, recv_origin_ns=msgs.origin, complete=raw.complete, notes=notes,
-        scenario_source=source)
+        scenario_source=source, perturbation=read_perturbation(msgs, notes))

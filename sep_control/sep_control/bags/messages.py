@@ -19,7 +19,7 @@ import numpy as np
 from sep_control.bags.storage import BagError, RawBag, read_raw
 from sep_plant import topics as T
 from sep_plant.protocol import PlantInfo
-from sep_plant.scenario import Scenario, ScenarioError, parse_scenario_payload
+from sep_plant.scenario import Scenario, ScenarioError, parse_scenario_payload, payload_perturbation
 
 #: JointState topics and the array that carries their values
 VECTOR_TOPICS = {T.MEASUREMENTS: "position", T.COMMAND: "effort", T.APPLIED_INPUT: "effort",
@@ -151,6 +151,21 @@ def read_scenario(msgs: Messages, notes: list[str]) -> tuple[Scenario, PlantInfo
             found = parse_scenario_payload(msg.data)
         except (ScenarioError, ValueError) as exc:
             notes.append(f"{msgs.decode.topic(i)} message unreadable ({exc})")
+    return found
+
+
+def read_perturbation(msgs: Messages, notes: list[str]) -> dict[str, list[float]]:
+    """The perturbation of the plant's actuators and sensors that its scenario message carries
+    (the last readable one; {} when none, as for every unperturbed plant)."""
+    found: dict[str, list[float]] = {}
+    for i in msgs.of(T.SCENARIO).tolist():
+        msg = msgs.decode(i, T.STRING)
+        if msg is None:
+            continue
+        try:
+            found = payload_perturbation(msg.data)
+        except ScenarioError as exc:
+            notes.append(f"{msgs.decode.topic(i)} perturbation unreadable ({exc})")
     return found
 
 

@@ -154,6 +154,9 @@ def write_report(rep: EpisodeReport | AggregateReport, out_dir: str | Path, figu
     lines.append("Design file: " + ("given (nominal comparisons included)" if reps[0].design is not None else
                                     "none (no nominal comparisons; pass --design)"))
     lines.append("Controller: " + controller_line(reps))
+    mm = list(dict.fromkeys(d for r in reps for d in r.model_mismatch))
+    if mm:
+        lines.append("Model mismatch (the design ran on another plant than its model): " + "; ".join(mm))
     lines += ["", "## Metrics", "", markdown_table(metrics_rows(rep)), "", f"- {LATENCY_NOTE}.",
               "- coverage_2sigma: share of node-steps k >= 1 with |f_hat - f| <= 2 std; field_nees: mean "
               "((f_hat - f)/std)^2 (about 1 when consistent).",

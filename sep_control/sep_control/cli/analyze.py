@@ -108,6 +108,9 @@ def print_notes(rep) -> None:
             print(f"note: {r.name}: missing topics {', '.join(r.episode.missing)}")
         if r.mismatch:
             print(f"WARNING: {r.name}: the bag's plant differs from the design file's: {'; '.join(r.mismatch)}")
+        if r.model_mismatch:
+            print(f"model_mismatch: {r.name}: the design ran on another plant than its model: "
+                  f"{'; '.join(r.model_mismatch)}")
         if not r.episode.complete:
             print(f"note: {r.name}: truncated bag, analysed what was recovered")
 

@@ -172,14 +172,15 @@ def design_or_exit(path: str, scenario: Scenario | None = None) -> Design:
         fail(f"{exc}")
 
 
-def plant_or_exit(scenario: Scenario, where: str = "scenario", device: str = "cpu"):
+def plant_or_exit(scenario: Scenario, where: str = "scenario", device: str = "cpu", plant: Any = None):
     """Build and check the scenario's plant (exit 2 with the plant's problems), stepping on
-    `device` (`sep_plant.device`; exit 2 when it is not available or the plant cannot go there)."""
+    `device` (`sep_plant.device`; exit 2 when it is not available or the plant cannot go there).
+    `plant`: check this plant object instead (a truth plant), with the scenario's problem."""
     from sep_plant.conformance import check_plant
     from sep_plant.device import DeviceError, on_device
 
     try:
-        plant = scenario.plant
+        plant = scenario.plant if plant is None else plant
         check_plant(plant, scenario.problem.channels("u_init", int(plant.n_u)), name=scenario.plant_type)
     except (ScenarioError, PlantError) as exc:
         fail(f"{where}: {exc}")

@@ -3,6 +3,7 @@ nonlinear plant."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -11,16 +12,18 @@ import numpy as np
 
 from sep_estimator.ltv import sensed_nodes
 from sep_plant.noise import DEFAULT_SEED
+from sep_plant.scenario import json_default
 
 from sep_control.cli.common import (add_compute_options, add_deprecated, blas_threads, controller_name,
                                     design_or_exit, engine_or_exit, fail, groups, legacy_main,
                                     memory_budget_or_exit, plant_or_exit)
+from sep_control.cli import truth as truth_cli
 from sep_control.compute.progress import RunSteps, bars_wanted
 from sep_control.evaluation import figures
 from sep_control.control.controllers import CONTROLLER_NAMES as CONTROLLERS
 from sep_control.evaluation.metrics import format_table, write_json
+from sep_control.evaluation.mismatch import plants_record
 from sep_control.evaluation.montecarlo import simulate
-from sep_control.evaluation.oracle import oracle_lqg
 from sep_control.evaluation.sweep import rom_sweep, sweep_run_steps
 
 HELP = "Monte Carlo of the controllers on the nonlinear plant, metrics and figures"
@@ -34,7 +37,14 @@ and n_x^3 N time). Prints the docs/method.md metrics; --json writes them, --figu
 figures as PNG (heat maps for grid plants); --sweep adds the ROM-order sweep (n_r = 5, 10, 20,
 40). The plant is rebuilt from the design file's scenario.
 
+Model mismatch (docs/robustness.md): --truth KEY=VALUE, --truth-scenario FILE and --perturb
+KEY=VALUE run every controller on a truth plant that differs from the design's (the oracle is
+then the truth's full-order LQG along the design's nominal); --robustness KEY=LO:HI:N sweeps one
+truth key or perturbation key.
+
 Example:  sep evaluate --design out/design.npz --runs 1000 --figures out/figures --sweep
+          sep evaluate --design out/design.npz --truth t_right=147 --perturb input_gain=0.8
+          sep evaluate --design out/design.npz --robustness t_right=146:150:5 --figures out/rob
 """
 
 TABLE_KEYS = ["cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_dev_end", "coverage_2sigma",
@@ -69,6 +79,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                           help="order caps of the sweep")
     advanced.add_argument("--sweep-runs", type=int, default=200, help="Monte Carlo runs per sweep point")
     add_compute_options(advanced)
+    truth_cli.add_truth_options(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,9 +87,16 @@ def run(args: argparse.Namespace) -> int:
         fail(f"--runs must be >= 1, got {args.runs}")
     if args.mpc_horizon < 1 or (args.mpc_time_budget is not None and not args.mpc_time_budget > 0):
         fail("--mpc-horizon must be >= 1 and --mpc-time-budget > 0")
+    if args.sweep and truth_cli.wants_truth(args):
+        fail("--sweep re-identifies the ROM on the design's own plant: run it without --truth, --truth-scenario, "
+             "--perturb and --robustness")
     budget = memory_budget_or_exit(args.memory_budget)
     design = design_or_exit(args.design)
-    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)", device=args.device)
+    if args.robustness:
+        return run_sweep(args, design, budget)
+    truth = truth_cli.truth_or_exit(args, design)
+    plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)", device=args.device) if truth is None \
+        else truth_cli.truth_plant_or_exit(truth, design, args.device)
     controllers = chosen_controllers(args, design)
     oracle_fits = design.info.n_x <= args.oracle_max_nx
     N = design.n_steps
@@ -91,18 +109,22 @@ def run(args: argparse.Namespace) -> int:
         oracle, oracle_s = None, 0.0
         if "oracle_lqg" in controllers or (args.sweep and oracle_fits):
             t0 = time.perf_counter()
-            oracle = oracle_lqg(design, plant)
+            oracle = truth_cli.oracle_or_none(design, truth, plant)
             oracle_s = time.perf_counter() - t0
+            if oracle is None:
+                controllers.remove("oracle_lqg")
         for name in controllers:
             t0 = time.perf_counter()
             res = simulate(plant, design, name, args.seed, args.runs, oracle=oracle, keep_estimates=1,
                            keep_trajectories=1, memory_budget=budget, engine=engine,
-                           mpc={"horizon": args.mpc_horizon, "time_budget_s": args.mpc_time_budget})
+                           mpc=truth_cli.mpc_options(args))
             bar.add(args.runs, N)
             rows[name] = {**res.metrics(), "seconds": time.perf_counter() - t0}
             results[name] = res
         print(f"{args.runs} runs per controller, seed {args.seed}, plant {design.scenario.plant_type}, "
               f"n_x = {design.info.n_x}, n_r = {design.n_r}")
+        if truth is not None:
+            print(truth_cli.describe(design, truth))
         print(format_table(rows, TABLE_KEYS))
         if "rom_lqg" in rows and "oracle_lqg" in rows:
             ratio = rows["rom_lqg"]["cost_mean"] / rows["oracle_lqg"]["cost_mean"]
@@ -111,14 +133,38 @@ def run(args: argparse.Namespace) -> int:
         if args.sweep:
             sweep_rows = rom_sweep(plant, design, oracle, args.sweep_orders,
                                    args.sweep_runs, args.seed, engine, progress=bar)
+    write_outputs(args, design, truth, rows, results, sweep_rows)
+    return 0
+
+
+def write_outputs(args: argparse.Namespace, design, truth, rows: dict, results: dict, sweep_rows) -> None:
+    """The ROM-order sweep's table, --json (with both plants when a truth is given) and --figures."""
     if sweep_rows is not None:
         print_sweep(sweep_rows, args.sweep_runs, design)
     if args.json:
-        write_json(args.json, rows)
+        plants = plants_record(design, truth) if truth is not None else {}
+        write_json(args.json, {name: {**row, **plants} for name, row in rows.items()})
         print(f"metrics written to {args.json}")
     if args.figures:
         written = write_figures(Path(args.figures), design, results, sweep_rows)
         print(f"figures written to {args.figures}: " + ", ".join(p.name for p in written))
+
+
+def run_sweep(args: argparse.Namespace, design, budget) -> int:
+    """`--robustness KEY=LO:HI:N`: every controller on N truth plants; table, --json, --figures."""
+    sweep, truths = truth_cli.sweep_or_exit(args, design)
+    controllers = chosen_controllers(args, design)
+    total = len(controllers) * args.runs * design.n_steps * len(truths)
+    with blas_threads(args.threads), engine_or_exit(args.dask, log=print) as engine, \
+            RunSteps(total, "Monte Carlo (run-steps)", bars_wanted(args.quiet)) as bar:
+        result = truth_cli.run_robustness(args, design, controllers, sweep, truths, budget, engine, bar)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(result, indent=2, default=json_default) + "\n")
+        print(f"robustness sweep written to {args.json}")
+    if args.figures:
+        path = truth_cli.robustness_figure(Path(args.figures), design, result)
+        print(f"figure written to {path}")
     return 0
 
 

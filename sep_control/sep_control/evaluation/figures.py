@@ -12,6 +12,7 @@ mc_estimation_figure        one run's estimation error with 2-sigma bounds at th
 mc_std_map_figure           mean reconstruction std over the band window
 rom_sweep_figure            Hankel singular values, Markov error and cost vs n_r
 inputs_vs_limits_figure     each input over time against its limits, for several controllers (one run)
+robustness_figure           in band and mean cost against a swept truth-plant key, one line per controller
 """
 from __future__ import annotations
 
@@ -187,4 +188,29 @@ def inputs_vs_limits_figure(path: Path, info: PlantInfo, u_nom: np.ndarray, inpu
         ax.set_ylabel(names[j] if j < len(names) else f"u{j}")
     axes[0, 0].legend(loc="upper right", fontsize=7, ncol=len(inputs) + 1)
     axes[-1, 0].set_xlabel("t [s]  (grey: outside the limits; orange: band window)")
+    return save_figure(fig, path)
+
+
+def robustness_figure(path: Path, key: str, values: Sequence[float],
+                      rows: Mapping[str, Sequence[Mapping | None]], model_value: float | None = None) -> Path:
+    """`sep evaluate --robustness`: in band (left) and mean cost (right, log scale) against the swept
+    key, one line per controller; rows[controller][i] are the metrics at values[i] (None: not run
+    there); `model_value`, when the design's own value is in range, is marked."""
+    plt = pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    x = np.asarray(values, dtype=float)
+    for name, points in rows.items():
+        band = [np.nan if p is None else p["in_band"] for p in points]
+        cost = [np.nan if p is None else p["cost_mean"] for p in points]
+        a.plot(x, band, "o-", ms=4, label=name)
+        b.plot(x, cost, "o-", ms=4, label=name)
+    for ax in (a, b):
+        if model_value is not None and x.min() <= model_value <= x.max():
+            ax.axvline(model_value, color="0.6", lw=0.8, ls="--", label="the design's plant")
+        ax.set_xlabel(key + " (truth plant)")
+    a.set(ylabel="share of runs in band", ylim=(-0.02, 1.02), title="In band against the truth plant")
+    b.set(ylabel="mean cost", title="Cost against the truth plant")
+    if np.all(np.isfinite([p["cost_mean"] for pts in rows.values() for p in pts if p is not None])):
+        b.set_yscale("log")
+    a.legend(fontsize=8)
     return save_figure(fig, path)

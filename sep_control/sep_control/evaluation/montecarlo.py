@@ -32,7 +32,7 @@ from sep_control.compute.budget import runs_per_batch, worker_budget
 from sep_control.control.controllers import CONTROLLER_NAMES, Controller, MpcOptions, make_controller
 from sep_control.control.mpc import MPCStats
 from sep_control.evaluation.metrics import MetricsAccumulator
-from sep_control.evaluation.oracle import oracle_lqg
+from sep_control.evaluation.oracle import AffineTerms, Oracle, oracle_lqg
 
 
 @dataclass
@@ -56,7 +56,7 @@ __all__ = ["CONTROLLER_NAMES", "MonteCarloResult", "portable", "simulate"]
 
 # ~65 lines: 38 of them the public function's numpydoc docstring
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
-             oracle: LQG | None = None, keep_estimates: int | None = None,
+             oracle: LQG | Oracle | None = None, keep_estimates: int | None = None,
              keep_trajectories: int | None = None, memory_budget: int | None = None,
              engine=None, show_progress: bool = False,
              mpc: MpcOptions | dict | None = None) -> MonteCarloResult:
@@ -80,8 +80,11 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
         numbers of a plant node started with seed, run = i.
     runs : int or iterable of int
         A count (runs 0..M-1) or the run indices.
-    oracle : LQG, optional
-        The oracle's LQG for 'oracle_lqg' (from the plant's Jacobians when None).
+    oracle : LQG or Oracle, optional
+        The oracle for 'oracle_lqg' (from the plant's Jacobians when None); an `Oracle` with
+        affine terms is the full-order ideal of a truth plant (`oracle.truth_oracle`): its filter
+        starts at a0, predicts with + r_k, updates with dy_k - e_k, and its law's nominal input
+        is ubar_k + kappa_k.
     keep_estimates, keep_trajectories : int, optional
         How many runs' reconstructed (true) field trajectories to keep; all by default (keep
         few on large grids: M N n_field numbers add up).
@@ -106,15 +109,19 @@ def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int
     engine = engine or InProcess()
     idx = list(range(runs) if isinstance(runs, int) else runs)
     M = len(idx)
-    lqg = (oracle if oracle is not None else oracle_lqg(design, plant)) if controller == "oracle_lqg" \
-        else design.lqg
+    affine = None
+    if controller == "oracle_lqg":
+        orc = oracle if oracle is not None else oracle_lqg(design, plant)
+        lqg, affine = (orc.lqg, orc.affine) if isinstance(orc, Oracle) else (orc, None)
+    else:
+        lqg = design.lqg
     n_keep = M if keep_estimates is None else min(M, keep_estimates)
     n_traj = M if keep_trajectories is None else min(M, keep_trajectories)
     batch = _batch_size(design, engine, M, memory_budget)
     chunks = [(a, idx[a:a + batch], max(0, min(batch, n_traj - a)), max(0, min(batch, n_keep - a)))
               for a in range(0, M, batch)]
     shared = dict(plant=engine.ship(plant), design=design if engine.local else portable(design), lqg=lqg,
-                  controller=controller, seed=seed, mpc=MpcOptions.of(mpc))
+                  controller=controller, seed=seed, mpc=MpcOptions.of(mpc), affine=affine)
     labels = [f"plant {type(base_plant(plant)).__name__}: Monte Carlo {controller}, runs {c[1][0]}..{c[1][-1]} (seed {seed})"
               for c in chunks]
     parts = engine.map(_mc_chunk, chunks, shared, labels, f"Monte Carlo {controller}",
@@ -169,7 +176,7 @@ def portable(design: Design) -> Design:
 
 
 def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, controller: str, seed: int,
-              mpc: MpcOptions) -> dict:
+              mpc: MpcOptions, affine: AffineTerms | None = None) -> dict:
     """Simulate one chunk (first row a, run ids, trajectories and estimates to keep) with a
     controller of its own (an MPC's warm starts are per run)."""
     from sep_control.compute.engine import local_plant
@@ -181,8 +188,8 @@ def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, controller: str, se
     acc = MetricsAccumulator(design.objective, nom.field, M)
     out = _Outputs(F=np.empty((keep_f, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
                    Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((keep_e, N + 1, info.n_field)))
-    law = make_controller(controller, lqg, problem, nom.u, mpc)
-    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out)
+    law = make_controller(controller, lqg, problem, nom.u if affine is None else affine.u_nom, mpc)
+    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out, affine)
     return {"acc": acc.state(), "U": out.U, "Y": out.Y, "F": out.F, "F_hat": out.F_hat, "covered": covered,
             "stats": law.stats}
 
@@ -196,13 +203,17 @@ class _Outputs:
 
 
 def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: int, run_ids: list[int],
-               rows: slice, acc: MetricsAccumulator, out: _Outputs) -> int:
+               rows: slice, acc: MetricsAccumulator, out: _Outputs, affine: AffineTerms | None = None) -> int:
     """Simulate the runs `run_ids` (rows `rows` of the outputs) under `law`; returns the covered
-    node-steps."""
+    node-steps. `affine`: the known offsets of a truth oracle's model (`oracle.AffineTerms`)."""
     problem, info, nom = design.problem, design.info, design.nominal
     w, v = noise_sequences(problem, info, seed, run_ids)
     M, N = len(run_ids), problem.n_steps
     kf = KalmanFilter(lqg, batch=M)
+    y_nom, f_nom = nom.y, nom.field
+    if affine is not None:
+        kf.a = np.repeat(affine.a0[None], M, axis=0)
+        y_nom, f_nom = nom.y + affine.y, nom.field + affine.field
     G = lqg.model.G
     a0 = rows.start
     keep_f = max(0, min(M, out.F.shape[0] - a0))           # kept trajectories in this batch
@@ -215,8 +226,8 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
         acc.add_field(k, f, rows)
         y = plant.observe(x) + v[:, k]
         out.Y[rows, k] = y
-        a = kf.update(k, y - nom.y[k])
-        est = nom.field[k] + G.apply(k, a)
+        a = kf.update(k, y - y_nom[k])
+        est = f_nom[k] + G.apply(k, a)
         out.F_hat[a0:a0 + keep_e, k] = est[:keep_e]
         if k > 0:
             covered += int(np.count_nonzero(np.abs(est - f) <= 2.0 * lqg.field_std[k]))
@@ -227,4 +238,6 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
         acc.add_input(k, u, rows)
         x = plant.step(x, u, w[:, k])
         kf.predict(k, u - nom.u[k])
+        if affine is not None:
+            kf.a = kf.a + affine.r[k]
     return covered

@@ -8,9 +8,16 @@ all N steps' 2 (n_x + n_u) perturbed runs stepped as one batch. The LQR and Kalm
 the ROM's (same weights, same noise), on n_x states. Its cost grows as n_x^3 per step: the
 point of the ROM is not to need it. Perturbing the state vector is the one thing here that
 goes beyond the black box (states must be real vectors), acceptable for a comparison.
+
+On a truth plant (`sep evaluate --truth/--perturb`, docs/robustness.md) the oracle is the
+full-order ideal of the truth that tracks the DESIGN's nominal (`truth_oracle`): the truth's
+Jacobians along the design's nominal states, with the truth's known offsets from them as affine
+terms (an affine LQR with a feed-forward and an affine Kalman filter).
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -18,7 +25,8 @@ from sep_estimator.design_file import Design
 from sep_estimator.ltv import LQG, DenseFieldMap, IdentityFieldMap, LTVModel
 from sep_plant.protocol import Plant, nominal_states, noise_channels
 
-from sep_control.design.gains import design_lqg
+from sep_control.design.gains import GainsResult, design_lqg, output_weights, tv_lqr
+from sep_estimator.tvkf import kalman_gains
 
 
 def rom_lqg(design: Design) -> LQG:
@@ -80,3 +88,115 @@ def oracle_lqg(design: Design, plant: Plant | None = None) -> LQG:
     plant = plant if plant is not None else design.scenario.plant
     X = nominal_states(plant, design.nominal.u)
     return design_lqg(full_order_model(plant, X, design.nominal.u), design.problem).lqg("oracle_lqg")
+
+
+class OracleUnavailable(ValueError):
+    """No full-order oracle on this truth plant (the message says why)."""
+
+
+@dataclass(frozen=True)
+class AffineTerms:
+    """What the truth plant's full-order model around the design's nominal adds to the linear one:
+
+        dx_{k+1} = A_k dx_k + B_k du_k + r_k + B_w,k w_k,   dy_k = C_k dx_k + e_k + v_k,
+        df_k     = G_k dx_k + g_k,                           dx_0 = a0,
+
+    with dx = x - xbar, du = u - ubar, dy = y - ybar, df = f - fbar around the design's nominal
+    (xbar: the model's states under ubar) and the affine LQR's input u_k = ubar_k + kappa_k + K_k dxhat_k.
+    """
+
+    u_nom: np.ndarray      # (N, n_u)     ubar_k + kappa_k: the law's nominal input (feed-forward added)
+    r: np.ndarray          # (N, n_x)     f_truth(xbar_k, ubar_k) - xbar_{k+1}
+    y: np.ndarray          # (N+1, n_y)   h_truth(xbar_k) - ybar_k (a sensor bias, ...)
+    field: np.ndarray      # (N+1, n_field) field_truth(xbar_k) - fbar_k
+    a0: np.ndarray         # (n_x,)       x_truth,0 - xbar_0 (known exactly, as the initial state is)
+
+
+@dataclass(frozen=True)
+class Oracle:
+    """The full-order oracle: its LQG and, on a truth plant, the affine terms (None: linear)."""
+
+    lqg: LQG
+    affine: AffineTerms | None = None
+
+
+# ~45 lines of statements; the rest is the docstring that says why this oracle
+def truth_oracle(design: Design, truth: Plant, model: Plant | None = None) -> Oracle:
+    """The full-order oracle of a truth plant: the ideal controller THERE for the design's goal.
+
+    The design's nominal (xbar_k, ubar_k, ybar_k, fbar_k) is what every controller in the
+    evaluation is asked to track, and the metrics measure the field against it. On the truth,
+    ubar no longer produces xbar: the truth's own open-loop trajectory under ubar drifts away
+    (a boundary held 3 degrees colder, weaker actuators). Linearizing the truth along that
+    trajectory would give an LQG that tracks IT, so the "oracle" would be judged against a nominal
+    it does not aim at. Instead the truth is linearized along the design's nominal states,
+
+        A_k = df_truth/dx, B_k = df_truth/du, C_k = dh_truth/dx, G_k = dfield_truth/dx  at (xbar_k, ubar_k),
+
+    and its one-step residual r_k = f_truth(xbar_k, ubar_k) - xbar_{k+1}, output and field offsets
+    e_k = h_truth(xbar_k) - ybar_k, g_k = field_truth(xbar_k) - fbar_k, and initial offset
+    a0 = x_truth,0 - xbar_0 are known affine terms (`AffineTerms`), which an ideal designer with
+    the truth's model would know exactly. The LQR for dx_{k+1} = A dx + B du + r with the design's
+    weights (Q_k = C_k' Q_y,k C_k, the true outputs' deviation from ybar: a sensor bias is not
+    steered away) is affine: with the Riccati recursion's S_k, K_k and s_N = 0,
+
+        kappa_k = -(R + B_k' S_{k+1} B_k)^{-1} B_k' (S_{k+1} r_k + s_{k+1}),
+        s_k     = (A_k + B_k K_k)' (S_{k+1} r_k + s_{k+1}),
+
+    u_k = clip(ubar_k + kappa_k + K_k dxhat_k); the Kalman filter (same gains: they do not depend on
+    the offsets) starts at a0, predicts with + r_k and updates with dy_k - e_k. The truth's own
+    initial state is known exactly, as the model's is to the design. When the truth is the
+    model all offsets vanish (r = 0 exactly) and this is `oracle_lqg`; the caller then uses that one.
+
+    Parameters
+    ----------
+    design : Design
+        The design (nominal ubar, ybar, fbar; problem: weights and noise).
+    truth : Plant
+        The truth plant (`sep_plant.truth.truth_plant(...).plant`).
+    model : Plant, optional
+        The design's plant (xbar = its states under ubar); rebuilt from the design's scenario
+        when None.
+
+    Returns
+    -------
+    Oracle
+        The full-order LQG of the truth along xbar and its affine terms.
+
+    Raises
+    ------
+    OracleUnavailable
+        The truth has another state dimension than the model (xbar is then not a state of it).
+    """
+    model = model if model is not None else design.scenario.plant
+    if int(truth.n_x) != int(model.n_x):
+        raise OracleUnavailable(f"the truth plant has n_x = {truth.n_x}, the design's plant n_x = {model.n_x}: "
+                                "the design's nominal states are not states of the truth")
+    nom, problem = design.nominal, design.problem
+    X = nominal_states(model, nom.u)
+    lin = full_order_model(truth, X, nom.u)
+    Q = output_weights(lin.C, problem.lqr_output_weights(lin.n_y))
+    R = np.eye(lin.n_u) * problem.lqr_r
+    K, S = tv_lqr(lin.A, lin.B, Q, R)
+    W, V = problem.noise_covariances(lin.noise_input.shape[2], lin.n_y)
+    lqg = GainsResult(lin, K, kalman_gains(lin, W, V), W, V).lqg("oracle_lqg")
+    r = np.asarray(truth.step(X[:-1], nom.u)) - X[1:]
+    kappa = affine_feedforward(lin, K, S, R, r)
+    affine = AffineTerms(u_nom=nom.u + kappa, r=r, y=np.asarray(truth.observe(X)) - nom.y,
+                         field=np.asarray(truth.field(X)) - nom.field,
+                         a0=np.asarray(truth.initial_state(1))[0] - X[0])
+    return Oracle(lqg, affine)
+
+
+def affine_feedforward(model: LTVModel, K: np.ndarray, S: np.ndarray, R: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """kappa (N, n_u): the affine LQR's feed-forward for the known terms r (N, n) of
+    x_{k+1} = A_k x_k + B_k u_k + r_k (the `truth_oracle` recursion; K, S from `tv_lqr`)."""
+    N = model.n_steps
+    kappa = np.zeros((N, model.n_u))
+    s = np.zeros(model.n)
+    for k in range(N - 1, -1, -1):      # a backward recursion: one step depends on the next
+        A, B = model.A[k], model.B[k]
+        v = S[k + 1] @ r[k] + s
+        kappa[k] = -np.linalg.solve(R + B.T @ S[k + 1] @ B, B.T @ v)
+        s = (A + B @ K[k]).T @ v
+    return kappa

@@ -41,6 +41,8 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
+  allow_model_mismatch (bool, false)  run on a plant whose keys or actuator/sensor perturbation
+                                   differ from the design's (logged, reported as model_mismatch)
   controller (str, rom_lqg)        rom_lqg | rom_mpc (box-constrained MPC on the ROM, input limits
                                    planned for); lqr, mpc: deprecated spellings of the two
   mpc_horizon (int, 20)            rom_mpc: horizon H in steps
@@ -190,7 +192,7 @@ class LqrNode(DesignedNode):
                 'rejected_by_reason': self.rej.as_dict(), 'compute_p50_s': comp['p50'],
                 'compute_p99_s': comp['p99'], 'controller': self.law.name,
                 **(self.law.stats.as_dict() if self.law.stats is not None else {}),
-                'design_file': self.design_file}
+                'design_file': self.design_file, 'model_mismatch': self.model_mismatch}
 
     def health(self) -> c.Health:
         v = self._values()
@@ -214,7 +216,8 @@ class LqrNode(DesignedNode):
                f"fallbacks" if s['controller'] == 'rom_mpc' else '')
         return (f"{s['commands']} commands ({s['controller']}), {s['fallbacks']} nominal fallbacks, "
                 f"{s['late_estimates']} late estimates, {s['rejected_messages']} rejected, compute p50 "
-                f"{fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}{mpc}")
+                f"{fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}{mpc}"
+                + (f"; model mismatch: {'; '.join(s['model_mismatch'])}" if s.get('model_mismatch') else ''))
 
     def publishers(self):
         return [self.pub_cmd, self.pub_diag]

@@ -4,7 +4,10 @@ the design file, loaded once per process and checked against the scenario.
 A node refuses to start (StartError, exit code 2) when its design file is missing, corrupt, or
 made for another plant than the one given by the ``scenario_file`` parameter or published by
 the plant on scenario (latched); the message names every mismatching value
-(docs/reference/design-file.md).
+(docs/reference/design-file.md). With ``allow_model_mismatch:=true`` (the sim-to-real
+rehearsal, docs/robustness.md) a plant that differs only in plant keys or in a perturbation of
+its actuators and sensors is accepted: the node logs the differences, reports them as
+``model_mismatch`` on /diagnostics and in its summary (`sep_estimator.model_mismatch`).
 ROS-side module (imports rclpy).
 """
 from __future__ import annotations
@@ -17,11 +20,10 @@ from sep_plant.ros.base import NodeBase, StartError, declare, steady
 _DESIGN_CACHE: dict[str, object] = {}
 
 
-def load_design_checked(path: str, scenario_file: str = ''):
+def load_design_checked(path: str, scenario_file: str = '', allow_model_mismatch: bool = False):
     """Load a design file (cached per path within the process) and check it against the
-    scenario file if one is given; StartError with a clear message otherwise."""
-    from sep_estimator.design_file import DesignFileError, check_matches, load_design
-    from sep_plant.scenario import ScenarioError, load_scenario
+    scenario file if one is given (`check_scenario_file`); StartError with a clear message otherwise."""
+    from sep_estimator.design_file import DesignFileError, load_design
 
     if not path:
         raise StartError('parameter design_file is required (create one with '
@@ -31,16 +33,27 @@ def load_design_checked(path: str, scenario_file: str = ''):
     except DesignFileError as exc:
         raise StartError(f'design_file: {exc}') from None
     _DESIGN_CACHE[path] = design
-    if scenario_file:
-        try:
-            plant = load_scenario(scenario_file)
-        except ScenarioError as exc:
-            raise StartError(f'bad scenario_file: {exc}') from None
-        try:
-            check_matches(design, plant, f'design file {path}')
-        except DesignFileError as exc:
-            raise StartError(f'{exc} (scenario_file {scenario_file})') from None
+    check_scenario_file(design, path, scenario_file, allow_model_mismatch)
     return design
+
+
+def check_scenario_file(design, path: str, scenario_file: str, allow_model_mismatch: bool = False) -> list[str]:
+    """The model mismatch between the design and the plant of `scenario_file` ('' : none, []);
+    StartError when the design may not run on that plant (`sep_estimator.model_mismatch`)."""
+    from sep_estimator.design_file import DesignFileError
+    from sep_estimator.model_mismatch import model_mismatch
+    from sep_plant.scenario import ScenarioError, load_scenario
+
+    if not scenario_file:
+        return []
+    try:
+        plant = load_scenario(scenario_file)
+    except ScenarioError as exc:
+        raise StartError(f'bad scenario_file: {exc}') from None
+    try:
+        return model_mismatch(design, plant, allow=allow_model_mismatch, where=f'design file {path}')
+    except DesignFileError as exc:
+        raise StartError(f'{exc} (scenario_file {scenario_file})') from None
 
 
 def scenario_summary(design) -> str:
@@ -66,8 +79,15 @@ class DesignedNode(NodeBase):
                                            'wait this long at start for the plant scenario on '
                                            'scenario (0 = do not wait)', lo=0.0, hi=3600.0)
         self.exit_at_end = declare(node, 'exit_at_end', True, 'exit after the last step of the episode')
-        self.design = design if design is not None else load_design_checked(
-            self.design_file, self.scenario_file)
+        self.allow_model_mismatch = declare(node, 'allow_model_mismatch', False,
+                                            'run the design on a plant whose keys or actuator/sensor '
+                                            'perturbation differ from the design\'s model (logged and '
+                                            'reported as model_mismatch)')
+        self.design = design if design is not None else load_design_checked(self.design_file)
+        #: how the plant differs from the design's model (empty: it is the model)
+        self.model_mismatch: list[str] = check_scenario_file(self.design, self.design_file, self.scenario_file,
+                                                             self.allow_model_mismatch)
+        self._log_mismatch(f'scenario_file {self.scenario_file}')
         self.info = self.design.info
         self.dt = self.info.dt
         self.frame_id = self.info.frame_id
@@ -79,22 +99,34 @@ class DesignedNode(NodeBase):
 
     # ----------------------------------------------------------- scenario
     def _on_scenario(self, msg) -> None:
-        from sep_estimator.design_file import DesignFileError, check_matches
-        from sep_plant.scenario import parse_scenario_payload
+        from sep_estimator.design_file import DesignFileError
+        from sep_estimator.model_mismatch import model_mismatch
+        from sep_plant.scenario import parse_scenario_payload, payload_perturbation
 
         try:
-            plant, _ = parse_scenario_payload(msg.data)
+            plant, info = parse_scenario_payload(msg.data)
+            perturbation = payload_perturbation(msg.data)
         except ValueError as exc:
             self.fatal = StartError(f'unreadable plant scenario on {self.sub_scenario.topic_name}: {exc}')
             return
         try:
-            check_matches(self.design, plant, f'design file {self.design_file}')
+            diffs = model_mismatch(self.design, plant, info, perturbation, self.allow_model_mismatch,
+                                   f'design file {self.design_file}')
         except DesignFileError as exc:
             self.fatal = StartError(f'{exc} (plant scenario from {self.sub_scenario.topic_name})')
             return
-        if not self.plant_scenario_checked:
+        changed = diffs != self.model_mismatch
+        self.model_mismatch = diffs
+        if changed:
+            self._log_mismatch(f'the plant scenario on {self.sub_scenario.topic_name}')
+        if not self.plant_scenario_checked and not diffs:
             self.log.info(f'plant scenario on {self.sub_scenario.topic_name} matches the design')
         self.plant_scenario_checked = True
+
+    def _log_mismatch(self, source: str) -> None:
+        if self.model_mismatch:
+            self.log.warning(f'model mismatch (allow_model_mismatch): {source} differs from the design\'s model: '
+                             + '; '.join(self.model_mismatch))
 
     def prepare(self, executor) -> None:
         """Wait (up to wait_for_scenario_s, when > 0) for the plant's scenario and its check."""
@@ -110,4 +142,4 @@ class DesignedNode(NodeBase):
                              f'wait_for_scenario_s = {self.wait_for_scenario_s:g} s')
 
 
-__all__ = ['DesignedNode', 'load_design_checked', 'scenario_summary']
+__all__ = ['DesignedNode', 'check_scenario_file', 'load_design_checked', 'scenario_summary']

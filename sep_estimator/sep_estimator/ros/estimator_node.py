@@ -47,6 +47,8 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
   design_file (str, required)      design file written by `design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
+  allow_model_mismatch (bool, false)  run on a plant whose keys or actuator/sensor perturbation
+                                   differ from the design's (logged, reported as model_mismatch)
   publish_field_estimate (bool, true)
   field_precision (str, auto)      float32: the field reconstruction Phi (g_k a_hat) from a float32
                                    copy of Phi (~1e-7 relative round-off; a half to a third of the
@@ -222,7 +224,7 @@ class EstimatorNode(DesignedNode):
                             'rejected_by_reason': self.rej.as_dict(),
                             'last_rejection': str(self.rej.last or ''),
                             **nis, 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
-                            'design_file': self.design_file})
+                            'design_file': self.design_file, 'model_mismatch': self.model_mismatch})
 
     def summary(self, status: str) -> dict:
         comp = self.compute_s.percentiles()
@@ -230,13 +232,15 @@ class EstimatorNode(DesignedNode):
                 'steps': self.last_k, 'n_steps': self.N, **self.core.counters(),
                 'rejected_messages': self.rej.total, 'rejected_by_reason': self.rej.as_dict(),
                 'state_estimates_published': self.n_estimates_published,
-                **self.core.nis_stats(), 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99']}
+                **self.core.nis_stats(), 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
+                'model_mismatch': self.model_mismatch}
 
     def summary_line(self, s: dict) -> str:
         nis = 'n/a' if s['nis_mean'] is None else f"{s['nis_mean']:.2f} (expected {s['nis_expected']})"
         return (f"{s['updates']} updates, {s['skipped_updates']} skipped, {s['missing_measurements']} missing, "
                 f"{s['rejected_messages']} rejected, {s['restarts']} restarts, mean NIS {nis}, "
-                f"compute p50 {fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}")
+                f"compute p50 {fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}"
+                + (f"; model mismatch: {'; '.join(s['model_mismatch'])}" if s.get('model_mismatch') else ''))
 
     def publishers(self):
         return [p for p in (self.pub_est, self.pub_field, self.pub_image, self.pub_diag) if p is not None]

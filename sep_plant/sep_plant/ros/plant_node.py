@@ -20,6 +20,11 @@ Modes:
   before the first command: the plant does not know the nominal; the LQR's own fallback to the
   nominal covers a missing estimate).
 
+Perturbation (a model-mismatch rehearsal, docs/robustness.md): the parameters input_gain,
+input_offset and sensor_bias wrap the scenario's plant in `sep_plant.perturb.PerturbedPlant`
+(u_applied = g (u + w) + b, y = h(x) + s); the non-neutral values go out with the scenario
+(and on /diagnostics and in the summary), so controllers and bag analyses see them.
+
 Bad commands (NaN/Inf, wrong length, unknown names, stamps off the step grid, stale, duplicate,
 for a future step) are rejected, counted per reason, logged and reported on /diagnostics.
 The field messages are built only while somebody subscribes to them.
@@ -52,7 +57,11 @@ PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file
   diagnostics_period_s (float, 1)  /diagnostics period (also sent on a rejection, at most 5 Hz)
   summary_file (str, '')           write the end-of-episode summary as JSON
   trajectory_file (str, '')        write F (N+1,n_field), U (N,n_u), Y (N+1,n_y) as .npz (kept
-                                   in memory only when set)"""
+                                   in memory only when set)
+  input_gain (double or double[], 1)    actuator gain g: u_applied = g (u + w) + b (a model
+  input_offset (double or double[], 0)  mismatch of the actuators, sep_plant.perturb; one value or
+  sensor_bias (double or double[], 0)   one per input) and sensor bias s: y = h(x) + s + v (one value
+                                   or one per output); published with the scenario (docs/robustness.md)"""
 
 
 def declare_parameters(node) -> dict:
@@ -80,6 +89,31 @@ def declare_parameters(node) -> dict:
     return p
 
 
+def declare_perturbation(node, n_u: int, n_y: int) -> dict[str, list[float]]:
+    """The parameters input_gain, input_offset, sensor_bias (a double or a double array each, any
+    type accepted at declaration so that both work) as (n,) lists; StartError naming the parameter
+    when a value is not a number or has the wrong length."""
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import ParameterException
+
+    from sep_plant.perturb import NEUTRAL, PERTURBATIONS, PerturbationError, channel_values
+
+    dims = {'n_u': n_u, 'n_y': n_y}
+    out = {}
+    for key, neutral in NEUTRAL.items():
+        n = dims[PERTURBATIONS[key]]
+        desc = ParameterDescriptor(name=key, read_only=True, dynamic_typing=True,
+                                   description=f'{key}: a double for every channel or a double array of '
+                                               f'{n} ({PERTURBATIONS[key]}); {neutral:g} = none')
+        try:
+            value = node.declare_parameter(key, float(neutral), desc).value
+            out[key] = channel_values(key, list(value) if isinstance(value, (list, tuple)) or
+                                      hasattr(value, 'tolist') else value, n).tolist()
+        except (ParameterException, PerturbationError) as exc:
+            raise StartError(f'bad parameter {key}: {exc}') from None
+    return out
+
+
 def load_checked_scenario(path: str):
     """The scenario of `path` ('' = the reference) with its plant checked against the protocol."""
     from sep_plant.conformance import check_plant
@@ -92,6 +126,16 @@ def load_checked_scenario(path: str):
     except (ScenarioError, PlantError) as exc:
         raise StartError(f"bad scenario_file {path or '<reference>'}: {exc}") from None
     return scen
+
+
+def perturbed(plant, perturbation: dict[str, list[float]]):
+    """`plant` wrapped in a `sep_plant.perturb.PerturbedPlant` when a perturbation value is not
+    neutral, else `plant` itself (the same object: nothing changes for an unperturbed plant)."""
+    from sep_plant.perturb import NEUTRAL, PerturbedPlant
+
+    if all(np.all(np.asarray(v) == NEUTRAL[k]) for k, v in perturbation.items()):
+        return plant
+    return PerturbedPlant.around(plant, **perturbation)
 
 
 class PlantNode(NodeBase):
@@ -107,13 +151,16 @@ class PlantNode(NodeBase):
         if summary_json:
             self.summary_file = summary_json
         self.scenario = scen = load_checked_scenario(p['scenario_file'])
-        self.episode = ep = PlantEpisode(scen.plant, scen.problem, seed=p['seed'], run=p['run'], mode=p['mode'],
+        self.plant = plant = perturbed(scen.plant, declare_perturbation(self.node, int(scen.plant.n_u),
+                                                                        int(scen.plant.n_y)))
+        self.perturbation = plant.perturbation() if plant is not scen.plant else {}
+        self.episode = ep = PlantEpisode(plant, scen.problem, seed=p['seed'], run=p['run'], mode=p['mode'],
                                          real_time_factor=p['real_time_factor'],
                                          command_timeout_s=p['command_timeout_s'],
                                          keep_trajectory=bool(p['trajectory_file']), clock=steady)
         self.info, self.N = info, N = ep.info, ep.N
         self.dt, self.frame_id = info.dt, info.frame_id
-        self.payload = scenario_payload(scen, info)
+        self.payload = scenario_payload(scen, info, self.perturbation)
         self.cloud = c.CloudBuilder(scen.plant.field_coordinates(), info.field_name, info.frame_id)
         self.input_names, self.sensors = list(info.input_names), list(info.output_names)
         self.executor = None
@@ -124,7 +171,8 @@ class PlantNode(NodeBase):
             f"n_field={info.n_field}, n_u={info.n_u}, n_y={info.n_y}, dt={info.dt:g} s, N={N}), mode {p['mode']}"
             + (f" at real_time_factor {p['real_time_factor']:g} (a step every {fmt_s(ep.period)})"
                if p['mode'] == 'realtime' else f", command_timeout_s {p['command_timeout_s']:g}")
-            + f", seed {p['seed']} run {p['run']}, namespace {self.node.get_namespace()}")
+            + f", seed {p['seed']} run {p['run']}, namespace {self.node.get_namespace()}"
+            + (f"; perturbed: {plant!r}" if self.perturbation else ''))
 
     def _create_topics(self) -> None:
         from rosgraph_msgs.msg import Clock
@@ -240,7 +288,7 @@ class PlantNode(NodeBase):
                             'rejected_by_reason': ep.rejections.as_dict(),
                             'last_rejection': str(ep.rejections.last or ''),
                             'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'],
-                            'seed': self.p['seed'], 'run': self.p['run']})
+                            'seed': self.p['seed'], 'run': self.p['run'], 'perturbation': self.perturbation})
 
     def summary(self, status: str) -> dict:
         ep, p = self.episode, self.p
@@ -254,7 +302,7 @@ class PlantNode(NodeBase):
                 'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'], 'latency_max_s': lat['max'],
                 'wall_s': self.t_end - ep.t_start if ep.t_start else None,
                 'scenario_file': p['scenario_file'], 'plant': self.scenario.plant_type,
-                'namespace': self.node.get_namespace()}
+                'perturbation': self.perturbation, 'namespace': self.node.get_namespace()}
 
     def finish_label(self) -> str:
         return 'episode'
