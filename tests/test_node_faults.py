@@ -131,7 +131,7 @@ def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case)
     pr.publisher(c.MEASUREMENTS)
     pr.publisher(c.STATE_ESTIMATE)
     pr.wait_matched(subs=(c.COMMAND,), pubs=(c.MEASUREMENTS, c.STATE_ESTIMATE))
-    labels = c.state_labels(d.n_r)
+    labels = c.state_labels(d.n_r, d.lqg.n_d)
     y = d.nominal.y
 
     def cmd(k, timeout=10):

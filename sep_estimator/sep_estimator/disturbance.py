@@ -117,6 +117,38 @@ class Disturbance:
                 "std0_rule": self.std0_rule}
 
 
+def summary(dist: Disturbance | None) -> str:
+    """One phrase for logs and tables: 'none', 'input, n_d = 5', 'output, n_d = 3' (and
+    'NOT detectable' when the input directions' check failed)."""
+    if dist is None:
+        return "none"
+    bad = dist.directions.get("detectable") is False
+    return f"{dist.kind}, n_d = {dist.n_d}" + (" (NOT detectable)" if bad else "")
+
+
+def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names: Sequence[str],
+                     terms: int = 3) -> list[str]:
+    """A name for each disturbance state: 'd_0 = bias of <output>' (output kind), or its input
+    direction by its largest weights, 'd_0 along +0.71 heater_1 +0.71 heater_2' (input kind; at
+    most `terms` inputs, '...' when more carry weight)."""
+    if dist.kind == "output":
+        out = []
+        for i in range(dist.n_d):
+            col = dist.map[:, i]
+            j = int(np.argmax(np.abs(col)))
+            single = np.count_nonzero(np.abs(col) > 1e-12) == 1
+            out.append(f"d_{i} = bias of {output_names[j]}" if single else f"d_{i} (sensor bias direction {i})")
+        return out
+    labels = []
+    for i in range(dist.n_d):
+        col = dist.map[:, i]
+        order = np.argsort(-np.abs(col), kind="stable")
+        big = [j for j in order if abs(col[j]) >= 0.1 * np.abs(col).max()]
+        text = " ".join(f"{col[j]:+.2f} {input_names[j]}" for j in big[:terms])
+        labels.append(f"d_{i} along {text}" + (" ..." if len(big) > terms else ""))
+    return labels
+
+
 # --------------------------------------------------------------- the augmented model
 def padded_field_map(G: FieldMap, n_d: int) -> FieldMap:
     """G_z = [G_k, 0] (n_field, n + n_d): the field does not depend on d. Same kind of map."""
@@ -301,5 +333,5 @@ def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.nda
     return np.broadcast_to(v, (n_d,)).astype(float)
 
 
-__all__ = ["KINDS", "Disturbance", "DisturbanceError", "augment", "noise_covariance", "choose",
+__all__ = ["KINDS", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment", "noise_covariance", "choose",
            "input_directions", "step_gain", "padded_field_map", "cross_input", "per_direction"]

@@ -11,6 +11,7 @@ from typing import Any
 from sep_estimator.design_file import design_source, save_design
 from sep_estimator.design_source import source_digest
 from sep_estimator.disturbance import STD0_BANDS
+from sep_estimator.disturbance import summary as disturbance_summary
 
 from sep_control.cli.common import (add_compute_options, add_deprecated, blas_threads, engine_or_exit, fail, groups,
                                     legacy_main, memory_budget_or_exit, plant_or_exit, scenario_or_exit, stderr_log)
@@ -204,7 +205,7 @@ def design_summary(design) -> dict:
     return {
         "plant": design.scenario.plant_type, "n_x": info.n_x, "n_field": info.n_field,
         "n_steps": design.n_steps, "n_r": int(design.rom.dims.max()),
-        "disturbance": disturbance_summary(design),
+        "disturbance": disturbance_summary(design.disturbance),
         "nominal_cost": m["optimizer"]["nominal_cost"],
         "mean_only_cost": m["optimizer"]["mean_only_cost"],
         "belief_history": m["optimizer"]["belief_history"],
@@ -213,16 +214,6 @@ def design_summary(design) -> dict:
         "timings": m["timings"],
         "source_digest": source_digest(design_source(design)),
     }
-
-
-def disturbance_summary(design) -> str:
-    """'input, n_d = 5 (detectable)', 'output, n_d = 3' or 'none': the design's disturbance model."""
-    dist = design.disturbance
-    if dist is None:
-        return "none"
-    detect = dist.directions.get("detectable")
-    return f"{dist.kind}, n_d = {dist.n_d}" + ("" if detect is None else
-                                               " (detectable)" if detect else " (NOT detectable)")
 
 
 def format_summary(sm: dict, path: str) -> str:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sep_estimator.disturbance import summary as disturbance_summary
 from sep_estimator.ltv import sensed_nodes
 from sep_plant.noise import DEFAULT_SEED
 
@@ -100,9 +101,12 @@ def run(args: argparse.Namespace) -> int:
                            mpc={"horizon": args.mpc_horizon, "time_budget_s": args.mpc_time_budget})
             bar.add(args.runs, N)
             rows[name] = {**res.metrics(), "seconds": time.perf_counter() - t0}
+            if name in ("rom_lqg", "rom_mpc"):
+                rows[name]["disturbance"] = disturbance_summary(design.disturbance)
             results[name] = res
         print(f"{args.runs} runs per controller, seed {args.seed}, plant {design.scenario.plant_type}, "
-              f"n_x = {design.info.n_x}, n_r = {design.n_r}")
+              f"n_x = {design.info.n_x}, n_r = {design.n_r}, disturbance states "
+              f"{disturbance_summary(design.disturbance)} (rom_lqg, rom_mpc)")
         print(format_table(rows, TABLE_KEYS))
         if "rom_lqg" in rows and "oracle_lqg" in rows:
             ratio = rows["rom_lqg"]["cost_mean"] / rows["oracle_lqg"]["cost_mean"]
