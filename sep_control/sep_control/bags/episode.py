@@ -79,11 +79,17 @@ class Episode:
 
     @property
     def d_hat(self) -> np.ndarray:
-        """(N+1, n_d) the disturbance estimates d_hat_k: the state_estimate entries named d_0,
-        d_1, ... (`sep_plant.topics.state_labels`); (N+1, 0) without disturbance states."""
-        cols = [i for i, name in enumerate(self.estimate_names)
-                if name.startswith(T.DISTURBANCE_PREFIX) and i < self.a_hat.shape[1]]
-        return self.a_hat[:, cols]
+        """(N+1, n_d) the disturbance estimates d_hat_k (NaN where a step has none): the
+        state_estimate entries named d_0, d_1, ..., which `sep_plant.topics.state_labels` puts
+        last, so they are the last n_d entries of every estimate whatever its length; (N+1, 0)
+        without disturbance states."""
+        n_d = sum(name.startswith(T.DISTURBANCE_PREFIX) for name in self.estimate_names)
+        out = np.full((self.a_hat.shape[0], n_d), np.nan)
+        rows = np.flatnonzero(self.a_dim >= n_d) if n_d else np.zeros(0, dtype=int)
+        if rows.size:
+            cols = self.a_dim[rows, None] - n_d + np.arange(n_d)
+            out[rows] = self.a_hat[rows[:, None], cols]
+        return out
 
     def steps_with(self, key: str) -> np.ndarray:
         """Steps k that have a message on topic `key`."""
