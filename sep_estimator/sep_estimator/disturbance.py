@@ -312,10 +312,13 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
             raise DisturbanceError("a disturbance direction leaves no closed-loop offset (S_cl,i = 0); give "
                                    "disturbance_std")
         std0 = bands * float(band) / scale
-        rule = (f"sigma_0,i = {bands:g} band / sqrt(S_i S_cl,i) (a bias moving the outputs by {bands:g} bands "
-                "on the geometric mean of the open-loop and the plain-LQR closed-loop step gains)"
-                if K is not None or kind == "output" else
-                f"sigma_0,i = {bands:g} band / S_i (a bias moving the outputs by {bands:g} bands in open loop)")
+        if kind == "output":
+            rule = f"sigma_0 = {bands:g} band (a sensor bias of {bands:g} bands)"
+        elif K is not None:
+            rule = (f"sigma_0,i = {bands:g} band / sqrt(S_i S_cl,i) (a bias moving the outputs by {bands:g} bands "
+                    "on the geometric mean of the open-loop and the plain-LQR closed-loop step gains)")
+        else:
+            rule = f"sigma_0,i = {bands:g} band / S_i (a bias moving the outputs by {bands:g} bands in open loop)"
     else:
         std0 = per_direction("disturbance_std", std, n_d)
         rule = "disturbance_std (given)"
@@ -333,5 +336,6 @@ def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.nda
     return np.broadcast_to(v, (n_d,)).astype(float)
 
 
-__all__ = ["KINDS", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment", "noise_covariance", "choose",
-           "input_directions", "step_gain", "padded_field_map", "cross_input", "per_direction"]
+__all__ = ["KINDS", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
+           "noise_covariance", "choose", "input_directions", "step_gain", "padded_field_map", "cross_input",
+           "per_direction"]

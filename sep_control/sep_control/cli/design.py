@@ -163,6 +163,15 @@ def settings_from_args(args: argparse.Namespace, scenario) -> DesignSettings:
         fail(str(exc))
 
 
+def settings_fit_or_exit(settings: DesignSettings, plant) -> None:
+    """Exit 2 naming the key when the settings do not fit the plant (`DesignSettings.check_plant_dims`:
+    disturbance_dims > n_y, lists of the wrong length)."""
+    try:
+        settings.check_plant_dims(int(plant.n_u), int(plant.n_y))
+    except ValueError as exc:
+        fail(str(exc))
+
+
 def recorded_settings(settings: DesignSettings, plant, n_steps: int) -> dict[str, Any]:
     """The settings as a design made with them records them in its source record
     (`sep_estimator.design_file.source_differences`): every setting and the Jacobian 'auto'
@@ -181,10 +190,7 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args, scenario)
     log = stderr_log(args.quiet)
     plant = plant_or_exit(scenario, args.scenario or "reference scenario", device=args.device)
-    try:
-        settings.check_plant_dims(int(plant.n_u), int(plant.n_y))
-    except ValueError as exc:
-        fail(str(exc))
+    settings_fit_or_exit(settings, plant)
     log(f"design: scenario {args.scenario or '(reference)'}: plant {scenario.plant_type}, n_x = {plant.n_x}, "
         f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
         f"{plant.n_y} outputs, plant steps on {args.device}")
