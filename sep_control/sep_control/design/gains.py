@@ -102,7 +102,8 @@ def output_weights(C: np.ndarray, q_y: np.ndarray) -> np.ndarray:
 
 
 def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min, u_max) -> np.ndarray:
-    """u_k = clip(ubar_k + K_k ahat_k); a_hat (M, n) or (n,); limits scalars or (n_u,)."""
+    """u_k = clip(ubar_k + K_k zhat_k); a_hat (M, n) or (n,) the filter's state (with the
+    disturbance estimates, if any); limits scalars or (n_u,)."""
     u = u_nom_k + a_hat @ K_k.T
     if np.any(np.isfinite(u_min)) or np.any(np.isfinite(u_max)):
         u = np.clip(u, u_min, u_max)
