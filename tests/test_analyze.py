@@ -322,3 +322,48 @@ def test_the_controller_is_named_from_the_lqr_diagnostics(setup, tmp_path):
     assert m["controller"] == "rom_mpc" and m["mpc_qp_steps"] == 12 and m["mpc_fallbacks"] == 1
     text = write_report(rep, tmp_path / "report", figures=False).read_text()
     assert "Controller: rom_mpc (12 steps solved a QP, 1 fell back to the clipped LQR)" in text
+
+
+def _with_disturbance_estimates(ep, offset: float = 0.0):
+    """The episode's messages with state_estimate k = [a_hat_k; d_k] named a_0.., d_0, d_1 (the
+    estimator's labels for a design with two disturbance states), and the d_k."""
+    from bag_synth import LAT_EST_NS, T0_NS, episode_messages, joint_state
+
+    N = ep.scenario.problem.n_steps
+    step = T.dt_ns(ep.info.dt)
+    d = np.stack([0.01 * np.arange(N + 1) + offset, np.full(N + 1, -0.2)], axis=1)
+    msgs = [m for m in episode_messages(ep) if m[0] != T.topic_name(T.STATE_ESTIMATE)]
+    for k in range(N + 1):
+        a = np.asarray(ep.a_hat[k])
+        names = T.state_labels(len(a), 2)
+        msgs.append((T.topic_name(T.STATE_ESTIMATE), T0_NS + k * step + LAT_EST_NS,
+                     bytes(joint_state(k * step, names, position=np.concatenate([a, d[k]])))))
+    return sorted(msgs, key=lambda m: m[1]), d
+
+
+def test_disturbance_estimates_in_the_analysis_report_and_json(setup, tmp_path):
+    """A bag whose state_estimate carries d_0, d_1 (a design with disturbance states): d_hat over
+    the episode, d_hat_end in the metrics (the mean over episodes when pooled), the figure and the
+    report line; a bag without them has none."""
+    from bag_synth import write_messages
+
+    d, eps, bags, dpath = setup
+    plain = analyze(bags[0], dpath)
+    assert plain.episode.d_hat.shape[1] == 0 and plain.metrics["d_hat_end"] is None
+    msgs, dk = _with_disturbance_estimates(eps[0])
+    rep = analyze(write_messages(tmp_path / "dist_bag", msgs), dpath)
+    np.testing.assert_array_equal(rep.episode.d_hat, dk)
+    assert rep.metrics["d_hat_end"] == [float(v) for v in dk[-1]]
+    assert rep.metrics["cost_mean"] == plain.metrics["cost_mean"]     # nothing else changes
+    text = write_report(rep, tmp_path / "report").read_text()
+    assert (tmp_path / "report" / "disturbance.png").is_file() and "![Disturbance estimates](disturbance.png)" in text
+    assert "d_hat_end" in text and "Disturbance states: of the estimator's design, n_d = 2" in text
+    assert "disturbance.png" not in write_report(plain, tmp_path / "plain_report").read_text()
+    msgs2, dk2 = _with_disturbance_estimates(eps[1], offset=1.0)
+    agg = aggregate([rep, analyze(write_messages(tmp_path / "dist_bag2", msgs2), dpath)], dpath)
+    np.testing.assert_allclose(agg.metrics["d_hat_end"], (dk[-1] + dk2[-1]) / 2, rtol=1e-15)
+    out = tmp_path / "m.json"
+    assert cli([str(tmp_path / "dist_bag"), "--design", str(dpath), "--json", str(out), "--no-figures",
+                "--out", str(tmp_path / "r2"), "--quiet"]) == 0
+    row, = json.loads(out.read_text())
+    assert row["name"] == "dist_bag" and row["d_hat_end"] == [float(v) for v in dk[-1]]

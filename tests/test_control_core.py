@@ -40,7 +40,8 @@ def test_factory_names_and_aliases(limited):
     oracle = make_controller("oracle_lqg", d.lqg, sc.problem, d.nominal.u)
     assert isinstance(oracle, LqrLaw) and oracle.name == "oracle_lqg"
     for law in (*made.values(), oracle):
-        assert isinstance(law, Controller) and law.name in CONTROLLER_NAMES and law.n == d.n_r
+        # the laws read the filter's whole state z = [a; d] (the design has disturbance states)
+        assert isinstance(law, Controller) and law.name in CONTROLLER_NAMES and law.n == d.n_r + d.lqg.n_d
     with pytest.raises(ValueError, match="unknown controller 'pid'"):
         make_controller("pid", d.lqg, sc.problem, d.nominal.u)
     assert resolve_controller_name("rom_mpc") == ("rom_mpc", None)
@@ -56,7 +57,7 @@ def test_laws_batch_equals_one_by_one_and_stay_in_the_limits(limited):
     sc, d = limited
     lo, hi = sc.problem.limits(d.info.n_u)
     rng = np.random.default_rng(3)
-    A = 2.0 * rng.standard_normal((d.n_steps, 4, d.n_r))
+    A = 2.0 * rng.standard_normal((d.n_steps, 4, d.lqg.model.n))
     batch = laws(sc, d)
     singles = [laws(sc, d) for _ in range(4)]
     for k in range(d.n_steps):
@@ -81,7 +82,7 @@ def test_mpc_law_is_the_rom_mpc_with_shifted_warm_starts(limited):
     ref = RomMPC(d.lqg, sc.problem, d.nominal.u, horizon=6)
     warm = None
     for k in range(d.n_steps):
-        a = 2.0 * rng.standard_normal(d.n_r)
+        a = 2.0 * rng.standard_normal(d.lqg.model.n)
         u_ref, z = ref.command(k, a, warm)
         warm = ref.shift(z)
         np.testing.assert_array_equal(law.command(k, a), u_ref)
@@ -92,11 +93,11 @@ def test_mpc_law_is_the_rom_mpc_with_shifted_warm_starts(limited):
 
 
 def test_a_law_reads_the_leading_entries_of_a_longer_estimate(limited):
-    """A filter state z = [a_hat; d_hat] (a disturbance estimate appended) leaves these laws as
-    they are: they read a_hat, the first n entries."""
+    """Entries appended to the filter state z = [a_hat; d_hat] leave these laws as they are:
+    they read z, the first n entries."""
     sc, d = limited
     rng = np.random.default_rng(5)
-    a = rng.standard_normal((3, d.n_r))
+    a = rng.standard_normal((3, d.lqg.model.n))
     z = np.concatenate([a, rng.standard_normal((3, 2))], axis=1)
     for name in ("open_loop", "rom_lqg", "rom_mpc"):
         np.testing.assert_array_equal(laws(sc, d)[name].command(7, z), laws(sc, d)[name].command(7, a))
@@ -108,7 +109,7 @@ def test_loop_core_commands_fallbacks_and_late_estimates(limited):
     lo, hi = sc.problem.limits(d.info.n_u)
     law = make_controller("rom_lqg", d.lqg, sc.problem, d.nominal.u)
     core = ControlLoopCore(law, d.nominal.u, lo, hi)
-    a = np.full(d.n_r, 0.1)
+    a = np.full(d.lqg.model.n, 0.1)
     # step 0: the measurement arms the watchdog, the estimate gives the command
     assert core.measurement(0) is True
     out = core.estimate(0, a)

@@ -483,6 +483,7 @@ def test_version_1_file_of_sep01_is_read(tmp_path):
 
     d = load_design(V1_FILE)
     assert d.meta["upgraded_from_version"] == 1 and d.scenario.plant_type == "slab"
+    assert d.disturbance is None and d.meta["disturbance"] == {"kind": "none", "n_d": 0}   # before version 4
     assert d.scenario.plant_config["n_x"] == 12 and d.problem.window == (6, 10) and d.problem.k_switch == 4
     with np.load(V1_FILE, allow_pickle=False) as z:
         np.testing.assert_array_equal(d.nominal.field, z["T_nom"])

@@ -1,19 +1,30 @@
 """Acceptance: a lockstep closed-loop episode over topics reproduces the offline closed-loop
 simulation (`sep_control.evaluation.montecarlo.simulate`, same seed and run) to 1e-9 F over the whole
-trajectory; plant + lqg (two processes) and plant + estimator + lqr (three processes)."""
+trajectory, and its state estimates (the ROM state and the disturbance estimates) the offline
+filter's; plant + lqg (two processes) and plant + estimator + lqr (three processes), for designs
+with input disturbance states (the default), output ones, and none."""
 import json
 
 import numpy as np
 import pytest
 
-from node_harness import field_matrix, joint_matrix, launcher, probe, reference_case, small_case  # noqa: F401
+from node_harness import (SMALL, _cached_case, field_matrix, joint_matrix, launcher, probe, reference_case,  # noqa: F401
+                          small_case)
 from sep_control.evaluation.montecarlo import simulate
+from sep_estimator.tvkf import KalmanFilter
 from sep_plant.ros import contract as c
 from ros_helpers import parse_field_cloud
 
 pytestmark = pytest.mark.ros
 
 TOPICS = (c.FIELD, c.FIELD_ESTIMATE, c.APPLIED_INPUT, c.COMMAND, c.MEASUREMENTS, c.STATE_ESTIMATE)
+
+
+@pytest.fixture(scope='session')
+def small_kind_case(tmp_path_factory, request):
+    """The small scenario designed with disturbance states of another kind (output, none)."""
+    kind = request.param
+    return _cached_case(tmp_path_factory, f'small_{kind}', settings={'disturbance': kind}, **SMALL)
 
 
 def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run: int,
@@ -62,6 +73,15 @@ def check_equivalence(pr, case, seed, run):
     assert np.max(np.abs(Y - ref.Y[0])) <= 1e-9
     assert np.max(np.abs(F_hat - ref.F_hat[0])) <= 1e-9
     assert np.max(np.abs(F_std - ref.F_std)) <= 1e-9
+    # the state estimates z_k = [a_k; d_k], named a_0.., d_0.., are the offline filter's on the same data
+    Z = joint_matrix(pr, c.STATE_ESTIMATE, dt, N + 1, 'position')
+    assert list(pr.by_step(c.STATE_ESTIMATE, dt)[N].name) == c.state_labels(d.n_r, d.lqg.n_d)
+    kf = KalmanFilter(d.lqg)
+    for k in range(N + 1):
+        z = kf.update(k, ref.Y[0, k] - d.nominal.y[k])[0]
+        assert np.max(np.abs(Z[k] - z)) <= 1e-9, k
+        if k < N:
+            kf.predict(k, ref.U[0, k] - d.nominal.u[k])
     # the clouds carry the plant's node coordinates
     cloud = pr.by_step(c.FIELD, dt)[0]
     xyz = np.stack([parse_field_cloud(cloud)[k] for k in ('x', 'y', 'z')], axis=1)
@@ -71,6 +91,7 @@ def check_equivalence(pr, case, seed, run):
 
 @pytest.mark.parametrize('three', [False, True], ids=['plant+lqg', 'plant+estimator+lqr'])
 def test_lockstep_equivalence_small(launcher, probe, small_case, tmp_path, three):
+    assert small_case.design.disturbance.kind == 'input' and small_case.design.lqg.n_d == 5
     pr, summary = run_episode(launcher, probe, small_case, tmp_path, three=three, seed=7, run=3)
     assert summary['status'] == 'completed' and summary['steps'] == small_case.n_steps
     assert summary['deadline_misses'] == 0 and summary['rejected_messages'] == 0
@@ -87,3 +108,13 @@ def test_lockstep_equivalence_reference(launcher, probe, reference_case, tmp_pat
     lqg = json.loads((tmp_path / 'lqg.json').read_text())
     assert lqg['estimator']['updates'] == 251 and lqg['estimator']['nis_consistent'] in (True, None)
     assert lqg['estimator']['state_estimates_published'] == 251      # the probe subscribes to them
+
+
+@pytest.mark.parametrize('small_kind_case', ['output', 'none'], indirect=True)
+def test_lockstep_equivalence_disturbance_kinds(launcher, probe, small_kind_case, tmp_path):
+    case = small_kind_case
+    kind = case.design.disturbance.kind if case.design.disturbance is not None else 'none'
+    assert kind == case.design.meta['settings']['disturbance']
+    pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=7, run=3)
+    assert summary['status'] == 'completed' and summary['steps'] == case.n_steps
+    check_equivalence(pr, case, 7, 3)

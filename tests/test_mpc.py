@@ -45,7 +45,7 @@ def test_inactive_bounds_give_the_tv_lqr_law(free):
     mpc = RomMPC(d.lqg, sc.problem, d.nominal.u, horizon=8)
     rng = np.random.default_rng(0)
     for k in (0, 1, 17, 32, 35, 39):                     # k + H > N at the end: shortened horizon
-        a = rng.standard_normal(d.n_r)
+        a = rng.standard_normal(d.lqg.model.n)
         lqr = d.nominal.u[k] + d.lqg.K[k] @ a
         u, _ = mpc.command(k, a)
         np.testing.assert_allclose(u, lqr, rtol=0, atol=1e-10)
@@ -66,7 +66,7 @@ def test_active_bounds_give_the_box_qp_optimum_and_never_leave_the_limits(limite
     lo, hi = sc.problem.limits(d.info.n_u)
     solved = 0
     for k in (3, 12, 25, 38):
-        a = 3.0 * rng.standard_normal(d.n_r)
+        a = 3.0 * rng.standard_normal(d.lqg.model.n)
         u, z = mpc.command(k, a)
         assert np.all(u >= lo) and np.all(u <= hi)
         if z is None:
@@ -90,7 +90,7 @@ def test_active_bounds_give_the_box_qp_optimum_and_never_leave_the_limits(limite
 def test_failed_or_slow_qp_falls_back_to_the_clipped_lqr(limited):
     sc, d = limited
     lo, hi = sc.problem.limits(d.info.n_u)
-    a = 3.0 * np.random.default_rng(2).standard_normal(d.n_r)
+    a = 3.0 * np.random.default_rng(2).standard_normal(d.lqg.model.n)
     k = 10
     clipped = np.clip(d.nominal.u[k] + d.lqg.K[k] @ a, lo, hi)
     for kw, reason in ((dict(solver_settings={"max_iter": 1, "polishing": False}), "maximum iterations"),

@@ -131,7 +131,8 @@ def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case)
     pr.publisher(c.MEASUREMENTS)
     pr.publisher(c.STATE_ESTIMATE)
     pr.wait_matched(subs=(c.COMMAND,), pubs=(c.MEASUREMENTS, c.STATE_ESTIMATE))
-    labels = c.state_labels(d.n_r)
+    labels = c.state_labels(d.n_r, d.lqg.n_d)
+    n_z = len(labels)                      # the filter's state: ROM and disturbance states
     y = d.nominal.y
 
     def cmd(k, timeout=10):
@@ -144,17 +145,17 @@ def test_lqr_falls_back_to_nominal_without_estimate(launcher, probe, small_case)
     assert time.monotonic() - t0 >= 0.25
     np.testing.assert_array_equal(np.asarray(m.effort), d.nominal.u[0])
     # the late estimate of step 0 is counted and dropped (the plant already has a command)
-    pr.publish(c.STATE_ESTIMATE, c.joint_state(0, s.dt, labels, position=np.ones(d.n_r)))
+    pr.publish(c.STATE_ESTIMATE, c.joint_state(0, s.dt, labels, position=np.ones(n_z)))
     pr.wait_for(lambda: int(last_status(pr, 'lqr').get('late_estimates', 0)) >= 1 or
                 'late' in lqr.output(), 10, 'late estimate noted')
     # step 1: estimate in time -> LQR law
-    a = np.linspace(-0.1, 0.1, d.n_r)
+    a = np.linspace(-0.1, 0.1, n_z)
     pr.publish(c.MEASUREMENTS, c.joint_state(1, s.dt, list(s.output_names), position=y[1]))
     pr.publish(c.STATE_ESTIMATE, c.joint_state(1, s.dt, labels, position=a))
     np.testing.assert_allclose(np.asarray(cmd(1).effort), d.nominal.u[1] + d.lqg.K[1] @ a, rtol=0, atol=1e-12)
     # step 2: a bad (NaN) estimate is rejected; the watchdog sends the nominal
     pr.publish(c.MEASUREMENTS, c.joint_state(2, s.dt, list(s.output_names), position=y[2]))
-    pr.publish(c.STATE_ESTIMATE, c.joint_state(2, s.dt, labels, position=np.full(d.n_r, np.nan)))
+    pr.publish(c.STATE_ESTIMATE, c.joint_state(2, s.dt, labels, position=np.full(n_z, np.nan)))
     np.testing.assert_array_equal(np.asarray(cmd(2).effort), d.nominal.u[2])
     pr.wait_for(lambda: int(last_status(pr, 'lqr').get('fallbacks', 0)) == 2, 10, 'fallbacks on /diagnostics')
     st = last_status(pr, 'lqr')

@@ -125,10 +125,14 @@ def test_plant_node_refuses_a_broken_plant(launcher, tmp_path):
 
 
 # ------------------------------------------------------- noise not on the inputs
-def test_noise_through_its_own_channels_is_identified_and_filtered():
+@pytest.mark.parametrize("disturbance", ["none", "input"])
+def test_noise_through_its_own_channels_is_identified_and_filtered(disturbance):
     """NoisePlant: w enters through two disturbance profiles, not the inputs. The design
     identifies the ROM's noise input map B_w from impulses on w; the Kalman filter then uses
-    B_w W B_w' and its 2-sigma coverage is right; the ROM LQG matches the full-order oracle."""
+    B_w W B_w' and its 2-sigma coverage is right; the ROM LQG matches the full-order oracle.
+    With input disturbance states (B_w,z = blockdiag(B_w, I)) the same; the filter's field std
+    then includes the prior of the biases, which this unbiased plant does not have: coverage
+    above 0.95 (0.98 measured)."""
     from sep_control.design.pipeline import DesignSettings, run_design
     from sep_control.evaluation.montecarlo import simulate
     from sep_control.evaluation.oracle import oracle_lqg
@@ -137,8 +141,8 @@ def test_noise_through_its_own_channels_is_identified_and_filtered():
     plant = bp.NoisePlant(n_x=12)
     problem = Problem(n_steps=40, target=1.0, band=0.5, band_window=(20, 40), w_std=0.05, v_std=0.02,
                       u_init=0.1, r_u=1e-3, lqr_r=1e-3)
-    d = run_design(plant, problem, DesignSettings(belief=False, p=6, q=6, n_r=12), show_progress=False,
-                   log=lambda m: None)
+    d = run_design(plant, problem, DesignSettings(belief=False, p=6, q=6, n_r=12, disturbance=disturbance),
+                   show_progress=False, log=lambda m: None)
     assert d.rom.Bw is not None and d.rom.Bw.shape == (40, 12, 2)
     assert d.info.noise_on_inputs is False and d.info.noise_dim == 2
     assert d.meta["validation"]["markov_rel_error"] < 1e-8           # a linear plant: exact
@@ -146,7 +150,10 @@ def test_noise_through_its_own_channels_is_identified_and_filtered():
     assert orc.model.Bw is not None
     rom = simulate(plant, d, "rom_lqg", 1, 400)
     ora = simulate(plant, d, "oracle_lqg", 1, 400, oracle=orc)
-    assert 0.93 < rom.coverage_2sigma < 0.97
+    if disturbance == "none":
+        assert 0.93 < rom.coverage_2sigma < 0.97
+    else:
+        assert d.lqg.model.noise_input.shape == (40, 12 + 2, 2 + 2) and 0.95 < rom.coverage_2sigma < 0.99
     assert rom.summary["cost_mean"] == pytest.approx(ora.summary["cost_mean"], rel=0.01)
     # treating the noise as if it entered through the inputs would give the wrong covariance
     assert not np.allclose(d.rom.Bw, d.rom.B[:, :, :2])

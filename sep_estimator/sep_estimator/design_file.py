@@ -9,16 +9,24 @@ shape (the two belief statistics float32, see below). Loading checks the format 
 finiteness, and the zip CRCs, and raises `DesignFileError` with a message that says what is
 wrong. Loading never imports the plant's code: the file is self-contained data.
 
-Arrays (N steps, n_r ROM order, n_field field nodes; index conventions of `sep_estimator.ltv`):
+Arrays (N steps, n_r ROM order, n_d disturbance states, n_z = n_r + n_d, n_field field nodes;
+index conventions of `sep_estimator.ltv`):
 
     u_nom (N, n_u)  y_nom (N+1, n_y)  field_nom, belief_mean, belief_std (N+1, n_field)
     target (n_field,)  field_xyz (n_field, 3)  rom_dims (N+1,) int
-    A (N, n_r, n_r)  B (N, n_r, n_u)  C (N+1, n_y, n_r)
+    A (N, n_r, n_r)  B (N, n_r, n_u)  C (N+1, n_y, n_r)                  the ROM
     field_basis (n_field, r_f)  field_coef (N+1, r_f, n_r)   the field map G_k = field_basis field_coef_k
     (or G (N+1, n_field, n_r) dense, as version 1 stored it)
     Bw (N, n_r, n_w)   only for plants whose noise does not enter through the inputs
-    K (N, n_u, n_r)  L (N+1, n_r, n_y)  P_post (N+1, n_r, n_r)  field_std (N+1, n_field)
+    K (N, n_u, n_z)  L (N+1, n_z, n_y)  P_post (N+1, n_z, n_z)  field_std (N+1, n_field)
     hankel_sv (N+1, n_sv)
+    dist_map (n_u, n_d) E or (n_y, n_d) F, dist_std0 (n_d,), dist_walk_std (n_d,)
+                       only with disturbance states (`sep_estimator.disturbance`)
+
+Version 4 adds the disturbance states: meta["disturbance"] = {"kind": "none" | "input" |
+"output", "n_d", "directions" (how chosen, singular values), "std0_rule"}; A, B, C, rom_dims
+and meta["n_r"] stay the ROM's, the gains and the filter's schedule are on z = [a; d]. Files of
+versions 1-3 have none (kind "none", n_z = n_r).
 
 Trajectories over the field (field_nom, field_std) of more than `COMPRESS_ABOVE` numbers are
 stored as a truncated SVD, `<name>__basis` (n_field, r) and `<name>__coef` (N+1, r), to
@@ -48,14 +56,17 @@ from sep_plant.scenario import Scenario, ScenarioError, same_value
 
 from sep_estimator.design_source import (JACOBIAN_USED, plant_file_digests, record_differences, source_digest,
                                          source_record)
+from sep_estimator.disturbance import KINDS as DISTURBANCE_KINDS
+from sep_estimator.disturbance import Disturbance, DisturbanceError, augment, noise_covariance
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
 from sep_plant.scenario import json_default
 
 FORMAT = "sep-design"
-#: 3 (sep 0.4): belief statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64
-VERSION = 3
-READS = (1, 2, 3)
+#: 4: disturbance states; 3 (sep 0.4): belief statistics in float32, field map compressed;
+#: 2 (sep 0.2-0.3): all float64
+VERSION = 4
+READS = (1, 2, 3, 4)
 #: (N+1) x n_field trajectories larger than this many numbers are stored as a truncated SVD
 COMPRESS_ABOVE = 1 << 20
 TRAJECTORY_TOL = 1e-11
@@ -99,13 +110,19 @@ class Design:
     objective: Objective               # resolved target, weights, band window
     field_xyz: np.ndarray              # (n_field, 3) node coordinates [m]
     nominal: Nominal
-    lqg: LQG                           # the ROM LQG (model = the identified ROM)
+    lqg: LQG                           # the ROM LQG (model: the ROM with its disturbance states; rom: the ROM)
     hankel_sv: np.ndarray              # (N+1, n_sv)
     meta: dict[str, Any] = field(default_factory=dict)   # settings, validation, provenance
 
     @property
     def rom(self) -> LTVModel:
-        return self.lqg.model
+        """The identified ROM (n_r states), without disturbance states."""
+        return self.lqg.rom
+
+    @property
+    def disturbance(self) -> Disturbance | None:
+        """The filter's disturbance states (None: none)."""
+        return self.lqg.disturbance
 
     @property
     def problem(self):
@@ -121,16 +138,21 @@ class Design:
 
 
 def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
-            field_rank: int | None) -> dict[str, tuple[int, ...]]:
-    """Expected member shapes; field_rank None: the dense field map G."""
+            field_rank: int | None, kind: str = "none", n_d: int = 0) -> dict[str, tuple[int, ...]]:
+    """Expected member shapes; field_rank None: the dense field map G; `kind`, `n_d`: the
+    disturbance states."""
     nf, nu, ny = info.n_field, info.n_u, info.n_y
+    nz = n_r + n_d
     out = {
         "u_nom": (N, nu), "y_nom": (N + 1, ny), "field_nom": (N + 1, nf),
         "belief_mean": (N + 1, nf), "belief_std": (N + 1, nf), "target": (nf,), "field_xyz": (nf, 3),
         "rom_dims": (N + 1,), "A": (N, n_r, n_r), "B": (N, n_r, nu), "C": (N + 1, ny, n_r),
-        "K": (N, nu, n_r), "L": (N + 1, n_r, ny), "P_post": (N + 1, n_r, n_r),
+        "K": (N, nu, nz), "L": (N + 1, nz, ny), "P_post": (N + 1, nz, nz),
         "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
     }
+    if kind != "none":
+        out["dist_map"] = (nu if kind == "input" else ny, n_d)
+        out["dist_std0"], out["dist_walk_std"] = (n_d,), (n_d,)
     if field_rank is None:
         out["G"] = (N + 1, nf, n_r)
     else:
@@ -156,7 +178,15 @@ def arrays_of(d: Design) -> dict[str, np.ndarray]:
            "hankel_sv": d.hankel_sv}
     if m.Bw is not None:
         out["Bw"] = m.Bw
+    dist = d.disturbance
+    if dist is not None:
+        out.update(dist_map=dist.map, dist_std0=dist.std0, dist_walk_std=dist.walk_std)
     return out
+
+
+def disturbance_meta(dist: Disturbance | None) -> dict[str, Any]:
+    """meta["disturbance"] of a design: {"kind": "none", "n_d": 0} or `Disturbance.record`."""
+    return {"kind": "none", "n_d": 0} if dist is None else dist.record()
 
 
 def save_design(path: str | Path, d: Design) -> Path:
@@ -164,13 +194,16 @@ def save_design(path: str | Path, d: Design) -> Path:
     appears atomically."""
     path = Path(path)
     arrays = arrays_of(d)
-    expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays))
+    dist = d.disturbance
+    expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays),
+                     "none" if dist is None else dist.kind, d.lqg.n_d)
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
     source = design_source(d)
     meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": d.scenario.to_dict(),
-            "plant_info": d.info.to_dict(), "n_r": d.n_r, "source": source, "source_digest": source_digest(source)}
+            "plant_info": d.info.to_dict(), "n_r": d.n_r, "disturbance": disturbance_meta(dist),
+            "source": source, "source_digest": source_digest(source)}
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
     for name in SINGLE:
         arrays[name] = arrays[name].astype(np.float32)
@@ -266,7 +299,8 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     basis = raw.get("field_basis")
     if basis is not None and basis.ndim != 2:
         raise DesignFileError(f"{path}: field_basis must be a matrix (n_field, r_f)")
-    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw))
+    kind, n_d = _disturbance_kind(path, meta, version, info)
+    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw), kind, n_d)
     missing = sorted(set(expect) - set(raw))
     if missing:
         raise DesignFileError(f"{path}: missing arrays {missing}")
@@ -280,7 +314,7 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
                 raise DesignFileError(f"{path}: rom_dims must be integers in [0, {n_r}]")
         elif arr.dtype != np.float64 or not np.all(np.isfinite(arr)):
             raise DesignFileError(f"{path}: array {name} is not finite float64")
-    design = _assemble(scenario, info, meta, raw)
+    design = _assemble(path, scenario, info, meta, raw, kind)
     if expect_scenario is not None:
         check_matches(design, expect_scenario, str(path))
     return design
@@ -294,13 +328,42 @@ def _field_rank(arrays: dict) -> int | None:
     return int(basis.shape[1]) if basis is not None and basis.ndim == 2 else 0
 
 
-def _assemble(scenario: Scenario, info: PlantInfo, meta: dict, a: dict[str, np.ndarray]) -> Design:
+def _disturbance_kind(path: Path, meta: dict, version: int, info: PlantInfo) -> tuple[str, int]:
+    """(kind, n_d) of meta["disturbance"]; ("none", 0) for files before version 4."""
+    if version < 4:
+        meta.setdefault("disturbance", {"kind": "none", "n_d": 0})
+        return "none", 0
+    rec = meta.get("disturbance")
+    kind = rec.get("kind") if isinstance(rec, dict) else None
+    n_d = rec.get("n_d") if isinstance(rec, dict) else None
+    if kind not in DISTURBANCE_KINDS:
+        raise DesignFileError(f"{path}: meta disturbance kind must be one of {', '.join(DISTURBANCE_KINDS)}, "
+                              f"got {kind!r}")
+    if kind == "none":
+        return kind, 0
+    if not isinstance(n_d, int) or isinstance(n_d, bool) or not 1 <= n_d <= info.n_y:
+        raise DesignFileError(f"{path}: meta disturbance n_d must be an integer in 1..n_y = {info.n_y}, got {n_d!r}")
+    return kind, n_d
+
+
+def _assemble(path: Path, scenario: Scenario, info: PlantInfo, meta: dict, a: dict[str, np.ndarray],
+              kind: str) -> Design:
     p = scenario.problem
     G = DenseFieldMap(a["G"]) if "field_basis" not in a else PODFieldMap(a["field_basis"], a["field_coef"])
-    model = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=G, dims=a["rom_dims"], Bw=a.get("Bw"))
+    rom = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=G, dims=a["rom_dims"], Bw=a.get("Bw"))
+    dist = None
+    if kind != "none":
+        rec = meta["disturbance"]
+        try:
+            dist = Disturbance(kind, a["dist_map"], a["dist_std0"], a["dist_walk_std"],
+                               dict(rec.get("directions") or {}), str(rec.get("std0_rule", "")))
+        except DisturbanceError as exc:
+            raise DesignFileError(f"{path}: bad disturbance states: {exc}") from None
+    model = augment(rom, dist)
     W, V = p.noise_covariances(info.noise_dim, info.n_y)
+    W = noise_covariance(W, dist)
     lqg = LQG("rom_lqg", model, a["K"], schedule_from_posteriors(model, a["L"], a["P_post"], W), W, V,
-              a["field_std"])
+              a["field_std"], disturbance=dist, rom=rom)
     objective = Objective(a["target"], p.q_weights(), float(p.band), p.window, float(p.r_u))
     nominal = Nominal(a["u_nom"], a["y_nom"], a["field_nom"], a["belief_mean"], a["belief_std"])
     return Design(scenario, info, objective, a["field_xyz"], nominal, lqg, a["hankel_sv"], meta)

@@ -77,7 +77,8 @@ class EstimatorCore:
 
     @property
     def estimate(self) -> np.ndarray:
-        """The current estimate a_hat (n,)."""
+        """The current estimate z_hat (n,): the ROM state a_hat, then the disturbance estimates d_hat
+        when the design has disturbance states (`sep_estimator.disturbance`)."""
         return self.kf.a[0]
 
     def field_estimate(self) -> tuple[np.ndarray, np.ndarray]:

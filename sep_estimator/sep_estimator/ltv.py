@@ -6,6 +6,10 @@ oracle, the Monte Carlo, validation and the design file (k = 0..N, zero-padded t
     a_{k+1} = A_k a_k + B_k du_k + B_w,k w_k        (k < N; B_w = B when noise enters the inputs)
     dy_k    = C_k a_k + v_k
     df_k    = G_k a_k                               (field deviation; G is an operator)
+    a_0 ~ N(0, P_0)                                 (P_0 = 0: the initial state is known exactly)
+
+The same container holds the ROM augmented with disturbance states, z = [a; d]
+(`sep_estimator.disturbance.augment`), whose prior P_0 = blockdiag(0, diag(sigma_0^2)) is not zero.
 
 Near k = 0 the ROM order n_k grows (only k past inputs exist); arrays are zero-padded to n with
 the true orders in `dims`. Zero padding is exact: padded states start at zero and A, B never
@@ -19,9 +23,12 @@ Pure numpy: no ROS import.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from sep_estimator.disturbance import Disturbance
 
 
 class FieldMap(Protocol):
@@ -198,6 +205,11 @@ class LTVModel:
     G: FieldMap              # field output map
     dims: np.ndarray         # (N+1,) int: true order n_k at step k
     Bw: np.ndarray | None = None   # (N, n, n_w) noise input map; None: noise enters the inputs (B)
+    P0: np.ndarray | None = None   # (n, n) covariance of the initial state; None: zero (known exactly)
+
+    def initial_covariance(self) -> np.ndarray:
+        """P_0 (n, n): the prior covariance of a_0 (zeros when `P0` is None)."""
+        return np.zeros((self.n, self.n)) if self.P0 is None else np.array(self.P0, dtype=float)
 
     @property
     def n_steps(self) -> int:
@@ -249,11 +261,12 @@ def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3,
     step by default). Sensors that average or mix the field read no single node. With `P`
     (n, n), a covariance of the state at step k, the rows are compared in the directions the
     state takes, (C_k[i] - G_k[j]) P^(1/2): a field map compressed to those directions
-    (`sep_control.design.field_map.compress_field_map`) differs from C elsewhere."""
+    (`sep_control.design.field_map.compress_field_map`) differs from C elsewhere; the covariance
+    of an augmented state z = [a; d] counts with its a-block."""
     k = model.C.shape[0] - 1 if k is None else k
     G, C = model.G.matrix(k), model.C[k]
     if P is not None:
-        L = psd_factor(P)
+        L = psd_factor(P[:model.n, :model.n])
         G, C = G @ L, C @ L
     out = []
     for c in C:
@@ -280,20 +293,40 @@ class KalmanSchedule:
 class LQG:
     """A time-varying LQG around a nominal: model, LQR gains, Kalman schedule, noise.
 
-    du_k = K_k ahat_{k|k};  ahat_{k|k} = ahat_{k|k-1} + L_k (dy_k - C_k ahat_{k|k-1}).
+    du_k = K_k zhat_{k|k};  zhat_{k|k} = zhat_{k|k-1} + L_k (dy_k - C_k zhat_{k|k-1}).
+
+    `model` is the filter's: the ROM itself (z = a), or the ROM augmented with disturbance
+    states, z = [a; d] (`sep_estimator.disturbance.augment`; `disturbance` says how), on which
+    K, the schedule and W are; `rom` is the ROM alone (n_r states: validation, the ROM sweep).
     """
 
     name: str                    # 'rom_lqg' or 'oracle_lqg'
-    model: LTVModel
-    K: np.ndarray                # (N, n_u, n)
+    model: LTVModel              # the filter's model (n_z = n_r + n_d states)
+    K: np.ndarray                # (N, n_u, n_z)
     kf: KalmanSchedule
-    W: np.ndarray                # (n_w, n_w) process noise covariance
+    W: np.ndarray                # (n_w, n_w) process noise covariance (with the walk's channels)
     V: np.ndarray                # (n_y, n_y) sensor noise covariance
     field_std: np.ndarray | None = None   # (N+1, n_field) reconstruction std after the update
+    disturbance: "Disturbance | None" = None   # the disturbance states (None: z = a)
+    rom: LTVModel | None = None  # the ROM on a (None: `model` itself; set in __post_init__)
 
     def __post_init__(self) -> None:
+        if self.rom is None:
+            if self.disturbance is not None:
+                raise ValueError("an LQG with disturbance states needs its ROM (rom=...)")
+            self.rom = self.model
         if self.field_std is None:
             self.field_std = field_std_schedule(self.model.G, self.kf.P_post)
+
+    @property
+    def n_r(self) -> int:
+        """The ROM's state dimension (the leading n_r entries of z)."""
+        return self.rom.n
+
+    @property
+    def n_d(self) -> int:
+        """The number of disturbance states (0: none)."""
+        return 0 if self.disturbance is None else self.disturbance.n_d
 
 
 def field_std_schedule(G: FieldMap, P: np.ndarray) -> np.ndarray:
@@ -304,8 +337,10 @@ def field_std_schedule(G: FieldMap, P: np.ndarray) -> np.ndarray:
 
 
 def prior_covariances(model: LTVModel, P_post: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """P_{k|k-1} from the posteriors: P_{0|-1} = 0, P_{k+1|k} = A_k P_{k|k} A_k' + B_w W B_w'."""
+    """P_{k|k-1} from the posteriors: P_{0|-1} = P_0 (`LTVModel.P0`, zero unless the model has
+    disturbance states), P_{k+1|k} = A_k P_{k|k} A_k' + B_w W B_w'."""
     A, Bw = model.A, model.noise_input
     P_prior = np.zeros_like(P_post)
+    P_prior[0] = model.initial_covariance()
     P_prior[1:] = A @ P_post[:-1] @ A.transpose(0, 2, 1) + Bw @ W @ Bw.transpose(0, 2, 1)
     return P_prior

@@ -5,7 +5,11 @@ Model (`sep_estimator.ltv.LTVModel`, k = 0..N):
     dy_k    = C_k a_k + v_k,                   v ~ N(0, V)
     df_k    = G_k a_k                          (field output map)
 
-Forward Riccati (offline, `kalman_gains`): P_{0|-1} = 0 (the initial state is known exactly),
+The model may be the ROM augmented with disturbance states z = [a; d]
+(`sep_estimator.disturbance`): the same recursions on z.
+
+Forward Riccati (offline, `kalman_gains`): P_{0|-1} = P_0 (`LTVModel.P0`: zero when the initial
+state is known exactly, blockdiag(0, diag(sigma_0^2)) with disturbance states),
     S_k = C_k P_{k|k-1} C_k' + V,  L_k = P_{k|k-1} C_k' S_k^{-1},
     P_{k|k} = (I - L_k C_k) P_{k|k-1} (I - L_k C_k)' + L_k V L_k'     (Joseph form)
     P_{k+1|k} = A_k P_{k|k} A_k' + B_w,k W B_w,k'.
@@ -37,13 +41,14 @@ def time_update(P: np.ndarray, A: np.ndarray, Bw: np.ndarray, W: np.ndarray) -> 
 
 
 def kalman_gains(model: LTVModel, W: np.ndarray, V: np.ndarray, P0: np.ndarray | None = None) -> KalmanSchedule:
-    """Forward Riccati recursion for k = 0..N."""
+    """Forward Riccati recursion for k = 0..N from P_{0|-1} = `P0` (default the model's prior,
+    `LTVModel.initial_covariance`)."""
     A, Bw, C = model.A, model.noise_input, model.C
     N1, n_y, n = C.shape
     L = np.zeros((N1, n, n_y))
     P_post = np.zeros((N1, n, n))
     P_prior = np.zeros((N1, n, n))
-    P = np.zeros((n, n)) if P0 is None else np.array(P0, dtype=float)
+    P = model.initial_covariance() if P0 is None else np.array(P0, dtype=float)
     for k in range(N1):
         P_prior[k] = P
         L[k], P_post[k] = measurement_update(P, C[k], V)
@@ -61,7 +66,8 @@ class KalmanFilter:
     """Online filter for a batch of M runs (M = 1 in the estimator node).
 
     Per step k: `update(k, dy)` (or `skip(k)` when the measurement is missing or rejected),
-    then `predict(k, du_applied)`. `a` holds the current estimate (M, n).
+    then `predict(k, du_applied)`. `a` holds the current estimate (M, n) of the model's whole
+    state (z = [a; d] with disturbance states).
     """
 
     def __init__(self, lqg: LQG, batch: int = 1):
@@ -70,6 +76,7 @@ class KalmanFilter:
         self.A, self.B, self.Bw, self.C, self.G = m.A, m.B, m.noise_input, m.C, m.G
         self.sched = lqg.kf
         self.W, self.V = lqg.W, lqg.V
+        self.P0 = m.initial_covariance()
         self.field_std_sched = lqg.field_std
         self.n = m.n
         self.a = np.zeros((batch, self.n))
@@ -136,9 +143,9 @@ class KalmanFilter:
 
     def restart_at(self, k: int) -> None:
         """Start (or restart) at step k with no information: a = 0 (the nominal), P = open-loop
-        covariance of a_k. Used by a node that joins or rejoins an episode mid-way."""
+        covariance of a_k from the prior P_0. Used by a node that joins or rejoins an episode mid-way."""
         self.a = np.zeros_like(self.a)
-        self.P = open_loop_covariance(self.A, self.Bw, self.W, k)
+        self.P = open_loop_covariance(self.A, self.Bw, self.W, k, self.P0)
         self.k, self.posterior, self.on_schedule = k, False, k == 0
 
     def _expect(self, k: int, posterior: bool) -> None:
@@ -147,9 +154,11 @@ class KalmanFilter:
             raise RuntimeError(f"filter is at step {self.k} ({state} its update); got a call for step {k}")
 
 
-def open_loop_covariance(A: np.ndarray, Bw: np.ndarray, W: np.ndarray, k: int) -> np.ndarray:
-    """Covariance of a_k with no measurement since a_0 (used to restart a filter mid-episode)."""
-    P = np.zeros((A.shape[1], A.shape[1]))
+def open_loop_covariance(A: np.ndarray, Bw: np.ndarray, W: np.ndarray, k: int,
+                         P0: np.ndarray | None = None) -> np.ndarray:
+    """Covariance of a_k with no measurement since a_0 ~ N(0, P0) (P0 None: zero), used to
+    restart a filter mid-episode."""
+    P = np.zeros((A.shape[1], A.shape[1])) if P0 is None else np.array(P0, dtype=float)
     for j in range(k):
         P = time_update(P, A[j], Bw[j], W)
     return P

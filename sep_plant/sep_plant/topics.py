@@ -107,6 +107,16 @@ RECORDED = tuple(t.name for t in TOPICS)
 OPTIONAL = (FIELD_IMAGE, FIELD_ESTIMATE_IMAGE)
 
 
+#: name prefixes of the state_estimate entries: the ROM state, the disturbance states
+STATE_PREFIX, DISTURBANCE_PREFIX = "a_", "d_"
+
+
+def state_labels(n_r: int, n_d: int = 0) -> list[str]:
+    """Names of the state_estimate entries: a_0 .. a_{n_r-1}, then d_0 .. d_{n_d-1} (the
+    disturbance estimates of a design with disturbance states)."""
+    return [f"{STATE_PREFIX}{i}" for i in range(n_r)] + [f"{DISTURBANCE_PREFIX}{i}" for i in range(n_d)]
+
+
 def topic_name(name: str, namespace: str = NAMESPACE) -> str:
     """Fully qualified name of a contract topic (absolute names are returned unchanged)."""
     if name.startswith("/"):

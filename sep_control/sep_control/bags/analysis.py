@@ -27,6 +27,9 @@ Definitions (everything computed from the bag alone, plus the design for nominal
   (real-time factor = sim / wall).
 * deadline_misses, rejected_messages: the last /diagnostics values, summed over the status
   entries (nodes) that report them.
+* d_hat_end: the disturbance estimates d_hat (the state_estimate entries d_0, d_1, ...) at the
+  last step with an estimate; None without disturbance states (docs/method.md). For many episodes
+  the pooled value is their mean.
 * controller: rom_lqg or rom_mpc, from the LQR node's /diagnostics (None in bags of sep < 0.3,
   whose LQR did not report it: those ran the LQR); for rom_mpc also mpc_qp_steps and
   mpc_fallbacks (QPs solved, steps that fell back to the clipped LQR).
@@ -304,10 +307,21 @@ def episode_metrics(ep: Episode, obj: Objective | None, F_nom: np.ndarray | None
             out[key] = ep.diag_totals.get(key)
     out["deadline_misses"] = ep.diag_totals.get("deadline_misses")
     out["rejected_messages"] = ep.diag_totals.get("rejected_messages")
+    out["d_hat_end"] = d_hat_end(ep)
     meas = ep.step_recv_ns.get(T.MEASUREMENTS)
     out["steps_recorded"] = int(np.sum(np.isfinite(meas))) if meas is not None else 0
     out["complete"] = bool(ep.complete and not ep.missing)
     return out, notes, (lat_cmd, lat_est)
+
+
+def d_hat_end(ep: Episode) -> list[float] | None:
+    """The disturbance estimates at the last step that has all of them (None: no disturbance
+    states in the bag's state_estimate, or no such step)."""
+    dh = ep.d_hat
+    if not dh.shape[1]:
+        return None
+    full = np.flatnonzero(np.all(np.isfinite(dh), axis=1))
+    return [float(v) for v in dh[full[-1]]] if full.size else None
 
 
 def _episode_name(bag_path: Path, name: str | None) -> str:
@@ -510,6 +524,9 @@ def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None
     for key in ("deadline_misses", "rejected_messages"):
         vals = [r.metrics.get(key) for r in reports if r.metrics.get(key) is not None]
         out[key] = int(sum(vals)) if vals else None
+    ends = [r.metrics.get("d_hat_end") for r in reports]
+    if ends and all(e is not None and len(e) == len(ends[0]) for e in ends):
+        out["d_hat_end"] = [float(v) for v in np.mean(ends, axis=0)]
     out["complete"] = all(r.metrics.get("complete") for r in reports)
     out["model_mismatch"] = list(dict.fromkeys(d for r in reports for d in r.model_mismatch))
     return AggregateReport(reports=reports, scenario=first.scenario, design=design, objective=obj, metrics=out,

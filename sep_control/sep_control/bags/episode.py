@@ -73,10 +73,25 @@ class Episode:
     scenario_source: str = "bag"          # 'bag', 'argument' or 'inferred'
     perturbation: dict[str, list[float]] = field(default_factory=dict)  # the plant's actuator/sensor
                                           # perturbation from its scenario message ({}: none)
+    estimate_names: list[str] = field(default_factory=list)   # names of the longest state_estimate
 
     @property
     def n_field(self) -> int:
         return int(self.F.shape[1])
+
+    @property
+    def d_hat(self) -> np.ndarray:
+        """(N+1, n_d) the disturbance estimates d_hat_k (NaN where a step has none): the
+        state_estimate entries named d_0, d_1, ..., which `sep_plant.topics.state_labels` puts
+        last, so they are the last n_d entries of every estimate whatever its length; (N+1, 0)
+        without disturbance states."""
+        n_d = sum(name.startswith(T.DISTURBANCE_PREFIX) for name in self.estimate_names)
+        out = np.full((self.a_hat.shape[0], n_d), np.nan)
+        rows = np.flatnonzero(self.a_dim >= n_d) if n_d else np.zeros(0, dtype=int)
+        if rows.size:
+            cols = self.a_dim[rows, None] - n_d + np.arange(n_d)
+            out[rows] = self.a_hat[rows[:, None], cols]
+        return out
 
     def steps_with(self, key: str) -> np.ndarray:
         """Steps k that have a message on topic `key`."""
@@ -162,12 +177,27 @@ def _longest(*found: dict[int, np.ndarray]) -> int:
     return max((len(v) for vals in found for v in vals.values()), default=0)
 
 
-def read_vectors(msgs: Messages, info: PlantInfo | None) -> tuple[dict[str, PerStep], dict[str, np.ndarray]]:
+class _EstimateNames:
+    """A state_estimate parser that keeps the names of the longest estimate seen."""
+
+    def __init__(self):
+        self.names: list[str] = []
+
+    def __call__(self, msg) -> np.ndarray:
+        v = joint_values(msg, "position", None)
+        if v.size >= len(self.names):
+            self.names = [str(n) for n in msg.name]
+        return v
+
+
+def read_vectors(msgs: Messages, info: PlantInfo | None) -> tuple[dict[str, PerStep], dict[str, Any]]:
     """The JointState topics per step, and the Episode arrays y, u_cmd, u, a_hat, a_dim (state
-    estimates vary in length: the ROM order grows)."""
+    estimates vary in length: the ROM order grows) and the estimate's names."""
     n_y, n_u = (None, None) if info is None else (info.n_y, info.n_u)
     dims = {T.MEASUREMENTS: n_y, T.COMMAND: n_u, T.APPLIED_INPUT: n_u, T.STATE_ESTIMATE: None}
-    vec = {key: read_per_step(msgs, key, functools.partial(joint_values, attr=attr, n=dims[key]))
+    names = _EstimateNames()
+    vec = {key: read_per_step(msgs, key, names if key == T.STATE_ESTIMATE else
+                              functools.partial(joint_values, attr=attr, n=dims[key]))
            for key, attr in VECTOR_TOPICS.items()}
     n_y = n_y if n_y is not None else _longest(vec[T.MEASUREMENTS].values)
     n_u = n_u if n_u is not None else _longest(vec[T.COMMAND].values, vec[T.APPLIED_INPUT].values)
@@ -179,7 +209,8 @@ def read_vectors(msgs: Messages, info: PlantInfo | None) -> tuple[dict[str, PerS
     return vec, {"y": stack_rows(vec[T.MEASUREMENTS].values, N + 1, n_y),
                  "u_cmd": stack_rows(vec[T.COMMAND].values, N, n_u),
                  "u": stack_rows(vec[T.APPLIED_INPUT].values, N, n_u),
-                 "a_hat": stack_rows(est, N + 1, max(int(a_dim.max()), 0)), "a_dim": a_dim}
+                 "a_hat": stack_rows(est, N + 1, max(int(a_dim.max()), 0)), "a_dim": a_dim,
+                 "estimate_names": names.names}
 
 
 def read_fields(msgs: Messages, info: PlantInfo | None, notes: list[str]

@@ -11,6 +11,8 @@ episode_estimation_figure  field-estimate error with its 2-sigma bounds at the t
                            where the reconstruction std is largest (`estimation_nodes`); grid
                            plants also get the std map with those nodes marked
 episode_inputs_figure      applied inputs vs nominal, labelled with the plant's input names
+episode_disturbance_figure the disturbance estimates d_hat_k (designs with disturbance states),
+                           labelled with their directions (the design's map, when given)
 render_image_frame         one frame of an image topic (field_image) as a viewer shows the
                            sensor_msgs/Image
 
@@ -206,6 +208,48 @@ def episode_inputs_figure(rep: Reports, path: Path) -> Path | None:
                  + (" vs nominal (dashed)" if u_nom is not None else ""))
     ax.grid(alpha=0.3)
     ax.legend(ncol=min(U.shape[2], 5), fontsize=8)
+    return save_figure(fig, path)
+
+
+def disturbance_names(r0: EpisodeReport, n_d: int) -> list[str]:
+    """Labels of the disturbance states: their directions when the design (with n_d of them)
+    and the plant's names are at hand (`sep_estimator.disturbance.direction_labels`), else d_i."""
+    from sep_estimator.disturbance import direction_labels
+
+    d, info = r0.design, r0.info
+    dist = d.disturbance if d is not None else None
+    if dist is None or dist.n_d != n_d or info is None:
+        return [f"d_{i}" for i in range(n_d)]
+    return direction_labels(dist, info.input_names, info.output_names)
+
+
+def episode_disturbance_figure(rep: Reports, path: Path) -> Path | None:
+    """The disturbance estimates d_hat_k over the episode (every run thin and their mean thick for
+    many), one line per state labelled with its direction; None without disturbance states."""
+    reps = reports_of(rep)
+    r0 = reps[0]
+    D = [r.episode.d_hat for r in reps]
+    if not D[0].shape[1] or any(x.shape != D[0].shape for x in D) or not np.isfinite(D[0]).any():
+        return None
+    D = np.stack(D)
+    plt = pyplot()
+    n_d = D.shape[2]
+    names = disturbance_names(r0, n_d)
+    t = np.arange(D.shape[1]) * r0.episode.dt
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for i in range(n_d):
+        c = f"C{i % 10}"
+        if len(reps) > 1:
+            for row in D[:, :, i]:
+                ax.plot(t, row, color=c, lw=0.4, alpha=0.25)
+        ax.plot(t, np.nanmean(D[:, :, i], axis=0), color=c, lw=1.5, label=names[i])
+    kind = r0.design.disturbance.kind if r0.design is not None and r0.design.disturbance is not None else None
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("input bias" if kind == "input" else "sensor bias" if kind == "output" else "d_hat")
+    ax.set_title("disturbance estimates d_hat_k" + (" (mean over runs)" if len(reps) > 1 else ""))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
     return save_figure(fig, path)
 
 

@@ -1,7 +1,8 @@
 """The Markdown report of analysed bags (`sep analyze`): report.md with the metrics table, the
 scenario and controller, the notes (missing topics, truncation, mismatches) and the figures of
 `sep_control.bags.figures` (PNG, written next to report.md): field.png, estimation.png,
-inputs.png, and field_image.png for bags with the optional image topic.
+inputs.png, disturbance.png for designs with disturbance states, and field_image.png for bags
+with the optional image topic.
 
 For many episodes the table has one row per episode plus the pooled row ("all episodes").
 Metric definitions: docs/method.md.
@@ -14,8 +15,9 @@ from typing import Any
 import numpy as np
 
 from sep_control.bags.analysis import AggregateReport, EpisodeReport, reports_of
-from sep_control.bags.figures import (episode_estimation_figure, episode_field_figure, episode_inputs_figure,
-                                      image_step, render_image_frame, unit_label)
+from sep_control.bags.figures import (disturbance_names, episode_disturbance_figure, episode_estimation_figure,
+                                      episode_field_figure, episode_inputs_figure, image_step, render_image_frame,
+                                      unit_label)
 from sep_control.evaluation import metrics as M
 from sep_plant import topics as T
 
@@ -30,11 +32,13 @@ def _fmt(v: Any) -> str:
         return "yes" if v else "no"
     if isinstance(v, float):
         return f"{v:.4g}" if abs(v) >= 1e-3 or v == 0 else f"{v:.3e}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]"
     return str(v)
 
 
 def _table_keys(rows: dict[str, dict[str, Any]]) -> list[str]:
-    extra = ("field_nees", "latency_estimate_p50_s")
+    extra = ("field_nees", "latency_estimate_p50_s", "d_hat_end")
     return [k for k in (*M.JSON_KEYS, *extra) if any(r.get(k) is not None for r in rows.values())]
 
 
@@ -95,8 +99,11 @@ def _figure_lines(rep: EpisodeReport | AggregateReport, out: Path) -> list[str]:
     lines = ["## Figures", ""]
     for fn, title, fname in ((episode_field_figure, "Closed-loop field vs nominal", "field.png"),
                              (episode_estimation_figure, "Estimation error with 2-sigma bounds", "estimation.png"),
-                             (episode_inputs_figure, "Inputs vs nominal", "inputs.png")):
+                             (episode_inputs_figure, "Inputs vs nominal", "inputs.png"),
+                             (episode_disturbance_figure, "Disturbance estimates", "disturbance.png")):
         p = fn(rep, out / fname)
+        if p is None and fname == "disturbance.png":
+            continue                         # a design without disturbance states: nothing to say
         if p is None:
             lines.append(f"- {title}: not drawn (the bag lacks the topics it needs)")
         else:
@@ -109,6 +116,17 @@ def _figure_lines(rep: EpisodeReport | AggregateReport, out: Path) -> list[str]:
         lines += [f"### {title}", "", f"![{title}](field_image.png)", "",
                   "(sensor_msgs/Image 32FC1, grey from the frame's minimum to its maximum)", ""]
     return lines
+
+
+def disturbance_line(r: EpisodeReport) -> str | None:
+    """The disturbance states (kind and directions) of the episode's estimate, or None when it has none."""
+    n_d = r.episode.d_hat.shape[1]
+    if not n_d:
+        return None
+    d = r.design
+    kind = d.disturbance.kind if d is not None and d.disturbance is not None else "of the estimator's design"
+    return (f"Disturbance states: {kind}, n_d = {n_d} (d_hat_end: the estimates at the last step): "
+            + "; ".join(disturbance_names(r, n_d)))
 
 
 def controller_line(reps: list[EpisodeReport]) -> str:
@@ -157,6 +175,9 @@ def write_report(rep: EpisodeReport | AggregateReport, out_dir: str | Path, figu
     mm = list(dict.fromkeys(d for r in reps for d in r.model_mismatch))
     if mm:
         lines.append("Model mismatch (the design ran on another plant than its model): " + "; ".join(mm))
+    dline = disturbance_line(reps[0])
+    if dline is not None:
+        lines.append(dline)
     lines += ["", "## Metrics", "", markdown_table(metrics_rows(rep)), "", f"- {LATENCY_NOTE}.",
               "- coverage_2sigma: share of node-steps k >= 1 with |f_hat - f| <= 2 std; field_nees: mean "
               "((f_hat - f)/std)^2 (about 1 when consistent).",

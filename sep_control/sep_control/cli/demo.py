@@ -24,7 +24,8 @@ from sep_plant.noise import DEFAULT_SEED
 
 from sep_control.cli.common import (EXIT_FAILED, EXIT_OK, add_compute_options, add_deprecated, controller_name, fail,
                                     groups, legacy_main, plant_or_exit, scenario_or_exit)
-from sep_control.cli.design import add_design_options, make_design, recorded_settings, settings_from_args
+from sep_control.cli.design import (add_design_options, make_design, recorded_settings, settings_fit_or_exit,
+                                   settings_from_args)
 from sep_control.cli.episode import episode_metrics, print_metrics, run_analysis
 from sep_control.cli.processes import Children, executable
 from sep_control.compute.progress import bars_wanted
@@ -136,6 +137,7 @@ class DemoRun:
             if d is not None:
                 return d, path
         plant = plant_or_exit(scenario, args.scenario or 'reference scenario', device=args.device)
+        settings_fit_or_exit(settings, plant)
         log(f'designing for {args.scenario or "the reference scenario"} (plant {scenario.plant_type}, '
             f'n_x={plant.n_x}, N={scenario.problem.n_steps}) ...')
         t0 = time.perf_counter()

@@ -10,6 +10,8 @@ from typing import Any
 
 from sep_estimator.design_file import design_source, save_design
 from sep_estimator.design_source import source_digest
+from sep_estimator.disturbance import STD0_BANDS
+from sep_estimator.disturbance import summary as disturbance_summary
 
 from sep_control.cli.common import (add_compute_options, add_deprecated, blas_threads, engine_or_exit, fail, groups,
                                     legacy_main, memory_budget_or_exit, plant_or_exit, scenario_or_exit, stderr_log)
@@ -88,6 +90,20 @@ SETTINGS_OPTIONS = (
      "u in [0, 0.6] any c that binds costs the band (docs/robustness.md)", False),
     ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin", False),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude", False),
+    ("--disturbance", "disturbance", dict(choices=["input", "output", "none"]),
+     "disturbance states of the ROM filter for offset-free tracking (docs/method.md): input = constant input "
+     "biases along the input directions the sensors detect (the right singular vectors of the ROM's band-window "
+     "step gain; a boundary, ambient or heater offset), removed by the LQR; output = one bias per sensor, "
+     "removed from the estimate; none = the plain LQG", True),
+    ("--disturbance-std", "disturbance_std", dict(type=float, nargs="+"),
+     "prior std of the disturbances: one number, or one per direction (default: c band / sqrt(S_i S_cl,i), a bias "
+     f"moving the outputs by c = {STD0_BANDS:g} bands along direction i, S_i and S_cl,i its open-loop and "
+     "plain-LQR closed-loop step gains; output kind: c band)", False),
+    ("--disturbance-dims", "disturbance_dims", dict(type=int),
+     "number of disturbance states n_d, at most n_y (input default: min(n_y, n_u); output: n_y)", False),
+    ("--disturbance-walk-std", "disturbance_walk_std", dict(type=float, nargs="+"),
+     "random-walk std of the disturbances per step: one number, or one per direction (0: constant biases)",
+     False),
 )
 #: on/off settings: (flag, settings key, help, basic)
 SWITCH_OPTIONS = (
@@ -137,10 +153,22 @@ def settings_from_args(args: argparse.Namespace, scenario) -> DesignSettings:
     """DesignSettings: the defaults, the scenario's `design:` section, then the options given
     (exit 2 naming a bad value)."""
     given = {k[len(_DEST):]: v for k, v in vars(args).items() if k.startswith(_DEST)}
+    for key in ("disturbance_std", "disturbance_walk_std"):      # one number: for every direction
+        if isinstance(given.get(key), list) and len(given[key]) == 1:
+            given[key] = given[key][0]
     try:
         return DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),
                                            **given)
     except (ValueError, TypeError) as exc:
+        fail(str(exc))
+
+
+def settings_fit_or_exit(settings: DesignSettings, plant) -> None:
+    """Exit 2 naming the key when the settings do not fit the plant (`DesignSettings.check_plant_dims`:
+    disturbance_dims > n_y, lists of the wrong length)."""
+    try:
+        settings.check_plant_dims(int(plant.n_u), int(plant.n_y))
+    except ValueError as exc:
         fail(str(exc))
 
 
@@ -162,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args, scenario)
     log = stderr_log(args.quiet)
     plant = plant_or_exit(scenario, args.scenario or "reference scenario", device=args.device)
+    settings_fit_or_exit(settings, plant)
     log(f"design: scenario {args.scenario or '(reference)'}: plant {scenario.plant_type}, n_x = {plant.n_x}, "
         f"n_field = {plant.n_field}, N = {scenario.problem.n_steps}, dt = {plant.dt} s, {plant.n_u} inputs, "
         f"{plant.n_y} outputs, plant steps on {args.device}")
@@ -182,6 +211,7 @@ def design_summary(design) -> dict:
     return {
         "plant": design.scenario.plant_type, "n_x": info.n_x, "n_field": info.n_field,
         "n_steps": design.n_steps, "n_r": int(design.rom.dims.max()),
+        "disturbance": disturbance_summary(design.disturbance),
         "nominal_cost": m["optimizer"]["nominal_cost"],
         "mean_only_cost": m["optimizer"]["mean_only_cost"],
         "belief_history": m["optimizer"]["belief_history"],
@@ -199,6 +229,7 @@ def format_summary(sm: dict, path: str) -> str:
         f"  nominal cost J           {sm['nominal_cost']:.6g}  (mean-only optimum {sm['mean_only_cost']:.6g})",
         f"  nominal max |f - f*|     {sm['max_dev_in_band_window']:.3g} over the band window",
         f"  ROM order                n_r = {sm['n_r']}",
+        f"  disturbance states       {sm['disturbance']}",
         f"  Markov relative error    {sm['markov_rel_error']:.2e}",
         f"  time                     optimize {t['optimize_s']:.2f} s, identify {t['identify_s']:.2f} s, "
         f"gains {t['gains_s']:.2f} s, total {t['total_s']:.2f} s",

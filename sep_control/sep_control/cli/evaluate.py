@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sep_estimator.disturbance import summary as disturbance_summary
 from sep_estimator.ltv import sensed_nodes
 from sep_plant.noise import DEFAULT_SEED
 from sep_plant.scenario import json_default
@@ -120,9 +121,12 @@ def run(args: argparse.Namespace) -> int:
                            mpc=truth_cli.mpc_options(args))
             bar.add(args.runs, N)
             rows[name] = {**res.metrics(), "seconds": time.perf_counter() - t0}
+            if name in ("rom_lqg", "rom_mpc"):
+                rows[name]["disturbance"] = disturbance_summary(design.disturbance)
             results[name] = res
         print(f"{args.runs} runs per controller, seed {args.seed}, plant {design.scenario.plant_type}, "
-              f"n_x = {design.info.n_x}, n_r = {design.n_r}")
+              f"n_x = {design.info.n_x}, n_r = {design.n_r}, disturbance states "
+              f"{disturbance_summary(design.disturbance)} (rom_lqg, rom_mpc)")
         if truth is not None:
             print(truth_cli.describe(design, truth))
         print(format_table(rows, TABLE_KEYS))

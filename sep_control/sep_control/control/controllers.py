@@ -3,15 +3,17 @@
 A `Controller` maps step k and the filter's estimate to the input of step k:
 
 * `OpenLoop`:  u_k = clip(ubar_k)                          (the filter still runs; its estimate is unused)
-* `LqrLaw`:    u_k = clip(ubar_k + K_k ahat_{k|k})         (rom_lqg on the design's LQG, oracle_lqg on the oracle's)
+* `LqrLaw`:    u_k = clip(ubar_k + K_k zhat_{k|k})         (rom_lqg on the design's LQG, oracle_lqg on the oracle's)
 * `MpcLaw`:    u_k = the first move of the box-constrained ROM-MPC (`sep_control.control.mpc.RomMPC`),
                with the warm start of every run kept inside the law.
 
 `command(k, estimate)` takes a batch of estimates (M, n_est), the Monte Carlo's runs, or one
 estimate (n_est,), a node's, and returns inputs of the same leading shape, (M, n_u) or (n_u,).
-The estimate is the filter's whole state; a law reads its first `n` entries (today the filter's
-state is the ROM state a_hat, n_est = n), so a law on an augmented filter state
-z = [a_hat; d_hat] can read more without any call site changing (docs/method.md).
+The estimate is the filter's whole state z_hat: the ROM state a_hat, followed by the disturbance
+estimates d_hat when the design has disturbance states (`sep_estimator.disturbance`,
+n_est = n_r + n_d). The LQR and MPC laws are designed on that augmented model (`LQG.model`) and
+read all n = n_est entries (K_k is (n_u, n_r + n_d): u = clip(ubar + K_a ahat + K_d dhat)); a
+law reads the first `n` entries of a longer estimate (docs/method.md).
 
 Names (`CONTROLLER_NAMES`, the same in `evaluate --controllers`, the node parameter
 ``controller`` and the metrics JSON): open_loop, rom_lqg, oracle_lqg, rom_mpc. The nodes' old

@@ -8,7 +8,17 @@ z = [du_k; ...; du_{k+H-1}] (H = min(horizon, N - k)) minimizing
 
 with the LQR's weights (Q_j = C_j' Q_y,j C_j, R = lqr_r I) and its Riccati cost-to-go S as the
 terminal weight, so that the unconstrained minimizer's first move is exactly the TV-LQR law
-du_k = K_k a_k (dynamic programming). Condensed, a_{k+i} = Phi_i a_k + Gamma_i z and
+du_k = K_k a_k (dynamic programming).
+
+With disturbance states (`sep_estimator.disturbance`) a is the filter's whole state z = [a; d]:
+the prediction holds dhat constant, a_{j+1} = A_j a_j + B_j (du_j + E dhat) (input kind; a sensor
+bias, the output kind, does not move a), the weight is Q_z = blockdiag(C' Q_y C, 0) and the
+terminal weight the augmented Riccati cost-to-go (`sep_control.design.gains.lqr_gains`), so the
+unconstrained first move is the augmented LQR law du_k = K_k z_k. du stays the real input
+deviation, so its bounds are the limits minus the nominal as without disturbance states (in a
+formulation on v = du + E dhat they would move by E dhat, per run).
+
+Condensed, a_{k+i} = Phi_i a_k + Gamma_i z and
 
     cost = z' P_k z + 2 a_k' F_k' z + const,   P_k = Rbar + sum_i Gamma_i' Q Gamma_i,   F_k = Gamma' Qbar Phi.
 
@@ -38,7 +48,7 @@ import scipy.sparse as sp
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Problem
 
-from sep_control.design.gains import output_weights, tv_lqr
+from sep_control.design.gains import lqr_gains
 
 #: OSQP settings: absolute/relative tolerance on the deviations (inputs are O(0.1-1)), and the
 #: iteration cap; solution polishing makes the active set exact
@@ -95,16 +105,14 @@ class RomMPC:
 
         if horizon < 1:
             raise ValueError(f"MPC horizon must be >= 1, got {horizon}")
-        m = lqg.model
+        m = lqg.model                   # the filter's model: z = [a; d] with disturbance states
         self.K = lqg.K
         self.u_nom = np.asarray(u_nom, dtype=float)
         self.N, self.n_u = self.u_nom.shape
         self.n, self.H = m.n, int(min(horizon, self.N))
         self.lo, self.hi = problem.limits(self.n_u)
         self.budget = None if time_budget_s is None else float(time_budget_s)
-        Q = output_weights(m.C, problem.lqr_output_weights(m.n_y))
-        R = np.eye(self.n_u) * problem.lqr_r
-        _, S = tv_lqr(m.A, m.B, Q, R)
+        _, S, Q, R = lqr_gains(lqg.rom, problem, lqg.disturbance)
         self.P, self.chol, self.F = self._condense(m.A, m.B, Q, R, S)
         nz = self.H * self.n_u
         # the dense upper triangle in CSC order (column by column, rows 0..j): a fixed pattern, so

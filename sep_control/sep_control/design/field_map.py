@@ -30,7 +30,8 @@ FIELD_MAP_TOL = 1e-5
 def state_spread(model: LTVModel, K: np.ndarray, kf: KalmanSchedule, V: np.ndarray) -> np.ndarray:
     """X_k = P_k|k + cov(ahat_k) in closed loop + cov(ahat_k) in open loop (N+1, n, n): covers the
     ROM state's covariance with the LQG running (P_k|k + the closed-loop estimate's, which moves
-    along B_k through the feedback) and without it (P_k|k + the open-loop estimate's)."""
+    along B_k through the feedback) and without it (P_k|k + the open-loop estimate's). For a model
+    with disturbance states, of z = [a; d]: the field map G_z = [G_k, 0] reads its a-block only."""
     return (kf.P_post + estimate_covariances(model, K, kf, V, closed_loop=True)
             + estimate_covariances(model, K, kf, V, closed_loop=False))
 
@@ -53,9 +54,10 @@ def compressed_lqg(gains: GainsResult, tol: float = FIELD_MAP_TOL, name: str = "
     """The field-map stage of the design: the LQG of `gains` on its model with the POD field map
     compressed at `tol` against the state spread these gains give (`state_spread`,
     `compress_field_map`), and `LQG.field_std` computed for that map. A map that is not a POD
-    one (the oracle's) is kept as it is."""
-    model = gains.model
-    if isinstance(model.G, PODFieldMap):
-        X = state_spread(model, gains.K, gains.kf, gains.V)
-        model = replace(model, G=compress_field_map(model.G, X, tol))
-    return gains.lqg(name, model)
+    one (the oracle's) is kept as it is. With disturbance states the ROM's map is compressed
+    against the a-block of the spread of z (d does not move the field)."""
+    rom = gains.model if gains.rom is None else gains.rom
+    if isinstance(rom.G, PODFieldMap):
+        X = state_spread(gains.model, gains.K, gains.kf, gains.V)[:, :rom.n, :rom.n]
+        rom = replace(rom, G=compress_field_map(rom.G, X, tol))
+    return gains.lqg(name, rom)

@@ -4,7 +4,8 @@
    belief-space problem warm-started from it (EnKF belief along nominal observations);
 2. TV-ERA reduced-order model from central-difference impulse experiments around the
    nominal (forward differences on request), with the field output map;
-3. time-varying LQR (weights on the outputs) and Kalman filter on the ROM;
+3. disturbance states for offset-free tracking (`sep_estimator.disturbance`), time-varying LQR
+   (weights on the outputs) and Kalman filter on the ROM augmented with them;
 4. the field map compressed to the directions the ROM state reaches with those gains.
 
     design = run_design(plant, problem, DesignSettings())
@@ -25,7 +26,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sep_estimator.design_file import Design, Nominal
+from sep_estimator.design_file import Design, Nominal, disturbance_meta
 from sep_estimator.ltv import LTVModel
 from sep_plant.conformance import check_plant
 from sep_plant.plants import type_name_of
@@ -82,6 +83,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     """
     st = settings or DesignSettings()
     st.check()
+    st.check_plant_dims(int(plant.n_u), int(plant.n_y))
     check_plant(plant, problem.channels("u_init", int(plant.n_u)))
     scenario = scenario_of(plant, problem)
     problem = scenario.problem
@@ -144,6 +146,7 @@ def _meta(st: DesignSettings, timings: dict[str, float], final: DesignPass, obj:
                       "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
         "validation": {"markov_rel_error": ident.markov_rel_error, "impulse_amplitude": ident.identification.delta,
                        "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
+        "disturbance": disturbance_meta(final.lqg.disturbance),
     }
 
 
@@ -163,7 +166,10 @@ def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress:
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:
-    """`design` with its ROM replaced by `model` and the LQG gains redesigned (same nominal;
-    the field map is `model`'s as it is)."""
-    return replace(design, lqg=design_lqg(model, design.problem).lqg(),
+    """`design` with its ROM replaced by `model` and the LQG gains redesigned (same nominal; the
+    field map is `model`'s as it is; the disturbance states chosen again on `model` with the
+    design's settings, `DesignSettings.disturbance_for`)."""
+    dist = DesignSettings.from_meta(design.meta).disturbance_for(model, design.problem)
+    meta = {**design.meta, "disturbance": disturbance_meta(dist)}
+    return replace(design, lqg=design_lqg(model, design.problem, dist).lqg(), meta=meta,
                    hankel_sv=design.hankel_sv if hankel_sv is None else hankel_sv)

@@ -10,11 +10,16 @@ from typing import Any
 
 import numpy as np
 
+from sep_estimator.disturbance import KINDS as DISTURBANCE_KINDS
+from sep_estimator.disturbance import WALK_STD, Disturbance, choose
+from sep_estimator.ltv import LTVModel
+from sep_plant.problem import Problem
 from sep_plant.protocol import Plant
 from sep_plant.scenario import Scenario
 
 from sep_control.compute.budget import runs_per_batch
 from sep_control.design.field_map import FIELD_MAP_TOL
+from sep_control.design.gains import lqr_gains
 from sep_control.design.linearization import SAME_INPUT_RTOL
 from sep_control.design.tvera import FIELD_TOL, SCHEMES, RomSettings
 
@@ -75,6 +80,16 @@ class DesignSettings:
         Keep this many closed-loop input stds inside u_min/u_max (0: none).
     margin_iterations : int
         Nominal + LQG redesigns with the tightened limits.
+    disturbance : {"input", "output", "none"}
+        Disturbance states of the ROM filter for offset-free tracking (`sep_estimator.disturbance`):
+        input biases along the detectable input directions, one bias per sensor, or none.
+    disturbance_std : float or list of float, optional
+        Prior std sigma_0 of the disturbances, for all or per direction (None: the rule
+        c band / sqrt(S_i S_cl,i), c = `sep_estimator.disturbance.STD0_BANDS`).
+    disturbance_dims : int, optional
+        n_d, at most n_y (None: min(n_y, n_u) for input, n_y for output).
+    disturbance_walk_std : float or list of float
+        Random-walk std of the disturbances per step (0: constant biases).
     """
 
     method: str = "gn"
@@ -100,6 +115,10 @@ class DesignSettings:
     chunks: int = 4
     limit_margin: float = 0.0
     margin_iterations: int = 2
+    disturbance: str = "input"
+    disturbance_std: float | list[float] | None = None
+    disturbance_dims: int | None = None
+    disturbance_walk_std: float | list[float] = WALK_STD
 
     def check(self) -> None:
         """Raise ValueError naming the first setting out of range."""
@@ -127,6 +146,55 @@ class DesignSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
+        self._check_disturbance()
+
+    def _check_disturbance(self) -> None:
+        """The disturbance keys on their own (`check_plant_dims` checks n_d against the plant)."""
+        if self.disturbance not in DISTURBANCE_KINDS:
+            raise ValueError(f"disturbance must be one of {', '.join(DISTURBANCE_KINDS)}, got {self.disturbance!r}")
+        dims = self.disturbance_dims
+        if dims is not None and (isinstance(dims, bool) or not isinstance(dims, (int, np.integer)) or dims < 1):
+            raise ValueError(f"disturbance_dims must be an integer >= 1, got {dims!r}")
+        for name in ("disturbance_std", "disturbance_walk_std"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            try:
+                arr = np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                arr = np.array(np.nan)
+            if arr.ndim > 1 or arr.size == 0 or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+                raise ValueError(f"{name} must be a number >= 0 or a list of them (one per direction), got {v!r}")
+
+    def check_plant_dims(self, n_u: int, n_y: int) -> None:
+        """Raise ValueError naming the key when the disturbance settings do not fit a plant with
+        n_u inputs and n_y outputs: n_d > n_y (not detectable), n_d > n_u (input kind), lists of
+        stds of another length than n_d."""
+        if self.disturbance == "none":
+            return
+        n_max = n_y if self.disturbance == "output" else min(n_y, n_u)
+        n_d = n_max if self.disturbance_dims is None else int(self.disturbance_dims)
+        if n_d > n_y:
+            raise ValueError(f"disturbance_dims = {n_d} > n_y = {n_y}: at most as many disturbances as sensors "
+                             "are detectable; give disturbance_dims <= n_y")
+        if n_d > n_max or (self.disturbance == "output" and n_d != n_y):
+            raise ValueError(f"disturbance_dims = {n_d} does not fit the {self.disturbance} kind: "
+                             + (f"at most n_u = {n_u} input directions" if self.disturbance == "input"
+                                else f"one bias per sensor, n_d = n_y = {n_y}"))
+        for name in ("disturbance_std", "disturbance_walk_std"):
+            v = getattr(self, name)
+            if v is not None and np.ndim(v) == 1 and len(v) != n_d:
+                raise ValueError(f"{name} has {len(v)} values; give one number or n_d = {n_d}")
+
+    def disturbance_for(self, rom: LTVModel, problem: Problem) -> Disturbance | None:
+        """The disturbance states these settings give `rom` under `problem` (directions and prior
+        std: `sep_estimator.disturbance.choose`, with the ROM's plain LQR for the closed-loop step
+        gains); None for 'none'."""
+        if self.disturbance == "none":
+            return None
+        K = lqr_gains(rom, problem)[0] if self.disturbance == "input" and self.disturbance_std is None else None
+        return choose(rom, self.disturbance, float(problem.band), problem.window, dims=self.disturbance_dims,
+                      std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K)
 
     def rom(self, engine=None) -> RomSettings:
         """The TV-ERA settings of the design's identifications (experiments on `engine`)."""
@@ -184,9 +252,10 @@ class DesignSettings:
         than the chunked experiments ran them as one chunk, older than `relinearize_rtol`
         identified again after every step, older than `field_map_tol` truncated the field map
         at the field basis' tolerance, older than `coarse_proposals` identified every model
-        with the full settings, and older ones record `enkf_seed` as `seed`)."""
+        with the full settings, older than `disturbance` had no disturbance states, and older
+        ones record `enkf_seed` as `seed`)."""
         recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, "field_map_tol": FIELD_TOL,
-                    "coarse_proposals": False}
+                    "coarse_proposals": False, "disturbance": "none"}
         for key, value in meta.get("settings", {}).items():
             recorded[RENAMED.get(key, key)] = value
         return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})

@@ -2,7 +2,7 @@
 
     nominal_stage          -> NominalResult         open-loop nominal (mean-only, then belief space)
     identification_stage   -> IdentificationStage   TV-ERA ROM around the nominal
-    gains_stage            -> GainsResult           TV-LQR and Kalman filter on the ROM
+    gains_stage            -> GainsResult           disturbance states, TV-LQR and Kalman filter on the ROM
     field_map_stage        -> LQG                   the ROM's field map compressed for those gains
 
 `design_pass` runs them in order (`sep_control.design.pipeline.run_design` runs passes).
@@ -173,12 +173,32 @@ def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResul
     return IdentificationStage(ident, reused, err)
 
 
-def gains_stage(identified: IdentificationStage, problem: Problem, ctx: StageContext) -> GainsResult:
-    """Stage 3: the TV-LQR and Kalman gains on the identified ROM (`design_lqg`)."""
+def gains_stage(identified: IdentificationStage, problem: Problem, st: DesignSettings,
+                ctx: StageContext) -> GainsResult:
+    """Stage 3: the disturbance states the settings ask for (`DesignSettings.disturbance_for`),
+    then the TV-LQR and Kalman gains on the identified ROM with them (`design_lqg`)."""
     t0 = time.perf_counter()
-    gains = design_lqg(identified.identification.model, problem)
+    rom = identified.identification.model
+    dist = st.disturbance_for(rom, problem)
+    ctx.log(describe_disturbance(dist))
+    gains = design_lqg(rom, problem, dist)
     ctx.took("gains_s", t0)
     return gains
+
+
+def describe_disturbance(dist) -> str:
+    """One log line: the disturbance model, its directions and covariance, and how they were chosen."""
+    if dist is None:
+        return "disturbance states: none (no offset-free tracking)"
+    d = dist.directions
+    sv = ", ".join(f"{v:.3g}" for v in d.get("singular_values", []))
+    where = (f"input directions E: right singular vectors of the band-window step gain (singular values {sv}); "
+             f"kept {d.get('kept')} of {d.get('asked')}, detectable {'yes' if d.get('detectable') else 'NO'}"
+             if dist.kind == "input" else "F = I (one bias per sensor)")
+    std0 = ", ".join(f"{v:.3g}" for v in dist.std0)
+    walk = ", ".join(f"{v:.3g}" for v in dist.walk_std) if np.any(dist.walk_std) else "0 (constant)"
+    return (f"disturbance states: {dist.kind}, n_d = {dist.n_d}; {where}; prior std {std0} "
+            f"({dist.std0_rule}); random-walk std {walk}")
 
 
 def field_map_stage(gains: GainsResult, st: DesignSettings, ctx: StageContext) -> LQG:
@@ -195,5 +215,5 @@ def design_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageCo
     """The four stages in order: nominal, identification, gains, field map."""
     nominal = nominal_stage(plant, problem, st, ctx, U0, bounds)
     identified = identification_stage(plant, st, nominal, ctx)
-    gains = gains_stage(identified, problem, ctx)
+    gains = gains_stage(identified, problem, st, ctx)
     return DesignPass(nominal, identified, gains, field_map_stage(gains, st, ctx))

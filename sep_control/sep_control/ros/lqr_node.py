@@ -1,7 +1,8 @@
 """`lqr`: the time-varying LQR tracking law (or the ROM-MPC) as a ROS 2 node (docs/reference/topics.md).
 
-u_k = clip(ubar_k + K_k a_hat_k, u_min, u_max) for every state estimate a_hat_k received on
-state_estimate, published on command stamped k. With ``controller:=rom_mpc`` the
+u_k = clip(ubar_k + K_k z_hat_k, u_min, u_max) for every state estimate z_hat_k received on
+state_estimate (the ROM estimate a_hat_k and, with disturbance states, the disturbance estimates
+d_hat_k: K_k is the augmented ROM's LQR, docs/method.md), published on command stamped k. With ``controller:=rom_mpc`` the
 command is the first move of the box-constrained MPC on the design's ROM (`sep_control.control.mpc`):
 the LQR law itself whenever no limit binds, an OSQP solve when one does, and the clipped LQR
 command when that solve fails or runs past ``mpc_time_budget_s`` (counted on /diagnostics).
@@ -30,6 +31,7 @@ import numpy as np
 from sep_plant import gate
 from sep_plant.ros import contract as c
 from sep_plant.ros.base import NodeProcess, SampleWindow, StartError, declare, fmt_s, node_main, steady
+from sep_estimator.disturbance import summary as disturbance_summary
 from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
 
 from sep_control.control.controllers import (CONTROLLER_ALIASES, NODE_CONTROLLERS, Controller, MpcOptions,
@@ -92,14 +94,15 @@ class LqrNode(DesignedNode):
         self.law = declare_controller(node, d, self.log)
         self.core = ControlLoopCore(self.law, d.nominal.u, *d.problem.limits(self.info.n_u))
         self.input_names = list(self.info.input_names)
-        self.labels = c.state_labels(d.n_r)
+        self.labels = c.state_labels(d.n_r, d.lqg.n_d)
         self.rej = gate.RejectionLog()
         self.last_est = -1
         self.compute_s = SampleWindow()
         self.on_command = None                         # lqg: tell the estimator the command
         self.pub_cmd = node.create_publisher(c.TOPIC_TYPES[c.COMMAND], c.COMMAND, c.LOOP_QOS)
         self.timer = self._watch_inputs() if standalone else None
-        self.log.info(f'lqr: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
+        self.log.info(f'lqr: design file {self.design_file} (n_r={d.n_r}, disturbance states '
+                      f'{disturbance_summary(d.disturbance)}; {scenario_summary(d)}), '
                       f'controller {self.law.name}, '
                       + (f'estimate_timeout_s {self.timeout:g}' if standalone else 'in-process estimator')
                       + f', namespace {node.get_namespace()}')
@@ -120,7 +123,7 @@ class LqrNode(DesignedNode):
 
     # ----------------------------------------------------------------- core
     def on_estimate(self, k: int, a_hat: np.ndarray, t_recv: float | None = None) -> None:
-        """Command for step k from the filter's estimate a_hat (n_r,)."""
+        """Command for step k from the filter's estimate z_hat = [a_hat; d_hat] (n_r + n_d,)."""
         t0 = steady() if t_recv is None else t_recv
         out = self.core.estimate(k, a_hat)
         self.last_k = self.core.last_k

@@ -5,8 +5,9 @@ logic: gaps, restarts, late inputs, NIS); here: parameters, topics, message chec
 
 Subscribes measurements (y_k), applied_input (inputs the plant applied at step k),
 command (the commanded inputs, used only when the applied ones are late) and
-scenario (checked against the design file); publishes state_estimate (a_hat_k,
-names a_0..a_{n_r-1}), field_estimate (T_nom_k + G_k a_hat_k with its per-node std, the
+scenario (checked against the design file); publishes state_estimate (z_hat_k: the ROM
+estimate a_hat_k, names a_0..a_{n_r-1}, then the disturbance estimates d_hat_k, names
+d_0..d_{n_d-1}, when the design has disturbance states), field_estimate (T_nom_k + G_k a_hat_k with its per-node std, the
 contract PointCloud2; for grid plants also field_estimate_image) and /diagnostics. The
 estimate and field messages are built only while somebody subscribes to them.
 
@@ -39,6 +40,7 @@ from sep_plant import gate
 from sep_plant.ros import contract as c
 from sep_plant.ros.base import NodeProcess, SampleWindow, StartError, declare, fmt_s, node_main, steady
 
+from sep_estimator.disturbance import summary as disturbance_summary
 from sep_estimator.estimator_core import EstimatorCore
 from sep_estimator.ltv import FIELD_PRECISIONS
 from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
@@ -82,9 +84,9 @@ class EstimatorNode(DesignedNode):
         self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
         self.sensors = list(self.info.output_names)
         self.input_names = list(self.info.input_names)
-        self.labels = c.state_labels(d.n_r)
+        self.labels = c.state_labels(d.n_r, d.lqg.n_d)
         self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name, self.frame_id)
-        self.on_estimate = on_estimate           # direct hook (lqg): f(k, a_hat (n_r,)) -> None
+        self.on_estimate = on_estimate           # direct hook (lqg): f(k, z_hat (n_r + n_d,)) -> None
         self.rej = gate.RejectionLog()
         self.compute_s = SampleWindow()
         self.n_estimates_published = 0
@@ -104,7 +106,8 @@ class EstimatorNode(DesignedNode):
                         if subscribe_command else None)
         self._warm_up()
         rank = getattr(d.rom.G, 'rank', None)
-        self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}; {scenario_summary(d)}), '
+        self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}, disturbance states '
+                      f'{disturbance_summary(d.disturbance)}; {scenario_summary(d)}), '
                       f'field reconstruction {self.core.field_precision}'
                       f"{' (auto)' if self.field_precision == 'auto' else ''}"
                       f"{f' on a field basis of rank {rank}' if rank is not None else ''}, "

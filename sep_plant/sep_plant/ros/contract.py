@@ -73,9 +73,9 @@ CLOCK_QOS = TOPIC_QOS[CLOCK]
 VIEWER_QOS = qos_profile_sensor_data
 
 
-def state_labels(n_r: int) -> list[str]:
-    """Names of the ROM state estimate entries: a_0 .. a_{n_r-1}."""
-    return [f'a_{i}' for i in range(n_r)]
+def state_labels(n_r: int, n_d: int = 0) -> list[str]:
+    """Names of the state estimate entries: a_0 .. a_{n_r-1}, d_0 .. d_{n_d-1} (`sep_plant.topics.state_labels`)."""
+    return T.state_labels(n_r, n_d)
 
 
 # --------------------------------------------------------------------------- stamps

@@ -1,0 +1,341 @@
+"""Disturbance states of the ROM filter: offset-free tracking of a plant that differs from the model.
+
+A design is made on a simulator; the plant it runs on differs by persistent offsets (a boundary
+or ambient temperature, a heater gain or offset, a sensor bias). The TV-LQG has no integral
+action, so such an offset stays as a steady error. The filter therefore estimates n_d constant
+(random-walk) disturbances d_k next to the ROM state a_k, z_k = [a_k; d_k] (n_z = n_r + n_d),
+and the LQR of the augmented ROM acts on them (docs/method.md):
+
+* ``input``: a bias of the inputs, along n_d orthonormal input directions E (n_u, n_d):
+      a_{k+1} = A_k a_k + B_k (du_k + E d_k) + B_w,k w_k,    dy_k = C_k a_k + v_k.
+* ``output``: a bias of the sensors, F (n_y, n_d) (F = I: one bias per sensor), estimated and
+  removed from the measurements, not acted on:
+      a_{k+1} = A_k a_k + B_k du_k + B_w,k w_k,              dy_k = C_k a_k + F d_k + v_k.
+* both: d_{k+1} = d_k + eta_k, eta_k ~ N(0, diag(sigma_walk^2)); the prior d_0 ~ N(0,
+  diag(sigma_0^2)) is not zero, so the filter starts from P_0 = blockdiag(0, diag(sigma_0^2))
+  (`LTVModel.P0`), and so does every covariance recursion from k = 0.
+
+Directions of the input kind (`input_directions`): with fewer sensors than inputs not every
+input bias is detectable. The ROM's band-window step gain, the outputs' response to a constant
+unit input from k = 0 averaged over the band window,
+
+    Gamma = mean_{k in window} C_k M_k,   M_0 = 0,  M_{k+1} = A_k M_k + B_k,
+
+has the SVD U S V'; E holds the right singular vectors of the n_d largest singular values
+(n_d = min(n_y, n_u) by default), those above `DIRECTION_RTOL` S_1. The augmented system is
+detectable at steady state when Gamma E has full column rank (its singular values are S_1..S_nd).
+
+Prior std (`choose`): sigma_0,i = c band / sqrt(S_i S_cl,i), c = `STD0_BANDS`: a bias that moves
+the outputs by c bands on the geometric mean of two step gains along E_i, the open-loop S_i above
+(how strongly the outputs show the bias: the estimate's information) and the closed-loop
+S_cl,i = |Gamma_cl E_i|, Gamma_cl the same average with M_{k+1} = (A_k + B_k K_k) M_k + B_k
+under the ROM's plain LQR K (the offset the LQG without disturbance states leaves). Measured
+(docs/robustness.md): the open-loop rule c band / S_i alone gives a direction the plant
+integrates (S_i grows with the window's time: the Burgers ring's mean flow) so tight a prior that
+a uniform actuator offset is not removed; the closed-loop rule c band / S_cl,i alone gives the
+weakly observed directions, where a boundary offset lives, too tight a prior (the reference at
+147 F); the geometric mean keeps the unbiased plants' cost within 1 % and removes both. Without
+K (`choose(..., K=None)`) the open-loop rule. The output kind: S_i = S_cl,i = 1 (F = I), a sensor
+bias of c bands. sigma_walk = `WALK_STD` = 0: a random walk only added cost for the same offset
+removal (measured).
+Pure numpy: no ROS import.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from sep_estimator.ltv import DenseFieldMap, FieldMap, LTVModel, PODFieldMap
+
+#: the disturbance models a design can have (`DesignSettings.disturbance`)
+KINDS = ("none", "input", "output")
+#: input directions kept: singular values of the step gain above this times the largest
+DIRECTION_RTOL = 1e-6
+#: default prior std: a bias that moves the outputs by STD0_BANDS bands (module docstring)
+STD0_BANDS = 0.04
+#: default random-walk std of d per step (0: a constant bias, the limit of a slow random walk)
+WALK_STD = 0.0
+
+
+class DisturbanceError(ValueError):
+    """A disturbance setting that cannot be used (the message names the key to fix)."""
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """n_d disturbance states of the ROM filter (module docstring).
+
+    Parameters
+    ----------
+    kind : {"input", "output"}
+        Input bias (acts through B_k along E) or sensor bias (adds F d_k to the outputs).
+    map : ndarray, shape (n_u, n_d) or (n_y, n_d)
+        E (orthonormal input directions) or F (sensor directions).
+    std0 : ndarray, shape (n_d,)
+        Prior std sigma_0 of d_0 (mean zero).
+    walk_std : ndarray, shape (n_d,)
+        Random-walk std sigma_walk of d_{k+1} - d_k.
+    directions : dict
+        How the map was chosen (rule, the step gain's singular values, detectability).
+    std0_rule : str
+        How sigma_0 was chosen.
+    """
+
+    kind: str
+    map: np.ndarray
+    std0: np.ndarray
+    walk_std: np.ndarray
+    directions: dict[str, Any] = field(default_factory=dict)
+    std0_rule: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS[1:]:
+            raise DisturbanceError(f"disturbance kind must be 'input' or 'output', got {self.kind!r}")
+        E = np.asarray(self.map, dtype=float)
+        s0, sw = np.asarray(self.std0, dtype=float), np.asarray(self.walk_std, dtype=float)
+        if E.ndim != 2 or E.shape[1] < 1 or s0.shape != (E.shape[1],) or sw.shape != (E.shape[1],):
+            raise DisturbanceError(f"disturbance map {E.shape}, std0 {s0.shape} and walk_std {sw.shape} do not "
+                                   "fit (map (n, n_d), stds (n_d,))")
+        for name, v in (("map", E), ("disturbance_std", s0), ("disturbance_walk_std", sw)):
+            if not np.all(np.isfinite(v)):
+                raise DisturbanceError(f"{name} must be finite")
+        if np.any(s0 < 0) or np.any(sw < 0):
+            raise DisturbanceError("disturbance_std and disturbance_walk_std must be >= 0")
+        object.__setattr__(self, "map", E)
+        object.__setattr__(self, "std0", s0)
+        object.__setattr__(self, "walk_std", sw)
+
+    @property
+    def n_d(self) -> int:
+        return int(self.map.shape[1])
+
+    def record(self) -> dict[str, Any]:
+        """meta["disturbance"] of a design file: kind, n_d, directions, std0_rule."""
+        return {"kind": self.kind, "n_d": self.n_d, "directions": dict(self.directions),
+                "std0_rule": self.std0_rule}
+
+
+def summary(dist: Disturbance | None) -> str:
+    """One phrase for logs and tables: 'none', 'input, n_d = 5', 'output, n_d = 3' (and
+    'NOT detectable' when the input directions' check failed)."""
+    if dist is None:
+        return "none"
+    bad = dist.directions.get("detectable") is False
+    return f"{dist.kind}, n_d = {dist.n_d}" + (" (NOT detectable)" if bad else "")
+
+
+def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names: Sequence[str],
+                     terms: int = 3) -> list[str]:
+    """A name for each disturbance state: 'd_0 = bias of <output>' (output kind), or its input
+    direction by its largest weights, 'd_0 along +0.71 heater_1 +0.71 heater_2' (input kind; at
+    most `terms` inputs, '...' when more carry weight)."""
+    if dist.kind == "output":
+        out = []
+        for i in range(dist.n_d):
+            col = dist.map[:, i]
+            j = int(np.argmax(np.abs(col)))
+            single = np.count_nonzero(np.abs(col) > 1e-12) == 1
+            out.append(f"d_{i} = bias of {output_names[j]}" if single else f"d_{i} (sensor bias direction {i})")
+        return out
+    labels = []
+    for i in range(dist.n_d):
+        col = dist.map[:, i]
+        order = np.argsort(-np.abs(col), kind="stable")
+        big = [j for j in order if abs(col[j]) >= 0.1 * np.abs(col).max()]
+        text = " ".join(f"{col[j]:+.2f} {input_names[j]}" for j in big[:terms])
+        labels.append(f"d_{i} along {text}" + (" ..." if len(big) > terms else ""))
+    return labels
+
+
+# --------------------------------------------------------------- the augmented model
+def padded_field_map(G: FieldMap, n_d: int) -> FieldMap:
+    """G_z = [G_k, 0] (n_field, n + n_d): the field does not depend on d. Same kind of map."""
+    if isinstance(G, PODFieldMap):
+        g = np.concatenate([G.g, np.zeros(G.g.shape[:2] + (n_d,))], axis=2)
+        return PODFieldMap(G.Phi, g)
+    if isinstance(G, DenseFieldMap):
+        return DenseFieldMap(np.concatenate([G.G, np.zeros(G.G.shape[:2] + (n_d,))], axis=2))
+    raise TypeError(f"disturbance states need a POD or dense field map, got {type(G).__name__}")
+
+
+def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
+    """The model on z = [a; d] (module docstring): A_z = [[A, B E], [0, I]] (input) or
+    blockdiag(A, I) (output), B_z = [B; 0], C_z = [C, 0] (input) or [C, F] (output),
+    G_z = [G, 0], B_w,z = blockdiag(B_w, I) (the walk's own channels, `noise_covariance`),
+    P0 = blockdiag(0, diag(sigma_0^2)); the ROM itself when `dist` is None."""
+    if dist is None:
+        return rom
+    N, n, n_u, n_d = rom.n_steps, rom.n, rom.n_u, dist.n_d
+    expect = n_u if dist.kind == "input" else rom.n_y
+    if dist.map.shape[0] != expect:
+        raise DisturbanceError(f"{dist.kind} disturbance map has {dist.map.shape[0]} rows, the ROM has {expect} "
+                               f"{'inputs' if dist.kind == 'input' else 'outputs'}")
+    nz = n + n_d
+    A = np.zeros((N, nz, nz))
+    A[:, :n, :n] = rom.A
+    A[:, n:, n:] = np.eye(n_d)
+    if dist.kind == "input":
+        A[:, :n, n:] = rom.B @ dist.map
+    B = np.concatenate([rom.B, np.zeros((N, n_d, n_u))], axis=1)
+    C = np.concatenate([rom.C, np.zeros(rom.C.shape[:2] + (n_d,))], axis=2)
+    if dist.kind == "output":
+        C[:, :, n:] = dist.map
+    Bw0 = rom.noise_input
+    n_w = Bw0.shape[2]
+    Bw = np.zeros((N, nz, n_w + n_d))
+    Bw[:, :n, :n_w] = Bw0
+    Bw[:, n:, n_w:] = np.eye(n_d)
+    P0 = np.zeros((nz, nz)) if rom.P0 is None else np.pad(rom.P0, (0, n_d))
+    P0[n:, n:] = np.diag(dist.std0**2)
+    return LTVModel(A=A, B=B, C=C, G=padded_field_map(rom.G, n_d), dims=np.asarray(rom.dims) + n_d, Bw=Bw, P0=P0)
+
+
+def noise_covariance(W: np.ndarray, dist: Disturbance | None) -> np.ndarray:
+    """W_z = blockdiag(W, diag(sigma_walk^2)): the process noise of the augmented model."""
+    if dist is None:
+        return W
+    n_w = W.shape[0]
+    out = np.zeros((n_w + dist.n_d,) * 2)
+    out[:n_w, :n_w] = W
+    out[n_w:, n_w:] = np.diag(dist.walk_std**2)
+    return out
+
+
+def cross_input(rom: LTVModel, dist: Disturbance | None) -> np.ndarray:
+    """The a-d block of A_z, (N, n_r, n_d): B_k E (input) or 0 (output, none)."""
+    if dist is None or dist.kind == "output":
+        return np.zeros((rom.n_steps, rom.n, 0 if dist is None else dist.n_d))
+    return rom.B @ dist.map
+
+
+# ----------------------------------------------------------------- choosing d
+def step_gain(rom: LTVModel, window: Sequence[int], K: np.ndarray | None = None) -> np.ndarray:
+    """Gamma = mean over k in [k0, k1] of C_k M_k, M_0 = 0, M_{k+1} = A_k M_k + B_k (n_y, n_u):
+    the outputs' response to a constant unit input from k = 0, averaged over the band window;
+    with the state feedback K (N, n_u, n), the closed loop's: M_{k+1} = (A_k + B_k K_k) M_k + B_k."""
+    k0, k1 = int(window[0]), min(int(window[1]), rom.n_steps)
+    M = np.zeros((rom.n, rom.n_u))
+    acc = np.zeros((rom.n_y, rom.n_u))
+    for k in range(k1 + 1):          # a recursion over steps: nothing to batch
+        if k >= k0:
+            acc += rom.C[k] @ M
+        if k < rom.n_steps:
+            A = rom.A[k] if K is None else rom.A[k] + rom.B[k] @ K[k]
+            M = A @ M + rom.B[k]
+    return acc / (k1 - k0 + 1)
+
+
+def input_directions(rom: LTVModel, window: Sequence[int], n_d: int | None = None,
+                     rtol: float = DIRECTION_RTOL) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """E (n_u, n_d'), the singular values S_1..S_nd' of Gamma E, and the record of the choice.
+
+    The right singular vectors of `step_gain` with the largest singular values, n_d of them
+    (default min(n_y, n_u)), less those whose singular value is at most `rtol` S_1 (not
+    detectable at steady state). Raises DisturbanceError for n_d outside 1..min(n_y, n_u) or
+    when no direction is left."""
+    G = step_gain(rom, window)
+    n_max = min(rom.n_y, rom.n_u)
+    n_d = n_max if n_d is None else int(n_d)
+    if not 1 <= n_d <= n_max:
+        raise DisturbanceError(f"disturbance_dims must be in 1..{n_max} (min(n_y, n_u) = min({rom.n_y}, "
+                               f"{rom.n_u}): at most n_y input biases are detectable), got {n_d}")
+    _, S, Vt = np.linalg.svd(G)
+    S = S[:n_max]
+    keep = int(np.count_nonzero(S[:n_d] > rtol * S[0])) if S[0] > 0 else 0
+    if keep == 0:
+        raise DisturbanceError("the ROM's step gain is zero over the band window: no input disturbance is "
+                               "detectable; use disturbance: output or none")
+    E = np.ascontiguousarray(Vt[:keep].T)
+    rank = int(np.linalg.matrix_rank(G @ E, tol=rtol * S[0]))
+    note = {"rule": "right singular vectors of the band-window step gain Gamma = mean_k C_k M_k, largest first",
+            "window": [int(window[0]), int(window[1])], "singular_values": [float(s) for s in S],
+            "rtol": rtol, "asked": n_d, "kept": keep, "dropped": n_d - keep,
+            "detectable": rank == keep, "rank_gamma_E": rank}
+    return E, S[:keep], note
+
+
+def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | None = None,
+           std: float | Sequence[float] | None = None, walk_std: float | Sequence[float] = WALK_STD,
+           bands: float = STD0_BANDS, K: np.ndarray | None = None) -> Disturbance | None:
+    """The design's disturbance model of `kind` on `rom` (None for kind 'none').
+
+    Parameters
+    ----------
+    rom : LTVModel
+        The identified ROM.
+    kind : {"none", "input", "output"}
+        The disturbance model.
+    band : float
+        The objective's band (output units), the scale of the prior std.
+    window : (k0, k1)
+        The band window: where the step gain is averaged.
+    dims : int, optional
+        n_d (default min(n_y, n_u) for input, n_y for output); at most n_y.
+    std : float or sequence of float, optional
+        sigma_0 for every direction or per direction (overrides the rule).
+    walk_std : float or sequence of float
+        sigma_walk per step.
+    bands : float
+        c of the prior-std rule c band / sqrt(S_i S_cl,i) (module docstring).
+    K : ndarray, shape (N, n_u, n_r), optional
+        The ROM's plain LQR gains, for the closed-loop step gains S_cl,i (None: the open-loop
+        rule c band / S_i).
+
+    Returns
+    -------
+    Disturbance or None
+    """
+    if kind not in KINDS:
+        raise DisturbanceError(f"disturbance must be one of {', '.join(KINDS)}, got {kind!r}")
+    if kind == "none":
+        return None
+    if kind == "input":
+        E, S, note = input_directions(rom, window, dims)
+        S_cl = S
+        if K is not None:
+            S_cl = np.linalg.norm(step_gain(rom, window, K) @ E, axis=0)
+            note["closed_loop_gains"] = [float(v) for v in S_cl]
+    else:
+        n_d = rom.n_y if dims is None else int(dims)
+        if n_d != rom.n_y:
+            raise DisturbanceError(f"disturbance_dims must be n_y = {rom.n_y} for the output kind (one bias per "
+                                   f"sensor, F = I), got {n_d}")
+        E, S = np.eye(rom.n_y), np.ones(rom.n_y)
+        S_cl = S
+        note = {"rule": "F = I: one bias per sensor", "singular_values": [1.0] * rom.n_y, "detectable": True}
+    n_d = E.shape[1]
+    if std is None:
+        scale = np.sqrt(S * S_cl)
+        if not np.all(scale > 0):
+            raise DisturbanceError("a disturbance direction leaves no closed-loop offset (S_cl,i = 0); give "
+                                   "disturbance_std")
+        std0 = bands * float(band) / scale
+        if kind == "output":
+            rule = f"sigma_0 = {bands:g} band (a sensor bias of {bands:g} bands)"
+        elif K is not None:
+            rule = (f"sigma_0,i = {bands:g} band / sqrt(S_i S_cl,i) (a bias moving the outputs by {bands:g} bands "
+                    "on the geometric mean of the open-loop and the plain-LQR closed-loop step gains)")
+        else:
+            rule = f"sigma_0,i = {bands:g} band / S_i (a bias moving the outputs by {bands:g} bands in open loop)"
+    else:
+        std0 = per_direction("disturbance_std", std, n_d)
+        rule = "disturbance_std (given)"
+    walk = per_direction("disturbance_walk_std", walk_std, n_d)
+    return Disturbance(kind, E, std0, walk, note, rule)
+
+
+def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.ndarray:
+    """A setting given for every direction (a number) or per direction (n_d numbers), >= 0."""
+    v = np.asarray(value, dtype=float)
+    if v.ndim > 1 or (v.ndim == 1 and v.shape[0] != n_d):
+        raise DisturbanceError(f"{name} must be a number or a list of n_d = {n_d} numbers, got {value!r}")
+    if not np.all(np.isfinite(v)) or np.any(v < 0):
+        raise DisturbanceError(f"{name} must be finite and >= 0, got {value!r}")
+    return np.broadcast_to(v, (n_d,)).astype(float)
+
+
+__all__ = ["KINDS", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
+           "noise_covariance", "choose", "input_directions", "step_gain", "padded_field_map", "cross_input",
+           "per_direction"]
