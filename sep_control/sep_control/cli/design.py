@@ -147,8 +147,9 @@ def settings_from_args(args: argparse.Namespace, scenario) -> DesignSettings:
 def recorded_settings(settings: DesignSettings, plant, n_steps: int) -> dict[str, Any]:
     """The settings as a design made with them records them in its source record
     (`sep_estimator.design_file.source_differences`): every setting and the Jacobian 'auto'
-    resolves to for this plant and horizon."""
-    return {**asdict(settings), "jacobian_used": settings.resolved_jacobian_for(plant, n_steps)}
+    resolves to for this plant and horizon (belief off for a plant with opaque states,
+    `DesignSettings.for_plant`)."""
+    return {**asdict(settings.for_plant(plant)), "jacobian_used": settings.resolved_jacobian_for(plant, n_steps)}
 
 
 def make_design(plant, scenario, settings: DesignSettings, args: argparse.Namespace, log, show_progress: bool):
