@@ -43,7 +43,8 @@ setup(
     description='The plant protocol, built-in black-box plants (1-D slab, 2-D plate, 3-D block, Allen-Cahn), scenarios, the topic contract and the ROS 2 plant node (sep).',
     license='Apache-2.0',
     python_requires='>=3.10',
-    extras_require={'test': ['pytest']},
+    # fmpy: the fmu plant (sep_plant.plants.fmu), imported only when an FMU is opened
+    extras_require={'test': ['pytest'], 'fmu': ['fmpy']},
     entry_points={
         'console_scripts': [
             'plant = sep_plant.ros.plant_node:main',

@@ -576,7 +576,7 @@ def test_absent_belief_statistics_round_trip(tmp_path):
     d = synthetic_design()
     d = replace(d, info=replace(d.info, state_is_opaque=True),
                 nominal=Nominal(d.nominal.u, d.nominal.y, d.nominal.field))
-    assert d.nominal.belief == "absent"
+    assert d.nominal.belief_kind == "absent"
     path = save_design(tmp_path / "absent.npz", d)
     with np.load(path, allow_pickle=False) as z:
         assert not set(SINGLE) & set(z.files)

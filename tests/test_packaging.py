@@ -28,7 +28,7 @@ MODULE_REQUIREMENT = {
     'numpy': 'numpy', 'scipy': 'scipy', 'yaml': 'PyYAML', 'matplotlib': 'matplotlib',
     'rosbags': 'rosbags', 'tqdm': 'tqdm', 'threadpoolctl': 'threadpoolctl', 'osqp': 'osqp',
     'lz4': 'lz4', 'backports': 'backports.zstd',
-    'dask': 'extra:dask', 'distributed': 'extra:dask',
+    'dask': 'extra:dask', 'distributed': 'extra:dask', 'fmpy': 'extra:fmu',
 }
 # Imported only inside a guard, never required: the module -> why.
 OPTIONAL_MODULES = {

@@ -99,7 +99,7 @@ class Nominal:
     belief_std: np.ndarray | None = None    # (N+1, n_field) its per-node std
 
     @property
-    def belief(self) -> str:
+    def belief_kind(self) -> str:
         """meta["belief"] of a design file: "ensemble" when the statistics are there, else "absent"."""
         return "absent" if self.belief_mean is None else "ensemble"
 
@@ -182,7 +182,7 @@ def save_design(path: str | Path, d: Design) -> Path:
     appears atomically."""
     path = Path(path)
     arrays = arrays_of(d)
-    belief = d.nominal.belief
+    belief = d.nominal.belief_kind
     expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays),
                      belief == "ensemble")
     for name, shape in expect.items():

@@ -22,7 +22,8 @@ Design a data-driven LQG for a plant (the heat slab by default; any plant of the
 protocol through --scenario) from the black-box simulator only:
   1. optimize the open-loop nominal (Gauss-Newton/LM, its Jacobian from a TV-ERA model or from
      impulse sensitivities, both from batched experiments; then refine it in belief space with
-     an EnKF belief),
+     an EnKF belief; a plant whose states are opaque, e.g. a Co-Simulation FMU, keeps the
+     mean-only nominal and has no belief),
   2. identify the reduced-order LTV model with TV-ERA (and the field map on a POD basis),
   3. design the time-varying LQR and Kalman filter on the ROM,
 and write everything to one design file (.npz, read without pickles; docs/reference/design-file.md),

@@ -68,15 +68,23 @@ class PlantSpec(NamedTuple):
 _WORKER_FILES: dict[str, bytes] = {}
 
 
-def plant_files(plant: Any) -> dict[str, tuple[str, bytes]]:
-    """{label: (SHA-256, bytes)} of the files of the plant's optional `source_files()`."""
+def plant_files(plant: Any, cache: dict | None = None) -> dict[str, tuple[str, bytes]]:
+    """{label: (SHA-256, bytes)} of the files of the plant's optional `source_files()`; with
+    `cache` ({(path, mtime, size): (SHA-256, bytes)}), a file unchanged since is not read again."""
     from sep_plant.device import base_plant
 
     files = getattr(base_plant(plant), "source_files", None)
     out = {}
     for label, path in sorted(dict(files() if files is not None else {}).items()):
-        data = Path(path).read_bytes()
-        out[str(label)] = (hashlib.sha256(data).hexdigest(), data)
+        st = os.stat(path)
+        key = (str(path), st.st_mtime_ns, st.st_size)
+        found = cache.get(key) if cache is not None else None
+        if found is None:
+            data = Path(path).read_bytes()
+            found = (hashlib.sha256(data).hexdigest(), data)
+            if cache is not None:
+                cache[key] = found
+        out[str(label)] = found
     return out
 
 
@@ -172,7 +180,7 @@ class DaskEngine(InProcess):
     def ship(self, plant: Any) -> PlantSpec:
         """The plant's `PlantSpec`; the bytes of its files are scattered to every worker the first
         time this engine sees them (by SHA-256) and go with every later task by reference."""
-        files = plant_files(plant)
+        files = plant_files(plant, self._read)
         for sha, data in files.values():
             fut = self._files.get(sha)
             if fut is None or fut.status != "finished":
@@ -186,6 +194,7 @@ class DaskEngine(InProcess):
         self._n = 0
         self._files: dict[str, Any] = {}      # SHA-256 -> future of a plant file's bytes (on every worker)
         self._file_bytes: dict[str, bytes] = {}   # the same bytes here (to scatter again if lost)
+        self._read: dict = {}                 # plant files read here (`plant_files`' cache)
         self.files_scattered = 0              # how many times plant file bytes were scattered
 
     @property

@@ -78,7 +78,9 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     -------
     Design
         Scenario, plant info, objective, nominal and belief, the ROM's LQG, the Hankel singular
-        values and the metadata (settings, provenance, timings, optimizer, validation).
+        values and the metadata (settings, provenance, timings, optimizer, validation; "belief":
+        "ensemble", or "absent" for a plant whose states are opaque: its nominal is the mean-only
+        one and no EnKF runs, `DesignSettings.for_plant`).
     """
     given = settings or DesignSettings()
     given.check()
@@ -100,7 +102,7 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     X_nom = ident.X_ext[: problem.n_steps + 1]
     F_nom = fields(plant, X_nom)
     nominal = Nominal(U, outputs(plant, X_nom), F_nom, *((belief.mean, belief.std) if belief is not None else ()))
-    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief}
+    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind}
     return Design(scenario, PlantInfo.of(plant), obj, np.asarray(plant.field_coordinates(), dtype=float), nominal,
                   final.lqg, ident.hankel_sv, meta)
 
