@@ -26,7 +26,12 @@ next to the same rod as a native numpy plant (tests/fmu_rod.py). "FMU calls alon
 the same C calls in a tight loop with the same prebuilt arguments (ME: set states, set inputs,
 get derivatives per run and RK4 stage; CS: deserialize, set state, set inputs, do step, get
 outputs, get state, size, serialize per run); "doStep alone" is the FMU's own integration in C.
---only-fmu prints this table alone.
+--only-fmu prints this table alone, and then the design table: the whole design (`run_design`,
+default settings) of examples/fmu_rod/scenario.yaml with the rod as Model Exchange FMU, as
+Co-Simulation FMU (opaque states: the mean-only nominal, no EnKF) and as the native numpy rod,
+with each design's nominal cost against the native one's; and the Model Exchange design again on
+`--dask local:2`: its arrays against the in-process design and how often the FMU's bytes were
+scattered to the workers (once: every map refers to the workers' copy).
 
 --device cuda adds a table of batched steps on a GPU (CuPy, `sep_plant.device`) against one CPU
 core, side by side in one run, up to 10^6 states: the device step with the state's round trip
@@ -272,6 +277,71 @@ def fmu_table(repeats: int) -> None:
                   f"({over / 48 * 1e9:.0f} ns per call) + sep's RK4 arithmetic (numpy) {(sep - floor) * 1e6:.1f} us")
 
 
+def rod_scenarios(fmu: Path, build) -> dict:
+    """The example scenario (examples/fmu_rod/scenario.yaml) with the FMU `fmu` as Model
+    Exchange and Co-Simulation plant, and with the native rod of the same outputs (sensor
+    positions: the FMU's defaults, `build`.PARAMETERS)."""
+    from sep_plant.scenario import Scenario, load_scenario
+
+    text = (ROOT / "examples" / "fmu_rod" / "scenario.yaml").read_text()
+    folder = fmu.parent
+    (folder / "me.yaml").write_text(text.replace("path: rod.fmu", f"path: {fmu.name}"))
+    cs = text.replace("path: rod.fmu", f"path: {fmu.name}").replace("interface: model_exchange", "interface: co_simulation")
+    (folder / "cs.yaml").write_text("\n".join(line for line in cs.splitlines() if not line.lstrip().startswith("substeps:")))
+    me = load_scenario(folder / "me.yaml")
+    plant = me.plant
+    position = {name.replace("_position", ""): start for name, start, *_ in build.PARAMETERS}
+    native = Scenario("fmu_rod:RodPlant", {"t_right": 120.0, "substeps": plant.substeps, "dt": plant.dt,
+                                           "sensor_positions": [position[n] for n in plant.output_names]},
+                      me.problem).canonical()
+    return {"native rod (numpy RK4)": native, "FMI 2.0 ME (sep RK4)": me, "FMI 2.0 CS (FMU RK4)": load_scenario(folder / "cs.yaml")}
+
+
+def fmu_design_table() -> None:
+    """Whole designs of the example scenario: native rod, ME and CS FMU, and ME on --dask local:2."""
+    from sep_control.compute.engine import open_engine
+    from sep_control.design.pipeline import DesignSettings, run_design
+
+    with tempfile.TemporaryDirectory() as tmp:
+        spec = importlib.util.spec_from_file_location("sep_example_build_fmu", ROOT / "examples" / "fmu_rod" / "build_fmu.py")
+        build = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(build)
+        if build.compiler() is None:
+            print("\nFMU designs: skipped (no C compiler to build examples/fmu_rod)")
+            return
+        sys.path.insert(0, str(ROOT / "tests"))
+        scenarios = rod_scenarios(build.build_fmu(Path(tmp) / "rod.fmu"), build)
+        quiet = {"show_progress": False, "log": lambda m: None}
+        rows, designs = [], {}
+        for label, sc in scenarios.items():
+            t0 = time.perf_counter()
+            d = designs[label] = run_design(sc.plant, sc.problem, DesignSettings.for_scenario(sc), **quiet)
+            wall = time.perf_counter() - t0
+            t, opt = d.meta["timings"], d.meta["optimizer"]
+            rows.append([label, str(sc.plant.n_x), f"{wall:.1f}", f"{t['optimize_s']:.1f}", f"{t['identify_s']:.1f}",
+                         f"{opt['experiments'] + opt['belief_experiments']}", d.meta["belief"],
+                         f"{opt['nominal_cost']:.8g}"])
+            print(f"FMU designs: {label} done", file=sys.stderr, flush=True)
+        ref = designs["native rod (numpy RK4)"].meta["optimizer"]["nominal_cost"]
+        for row, d in zip(rows, designs.values()):
+            row.append(f"{abs(d.meta['optimizer']['nominal_cost'] - ref) / ref:.1e}")
+        print_table("Designs of examples/fmu_rod/scenario.yaml [s; default settings, in-process, one core]",
+                    ["plant", "n_x", "design s", "optimize s", "identify s", "experiments", "belief",
+                     "nominal cost", "vs native (rel)"], rows)
+        me_label = "FMI 2.0 ME (sep RK4)"
+        me, here = scenarios[me_label], designs[me_label]
+        with open_engine("local:2") as eng:
+            t0 = time.perf_counter()
+            there = run_design(me.plant, me.problem, DesignSettings.for_scenario(me), engine=eng, **quiet)
+            wall = time.perf_counter() - t0
+            scattered = eng.files_scattered
+        diff = max(float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300)) for a, b in (
+            (there.nominal.u, here.nominal.u), (there.lqg.K, here.lqg.K), (there.lqg.field_std, here.lqg.field_std),
+            (there.rom.C, here.rom.C), (there.hankel_sv, here.hankel_sv)))
+        print(f"  {me_label} on --dask local:2: design {wall:.1f} s, largest relative difference from in-process "
+              f"(u_nom, K, field_std, C, Hankel SVs) {diff:.1e}, the FMU's bytes scattered {scattered} time(s)")
+
+
 def device_row(label: str, kind: str, cfg: dict, batch: int, xp, repeats: int) -> list[str]:
     """One row of the device table: CPU vs device (round trip, resident) [ns per node-step]."""
     cpu = make_plant(kind, cfg)
@@ -371,6 +441,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.only_fmu:
         fmu_table(args.repeats)
+        fmu_design_table()
         return
     args.blocks = args.blocks or args.only_blocks
     if args.only_device and args.device == "cpu":

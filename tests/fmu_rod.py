@@ -6,8 +6,8 @@ RK4, `substeps` steps per dt, inputs held, the stage arithmetic in the same orde
 plants (ME stepped by sep, CS stepped by the FMU) must equal it to round-off (the derivative
 is the same formula evaluated by numpy instead of C).
 
-`build(folder, **variant)` builds an FMU with examples/fmu_rod/build_fmu.py (session-cached by
-the tests); `compiler()` says whether a C compiler is there (the tests skip without one).
+`build(path, **variant)` builds an FMU with examples/fmu_rod/build_fmu.py, `session_fmu` once per
+test session; `compiler()` says whether a C compiler is there (the tests skip without one).
 """
 from __future__ import annotations
 
@@ -34,6 +34,17 @@ def compiler() -> str | None:
 
 def build(out: Path, **variant) -> Path:
     return build_module().build_fmu(out, **variant)
+
+
+_BUILT: dict[str, Path] = {}
+
+
+def session_fmu(tmp_path_factory, name: str = "rod", **variant) -> Path:
+    """The FMU `name` (build_fmu's `variant`), built once per test session into its own folder
+    (the test modules share it: each FMU is compiled once)."""
+    if name not in _BUILT:
+        _BUILT[name] = build(tmp_path_factory.mktemp(f"fmu_{name}") / f"{name}.fmu", **variant)
+    return _BUILT[name]
 
 
 class RodPlant:

@@ -568,6 +568,49 @@ def test_belief_statistics_are_stored_in_float32_and_read_as_float64(tmp_path, m
     refused(rewrite(path, tmp_path / "f32.npz", target=d.objective.target.astype(np.float32)), "target")
 
 
+def test_absent_belief_statistics_round_trip(tmp_path):
+    """A design without belief statistics (an opaque-state plant: no EnKF) is written with meta
+    belief "absent" and no belief members, and reads back with them None; an opaque plant's
+    description round-trips."""
+    from dataclasses import replace
+
+    d = synthetic_design()
+    d = replace(d, info=replace(d.info, state_is_opaque=True),
+                nominal=Nominal(d.nominal.u, d.nominal.y, d.nominal.field))
+    assert d.nominal.belief_kind == "absent"
+    path = save_design(tmp_path / "absent.npz", d)
+    with np.load(path, allow_pickle=False) as z:
+        assert not set(SINGLE) & set(z.files)
+    back = load_design(path)
+    assert back.meta["belief"] == "absent" and back.info.state_is_opaque
+    assert back.nominal.belief_mean is None and back.nominal.belief_std is None
+    assert_same(d, back)
+    # the file says "absent" but holds a belief member, or names another kind: refused
+    refused(rewrite(path, tmp_path / "both.npz", belief_mean=np.zeros((N_STEPS + 1, N_X), np.float32)),
+            "belief is 'absent' but the file holds")
+    refused(rewrite(path, tmp_path / "kind.npz", edit_meta=lambda m: {**m, "belief": "particles"}), "belief")
+    # an ensemble file without its belief members: missing arrays
+    ens = save_design(tmp_path / "ens.npz", synthetic_design())
+    assert load_design(ens).meta["belief"] == "ensemble"
+    refused(rewrite(ens, tmp_path / "nobelief.npz", belief_mean=None, belief_std=None), "missing arrays")
+    with pytest.raises(ValueError, match="both"):
+        save_design(tmp_path / "half.npz", replace(d, nominal=Nominal(d.nominal.u, d.nominal.y, d.nominal.field,
+                                                                      d.nominal.field)))
+
+
+def test_version_3_file_holds_the_ensemble_belief_and_no_opaque_flag(design_path, tmp_path):
+    """Files before version 4 have no meta belief (the EnKF belief is there) and plant
+    descriptions without state_is_opaque (read as False)."""
+    def v3(m):
+        m = {k: v for k, v in m.items() if k != "belief"}
+        m["plant_info"] = {k: v for k, v in m["plant_info"].items() if k != "state_is_opaque"}
+        return {**m, "version": 3}
+
+    back = load_design(rewrite(design_path, tmp_path / "v3.npz", edit_meta=v3))
+    assert back.meta["belief"] == "ensemble" and back.nominal.belief_mean is not None
+    assert back.info.state_is_opaque is False
+
+
 # ------------------------------------------------------------- source record
 def test_saved_design_records_its_sources_and_their_digest(design_path):
     from sep_estimator.design_source import source_digest

@@ -3,6 +3,7 @@
 One LocalCluster of two worker processes serves the module (it takes a few seconds to start);
 the worker-loss test kills one of its workers, so it runs last.
 """
+import json
 import socket
 import time
 
@@ -133,6 +134,86 @@ def test_bad_dask_values_are_refused(bad, message, capsys, tmp_path):
 def test_in_process_engine_names_the_failing_task():
     with pytest.raises(TaskError, match="chunk b: ZeroDivisionError"):
         InProcess().map(lambda x: 1 / x, [1, 0], labels=["chunk a", "chunk b"])
+
+
+# ------------------------------------------------------------------ FMU plants on the cluster
+FMU_YAML = """\
+plant:
+  type: fmu
+  path: rod.fmu
+  interface: {interface}
+  inputs: [heater_1, heater_2, heater_3]
+  field: T
+  dt: 0.5
+  start_values: {{t_right: 120.0, n_substeps: 8}}
+n_steps: 40
+target: 112.0
+band_window: [30, 40]
+w_std: 0.05
+"""
+
+
+@pytest.fixture(scope="module")
+def fmu_rods(tmp_path_factory):
+    """The example rod FMU (built from C source) as Model Exchange and Co-Simulation scenarios."""
+    import fmu_rod
+    from sep_plant.scenario import load_scenario
+
+    pytest.importorskip("fmpy", reason="the fmu plant needs fmpy (requirements.txt)")
+    if fmu_rod.compiler() is None:
+        pytest.skip("no C compiler (cc, gcc or $CC): the FMU tests build their FMUs from C source")
+    d = tmp_path_factory.mktemp("dask_fmu")
+    (d / "rod.fmu").write_bytes(fmu_rod.session_fmu(tmp_path_factory).read_bytes())
+    out = {}
+    for name, interface in (("me", "model_exchange\n  substeps: 8"), ("cs", "co_simulation")):
+        (d / f"{name}.yaml").write_text(FMU_YAML.format(interface=interface))
+        out[name] = load_scenario(d / f"{name}.yaml")
+    return out
+
+
+def test_fmu_plant_on_a_cluster_equals_in_process_with_its_bytes_shipped_once(cluster, fmu_rods):
+    """Design (ME rod) and Monte Carlo (ME and CS rods, the same FMU file) on the cluster equal
+    in-process; the FMU's bytes go to the workers once for all the maps (scattered once)."""
+    me, cs = fmu_rods["me"], fmu_rods["cs"]
+    before = cluster.files_scattered
+    fast = DesignSettings.for_scenario(me, p=5, q=5, n_r=10, ensemble=20, belief_iter=1)
+    quiet = {"show_progress": False, "log": lambda m: None}
+    here = run_design(me.plant, me.problem, fast, **quiet)
+    there = run_design(me.plant, me.problem, fast, engine=cluster, **quiet)
+    close(there.nominal.u, here.nominal.u)
+    close(there.lqg.K, here.lqg.K)
+    close(there.rom.C, here.rom.C)
+    close(there.hankel_sv, here.hankel_sv)
+    for sc in (me, cs):
+        a = simulate(sc.plant, here, "rom_lqg", 3, 12, keep_trajectories=2)
+        b = simulate(sc.plant, here, "rom_lqg", 3, 12, keep_trajectories=2, engine=cluster)
+        close(b.U, a.U)
+        close(b.F, a.F)
+        assert b.summary["cost_mean"] == pytest.approx(a.summary["cost_mean"], rel=1e-12)
+    assert cluster.files_scattered - before == 1       # one file, one content: scattered once
+
+
+def test_worker_builds_an_fmu_plant_from_the_shipped_bytes(fmu_rods, tmp_path, monkeypatch):
+    """On a worker without the FMU file, `worker_plant` builds the plant from the bytes the
+    engine shipped (`FMUPlant.rebuild`); without them it says what is missing."""
+    from sep_control.compute import engine as eng
+
+    monkeypatch.setenv("SEP_FMU_CACHE", str(tmp_path / "cache"))
+    plant = fmu_rods["cs"].plant
+    files = eng.plant_files(plant)
+    spec = eng.plant_spec(plant, files)
+    gone = json.loads(spec.config)
+    gone["path"] = str(tmp_path / "elsewhere" / "rod.fmu")          # not on this "worker"
+    spec = spec._replace(config=json.dumps(gone, sort_keys=True))
+    monkeypatch.setattr(eng, "_WORKER_FILES", {})
+    with pytest.raises(RuntimeError, match="were not shipped"):
+        eng.worker_plant(spec)
+    eng._WORKER_FILES.update({sha: data for sha, data in files.values()})
+    built = eng.worker_plant(spec)
+    assert built.path.startswith(str(tmp_path / "cache")) and built.path_sha256 == plant.path_sha256
+    X = plant.initial_state(2)
+    assert np.array_equal(built.field(built.step(X, np.full(3, 0.3))), plant.field(plant.step(X, np.full(3, 0.3))))
+    eng.worker_plant.cache_clear()
 
 
 def test_every_worker_killed_the_batch_is_resubmitted_with_the_same_result(cluster, tmp_path):

@@ -48,9 +48,9 @@ def fmus(tmp_path_factory) -> dict[str, Path]:
     """The test FMUs: the rod (both interfaces), variants for the refusals, another rod."""
     d = tmp_path_factory.mktemp("fmus")
     return {
-        "rod": fmu_rod.build(d / "rod.fmu"),
+        "rod": fmu_rod.session_fmu(tmp_path_factory),
         "rod3": fmu_rod.build(d / "rod3.fmu", fmi_version=3),
-        "rod40": fmu_rod.build(d / "rod40.fmu", nodes=40),
+        "rod40": fmu_rod.session_fmu(tmp_path_factory, "rod40", nodes=40),
         "cs_nostate": fmu_rod.build(d / "cs_nostate.fmu", interfaces=("co_simulation",), state=False),
         "cs_nostate3": fmu_rod.build(d / "cs_nostate3.fmu", interfaces=("co_simulation",), state=False,
                                      fmi_version=3),

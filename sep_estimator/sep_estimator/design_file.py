@@ -35,6 +35,10 @@ n_field r, not N n_field); they are expanded on load. The EnKF belief statistics
 belief_std: estimates from M members, sampling error ~1/sqrt(M), 7 % of the std at M = 200) are
 noise to an SVD (full rank) and are stored as float32 (round-off 6e-8 relative), read as
 float64; version 2 files (sep 0.2-0.3) hold them as float64, compressed or not, and are read too.
+``meta["belief"]`` says whether they are there: "ensemble" (the EnKF belief) or "absent" (a plant
+whose states are opaque, `PlantInfo.state_is_opaque`: the design's nominal is the mean-only one,
+no EnKF ran, and the file has no belief_mean/belief_std); files before version 4 hold the
+ensemble belief.
 
 Version 1 files (sep 0.1, the slab only) are read too: their scenario is the flat slab format
 and their field is the state (``T_nom``).
@@ -63,8 +67,8 @@ from sep_estimator.tvkf import schedule_from_posteriors
 from sep_plant.scenario import json_default
 
 FORMAT = "sep-design"
-#: 4: disturbance states; 3 (sep 0.4): belief statistics in float32, field map compressed;
-#: 2 (sep 0.2-0.3): all float64
+#: 4: disturbance states, the belief statistics may be absent (meta["belief"]); 3 (sep 0.4): belief
+#: statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64
 VERSION = 4
 READS = (1, 2, 3, 4)
 #: (N+1) x n_field trajectories larger than this many numbers are stored as a truncated SVD
@@ -73,6 +77,8 @@ TRAJECTORY_TOL = 1e-11
 TRAJECTORIES = ("field_nom", "belief_mean", "belief_std", "field_std")
 #: members written as float32 (ensemble statistics) and never SVD-compressed
 SINGLE = ("belief_mean", "belief_std")
+#: meta["belief"]: the EnKF belief statistics are stored, or absent (opaque-state plants)
+BELIEF_KINDS = ("ensemble", "absent")
 
 #: problem keys a node may take from the plant's own scenario at run time: the noise the plant
 #: draws (w_std, v_std) and the input limits its node applies (u_min, u_max) belong to the plant
@@ -81,7 +87,8 @@ SINGLE = ("belief_mean", "belief_std")
 #: another problem than the one designed for, and the nodes refuse it (`check_matches`)
 RUN_TIME_KEYS = ("w_std", "v_std", "u_min", "u_max")
 
-#: members every version-2/3 file has (Bw only for plants whose noise is not on the inputs)
+#: members every version-2/3 file has (Bw only for plants whose noise is not on the inputs; the
+#: belief statistics not when meta["belief"] is "absent")
 ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", "field_xyz", "rom_dims", "A",
           "B", "C", "field_basis", "field_coef", "K", "L", "P_post", "field_std", "hankel_sv")
 
@@ -92,13 +99,19 @@ class DesignFileError(ValueError):
 
 @dataclass
 class Nominal:
-    """The optimized open-loop nominal and its belief (k = 0..N)."""
+    """The optimized open-loop nominal and its belief (k = 0..N); the belief statistics are None
+    when absent (opaque-state plants: no EnKF runs on their states)."""
 
-    u: np.ndarray             # (N, n_u)      ubar_k
-    y: np.ndarray             # (N+1, n_y)    ybar_k, noise-free outputs
-    field: np.ndarray         # (N+1, n_field) fbar_k
-    belief_mean: np.ndarray   # (N+1, n_field) EnKF belief mean along the nominal observations
-    belief_std: np.ndarray    # (N+1, n_field) its per-node std
+    u: np.ndarray                     # (N, n_u)      ubar_k
+    y: np.ndarray                     # (N+1, n_y)    ybar_k, noise-free outputs
+    field: np.ndarray                 # (N+1, n_field) fbar_k
+    belief_mean: np.ndarray | None = None   # (N+1, n_field) EnKF belief mean along the nominal observations
+    belief_std: np.ndarray | None = None    # (N+1, n_field) its per-node std
+
+    @property
+    def belief_kind(self) -> str:
+        """meta["belief"] of a design file: "ensemble" when the statistics are there, else "absent"."""
+        return "absent" if self.belief_mean is None else "ensemble"
 
 
 @dataclass
@@ -138,14 +151,16 @@ class Design:
 
 
 def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
-            field_rank: int | None, kind: str = "none", n_d: int = 0) -> dict[str, tuple[int, ...]]:
+            field_rank: int | None, kind: str = "none", n_d: int = 0,
+            with_belief: bool = True) -> dict[str, tuple[int, ...]]:
     """Expected member shapes; field_rank None: the dense field map G; `kind`, `n_d`: the
-    disturbance states."""
+    disturbance states; `with_belief`: the EnKF belief statistics are stored."""
     nf, nu, ny = info.n_field, info.n_u, info.n_y
     nz = n_r + n_d
     out = {
         "u_nom": (N, nu), "y_nom": (N + 1, ny), "field_nom": (N + 1, nf),
-        "belief_mean": (N + 1, nf), "belief_std": (N + 1, nf), "target": (nf,), "field_xyz": (nf, 3),
+        **({"belief_mean": (N + 1, nf), "belief_std": (N + 1, nf)} if with_belief else {}),
+        "target": (nf,), "field_xyz": (nf, 3),
         "rom_dims": (N + 1,), "A": (N, n_r, n_r), "B": (N, n_r, nu), "C": (N + 1, ny, n_r),
         "K": (N, nu, nz), "L": (N + 1, nz, ny), "P_post": (N + 1, nz, nz),
         "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
@@ -171,11 +186,14 @@ def arrays_of(d: Design) -> dict[str, np.ndarray]:
         field_map = {"G": m.G.G}
     else:
         raise ValueError(f"design files store a POD or dense field map; got {type(m.G).__name__}")
-    out = {"u_nom": nom.u, "y_nom": nom.y, "field_nom": nom.field, "belief_mean": nom.belief_mean,
-           "belief_std": nom.belief_std, "target": d.objective.target, "field_xyz": d.field_xyz,
-           "rom_dims": np.asarray(m.dims, dtype=np.int64), "A": m.A, "B": m.B, "C": m.C, **field_map,
-           "K": d.lqg.K, "L": d.lqg.kf.L, "P_post": d.lqg.kf.P_post, "field_std": d.lqg.field_std,
+    if (nom.belief_mean is None) != (nom.belief_std is None):
+        raise ValueError("the nominal's belief_mean and belief_std must both be given or both be None")
+    out = {"u_nom": nom.u, "y_nom": nom.y, "field_nom": nom.field, "target": d.objective.target,
+           "field_xyz": d.field_xyz, "rom_dims": np.asarray(m.dims, dtype=np.int64), "A": m.A, "B": m.B, "C": m.C,
+           **field_map, "K": d.lqg.K, "L": d.lqg.kf.L, "P_post": d.lqg.kf.P_post, "field_std": d.lqg.field_std,
            "hankel_sv": d.hankel_sv}
+    if nom.belief_mean is not None:
+        out["belief_mean"], out["belief_std"] = nom.belief_mean, nom.belief_std
     if m.Bw is not None:
         out["Bw"] = m.Bw
     dist = d.disturbance
@@ -195,18 +213,20 @@ def save_design(path: str | Path, d: Design) -> Path:
     path = Path(path)
     arrays = arrays_of(d)
     dist = d.disturbance
+    belief = d.nominal.belief_kind
     expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays),
-                     "none" if dist is None else dist.kind, d.lqg.n_d)
+                     "none" if dist is None else dist.kind, d.lqg.n_d, belief == "ensemble")
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
     source = design_source(d)
-    meta = {**d.meta, "format": FORMAT, "version": VERSION, "scenario": d.scenario.to_dict(),
+    meta = {**d.meta, "format": FORMAT, "version": VERSION, "belief": belief, "scenario": d.scenario.to_dict(),
             "plant_info": d.info.to_dict(), "n_r": d.n_r, "disturbance": disturbance_meta(dist),
             "source": source, "source_digest": source_digest(source)}
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
     for name in SINGLE:
-        arrays[name] = arrays[name].astype(np.float32)
+        if name in arrays:
+            arrays[name] = arrays[name].astype(np.float32)
     for name in TRAJECTORIES:
         if name not in SINGLE and arrays[name].size > COMPRESS_ABOVE:
             arrays.update(_compressed(name, arrays.pop(name)))
@@ -300,7 +320,8 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     if basis is not None and basis.ndim != 2:
         raise DesignFileError(f"{path}: field_basis must be a matrix (n_field, r_f)")
     kind, n_d = _disturbance_kind(path, meta, version, info)
-    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw), kind, n_d)
+    belief = _belief_kind(path, meta, raw)
+    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw), kind, n_d, belief == "ensemble")
     missing = sorted(set(expect) - set(raw))
     if missing:
         raise DesignFileError(f"{path}: missing arrays {missing}")
@@ -318,6 +339,18 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     if expect_scenario is not None:
         check_matches(design, expect_scenario, str(path))
     return design
+
+
+def _belief_kind(path: Path, meta: dict, raw: dict[str, np.ndarray]) -> str:
+    """meta["belief"] ("ensemble" when not recorded: files before version 4), checked against the
+    members (sets meta["belief"])."""
+    belief = meta.setdefault("belief", "ensemble")
+    if belief not in BELIEF_KINDS:
+        raise DesignFileError(f"{path}: meta belief must be one of {', '.join(BELIEF_KINDS)}, got {belief!r}")
+    if belief == "absent" and any(name in raw for name in SINGLE):
+        raise DesignFileError(f"{path}: meta belief is 'absent' but the file holds "
+                              f"{sorted(name for name in SINGLE if name in raw)}")
+    return belief
 
 
 def _field_rank(arrays: dict) -> int | None:
@@ -365,7 +398,7 @@ def _assemble(path: Path, scenario: Scenario, info: PlantInfo, meta: dict, a: di
     lqg = LQG("rom_lqg", model, a["K"], schedule_from_posteriors(model, a["L"], a["P_post"], W), W, V,
               a["field_std"], disturbance=dist, rom=rom)
     objective = Objective(a["target"], p.q_weights(), float(p.band), p.window, float(p.r_u))
-    nominal = Nominal(a["u_nom"], a["y_nom"], a["field_nom"], a["belief_mean"], a["belief_std"])
+    nominal = Nominal(a["u_nom"], a["y_nom"], a["field_nom"], a.get("belief_mean"), a.get("belief_std"))
     return Design(scenario, info, objective, a["field_xyz"], nominal, lqg, a["hankel_sv"], meta)
 
 

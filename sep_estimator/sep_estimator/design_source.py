@@ -10,7 +10,10 @@ design-file format. The record lists exactly these, as plain JSON data::
      "problem": {"n_steps": 250, "target": 150.0, ...},     # resolved (band_window, lqr_k_switch)
      "settings": {"n_r": 20, "chunks": 4, ..., "jacobian_used": "sensitivity"}}
 
-and its digest is the SHA-256 of its canonical JSON (sorted keys, no spaces). Two designs with
+and its digest is the SHA-256 of its canonical JSON (sorted keys, no spaces). A plant key K
+that names a file whose SHA-256 the configuration carries (``K_sha256``, e.g. the fmu plant's
+``path``) is recorded by that digest only, not by its path: the same FMU in another folder is
+the same input, as scenarios compare it (`sep_plant.scenario`). Two designs with
 the same digest were made from the same inputs; a tool that would reuse a design file (`sep
 demo`) compares digests, and `record_differences` names what differs when they do not match.
 
@@ -68,7 +71,8 @@ def source_record(plant_type: str, plant_config: Mapping[str, Any], plant_files:
     Parameters
     ----------
     plant_type, plant_config : str, mapping
-        The plant's type string and its complete configuration (``plant.config()``).
+        The plant's type string and its complete configuration (``plant.config()``; file keys
+        that come with their SHA-256 are left out, the digest stays).
     plant_files : mapping
         {name: SHA-256} of the files the plant reads (`plant_file_digests`).
     problem : mapping
@@ -84,7 +88,8 @@ def source_record(plant_type: str, plant_config: Mapping[str, Any], plant_files:
     dict
         The record, normalized through JSON (tuples as lists, numpy values as numbers).
     """
-    record = {"format_version": int(format_version), "plant": {"type": plant_type, **dict(plant_config)},
+    config = {k: v for k, v in plant_config.items() if not (isinstance(k, str) and f"{k}_sha256" in plant_config)}
+    record = {"format_version": int(format_version), "plant": {"type": plant_type, **config},
               "plant_files": dict(plant_files), "problem": dict(problem),
               "settings": {k: v for k, v in settings.items() if k not in RESULT_NEUTRAL_SETTINGS}}
     return json.loads(json.dumps(record, default=json_default))

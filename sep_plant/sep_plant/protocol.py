@@ -64,7 +64,11 @@ Optional method::
                                               another file. Such a plant also reports each file
                                               in config() under a key K with its SHA-256 under
                                               K_sha256, so that scenarios compare files by
-                                              content, not by path (`sep_plant.scenario`)
+                                              content, not by path (`sep_plant.scenario`). Its
+                                              class may define the classmethod
+                                              rebuild(config, {label: bytes}) -> plant, which a
+                                              cluster worker without the files calls with their
+                                              shipped bytes (`sep_control.compute.engine`)
 
 State arrays must be copyable and restartable: a state is a float64 array; sep copies rows of
 it (nominal snapshots) and later starts experiments from those copies, so `step` must depend on
@@ -138,6 +142,7 @@ class PlantInfo:
     noise_on_inputs: bool = True
     n_w: int | None = None             # noise channels (None: n_u, noise on the inputs)
     frame_id: str = "sep"              # frame id of the messages (the plant's optional frame_id)
+    state_is_opaque: bool = False      # states are data only the plant understands (no arithmetic on them)
 
     @classmethod
     def of(cls, plant: Plant) -> "PlantInfo":
@@ -149,7 +154,8 @@ class PlantInfo:
                    grid_shape=None if grid is None else tuple(int(g) for g in grid),
                    field_is_state=bool(getattr(plant, "field_is_state", False)),
                    noise_on_inputs=bool(getattr(plant, "noise_on_inputs", True)),
-                   n_w=noise_channels(plant), frame_id=str(getattr(plant, "frame_id", "sep")))
+                   n_w=noise_channels(plant), frame_id=str(getattr(plant, "frame_id", "sep")),
+                   state_is_opaque=bool(getattr(plant, "state_is_opaque", False)))
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -175,6 +181,8 @@ class PlantInfo:
             if not isinstance(names, (list, tuple)) or len(names) != n or not all(isinstance(x, str) for x in names):
                 raise ValueError(f"plant description: {key} must be {n} strings, got {names!r}")
             kw[key] = tuple(names)
+        if not isinstance(kw.get("state_is_opaque", False), bool):
+            raise ValueError(f"plant description: state_is_opaque must be true or false, got {kw['state_is_opaque']!r}")
         if not isinstance(kw.get("frame_id", "sep"), str) or not kw.get("frame_id", "sep"):
             raise ValueError(f"plant description: frame_id must be a non-empty string, got {kw.get('frame_id')!r}")
         if kw.get("grid_shape") is not None:

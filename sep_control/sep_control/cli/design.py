@@ -24,7 +24,8 @@ Design a data-driven LQG for a plant (the heat slab by default; any plant of the
 protocol through --scenario) from the black-box simulator only:
   1. optimize the open-loop nominal (Gauss-Newton/LM, its Jacobian from a TV-ERA model or from
      impulse sensitivities, both from batched experiments; then refine it in belief space with
-     an EnKF belief),
+     an EnKF belief; a plant whose states are opaque, e.g. a Co-Simulation FMU, keeps the
+     mean-only nominal and has no belief),
   2. identify the reduced-order LTV model with TV-ERA (and the field map on a POD basis),
   3. design the time-varying LQR and Kalman filter on the ROM,
 and write everything to one design file (.npz, read without pickles; docs/reference/design-file.md),
@@ -175,8 +176,9 @@ def settings_fit_or_exit(settings: DesignSettings, plant) -> None:
 def recorded_settings(settings: DesignSettings, plant, n_steps: int) -> dict[str, Any]:
     """The settings as a design made with them records them in its source record
     (`sep_estimator.design_file.source_differences`): every setting and the Jacobian 'auto'
-    resolves to for this plant and horizon."""
-    return {**asdict(settings), "jacobian_used": settings.resolved_jacobian_for(plant, n_steps)}
+    resolves to for this plant and horizon (belief off for a plant with opaque states,
+    `DesignSettings.for_plant`)."""
+    return {**asdict(settings.for_plant(plant)), "jacobian_used": settings.resolved_jacobian_for(plant, n_steps)}
 
 
 def make_design(plant, scenario, settings: DesignSettings, args: argparse.Namespace, log, show_progress: bool):

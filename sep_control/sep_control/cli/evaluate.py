@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)", device=args.device) if truth is None \
         else truth_cli.truth_plant_or_exit(truth, design, args.device)
     controllers = chosen_controllers(args, design)
-    oracle_fits = design.info.n_x <= args.oracle_max_nx
+    oracle_fits = design.info.n_x <= args.oracle_max_nx and not design.info.state_is_opaque
     N = design.n_steps
     total = len(controllers) * args.runs * N + \
         (sweep_run_steps(plant, design, args.sweep_orders, args.sweep_runs, oracle_fits) if args.sweep else 0)
@@ -179,9 +179,15 @@ def chosen_controllers(args: argparse.Namespace, design) -> list[str]:
     limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
     controllers = list(dict.fromkeys(args.controllers)) if args.controllers else \
         [c for c in CONTROLLERS if c != "rom_mpc" or limited]
-    if "oracle_lqg" in controllers and design.info.n_x > args.oracle_max_nx:
+    if "oracle_lqg" in controllers and design.info.state_is_opaque:
+        print("oracle_lqg skipped: the plant's states are opaque (state_is_opaque, e.g. a Co-Simulation FMU's "
+              "serialized state): the full-order oracle differentiates the step with respect to the state")
+        controllers.remove("oracle_lqg")
+    elif "oracle_lqg" in controllers and design.info.n_x > args.oracle_max_nx:
         print(f"oracle_lqg skipped: n_x = {design.info.n_x} > --oracle-max-nx = {args.oracle_max_nx}")
         controllers.remove("oracle_lqg")
+    if not controllers:
+        fail("no controller left to evaluate (oracle_lqg skipped, see above); name others with --controllers")
     return controllers
 
 
@@ -199,8 +205,9 @@ def print_sweep(rows: list[dict], runs: int, design) -> None:
 
 def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
     info, xyz, obj, nom = design.info, design.field_xyz, design.objective, design.nominal
+    mean = nom.belief_mean if nom.belief_mean is not None else nom.field      # no belief: the nominal field
     paths = [figures.nominal_belief_figure(out / "nominal_belief_and_control.png", info, xyz, obj.target, obj.band,
-                                           nom.belief_mean, nom.belief_std, nom.u, obj.window)]
+                                           mean, nom.belief_std, nom.u, obj.window)]
     means = {name: r.F_mean for name, r in results.items()}
     if means:
         paths.append(figures.mc_mean_vs_nominal_figure(out / "closed_loop_mean_vs_nominal.png", info, xyz,

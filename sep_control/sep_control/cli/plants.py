@@ -65,4 +65,5 @@ def describe(plant_type: str, info) -> str:
     unit = f" [{info.field_unit}]" if info.field_unit else ""
     return (f"plant {plant_type}: n_x = {info.n_x}, {info.n_u} inputs, {info.n_y} outputs, "
             f"{info.n_field} field nodes ({info.field_name}{unit}{grid}), dt = {info.dt:g} s, "
-            f"noise channels {info.n_w if info.n_w is not None else info.n_u}")
+            f"noise channels {info.n_w if info.n_w is not None else info.n_u}"
+            + (" (opaque states: no EnKF belief, no full-order oracle)" if info.state_is_opaque else ""))

@@ -19,7 +19,11 @@ chunkings agree to BLAS round-off (about 1e-15 measured).
 
 Workers rebuild the plant from plain data (`engine.ship(plant)`: the plant type and its
 configuration, as in a scenario file) and keep it per process (`local_plant`), so the plant
-object itself is not shipped. A worker that dies mid-batch has its tasks rerun elsewhere by the scheduler; a task
+object itself is not shipped. A plant that reads files (`source_files()`, e.g. an FMU) also has
+their bytes shipped, once per engine and worker (broadcast, keyed by their SHA-256), and a worker
+builds it with the class's ``rebuild(config, {label: bytes})`` (`FMUPlant.rebuild`: from its
+own copy of the file when it has one with that SHA-256, else from the bytes), so no worker needs
+a shared disk. A worker that dies mid-batch has its tasks rerun elsewhere by the scheduler; a task
 that raises fails the map at once with a `TaskError` naming the task (the plant and the
 experiments), and the remaining tasks are cancelled.
 
@@ -28,11 +32,13 @@ Pure Python (dask imported only when a cluster is asked for): no ROS import.
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
 import re
 import uuid
-from typing import Any, Callable, Sequence
+from pathlib import Path
+from typing import Any, Callable, NamedTuple, Sequence
 
 #: seconds to wait for a scheduler given as tcp://HOST:PORT before giving up
 CONNECT_TIMEOUT_S = 10.0
@@ -49,26 +55,71 @@ class TaskError(RuntimeError):
 
 
 # ----------------------------------------------------------------------------- plants on workers
-def plant_spec(plant: Any) -> tuple[str, str, str]:
-    """Plain data that rebuilds `plant` on a worker: (type name, configuration as JSON, device),
-    the plant part of a scenario and where it steps (`sep_plant.device`: a worker of a
-    `--device cuda` run steps on its own GPU)."""
+class PlantSpec(NamedTuple):
+    """Plain data that rebuilds a plant on a worker (`plant_spec`)."""
+
+    type_name: str                           # the plant's type string
+    config: str                              # its configuration as JSON
+    device: str                              # where it steps (`sep_plant.device`)
+    files: tuple[tuple[str, str], ...] = ()  # (label, SHA-256) of each file of its source_files()
+
+
+#: on a worker: the bytes of the plant files shipped to it, by SHA-256 (`_apply` fills it)
+_WORKER_FILES: dict[str, bytes] = {}
+
+
+def plant_files(plant: Any, cache: dict | None = None) -> dict[str, tuple[str, bytes]]:
+    """{label: (SHA-256, bytes)} of the files of the plant's optional `source_files()`; with
+    `cache` ({(path, mtime, size): (SHA-256, bytes)}), a file unchanged since is not read again."""
+    from sep_plant.device import base_plant
+
+    files = getattr(base_plant(plant), "source_files", None)
+    out = {}
+    for label, path in sorted(dict(files() if files is not None else {}).items()):
+        st = os.stat(path)
+        key = (str(path), st.st_mtime_ns, st.st_size)
+        found = cache.get(key) if cache is not None else None
+        if found is None:
+            data = Path(path).read_bytes()
+            found = (hashlib.sha256(data).hexdigest(), data)
+            if cache is not None:
+                cache[key] = found
+        out[str(label)] = found
+    return out
+
+
+def plant_spec(plant: Any, files: dict[str, tuple[str, bytes]] | None = None) -> PlantSpec:
+    """Plain data that rebuilds `plant` on a worker: type name, configuration as JSON, device
+    (the plant part of a scenario and where it steps: a worker of a `--device cuda` run steps
+    on its own GPU) and the SHA-256 of each of its files (`plant_files`, read when not given)."""
     from sep_plant.device import DevicePlant
     from sep_plant.plants import type_name_of
     from sep_plant.scenario import plain_config
 
     device = plant.device if isinstance(plant, DevicePlant) else "cpu"
-    return type_name_of(plant), json.dumps(plain_config(plant.config()), sort_keys=True), device
+    files = plant_files(plant) if files is None else files
+    return PlantSpec(type_name_of(plant), json.dumps(plain_config(plant.config()), sort_keys=True), device,
+                     tuple((label, sha) for label, (sha, _) in files.items()))
 
 
 @functools.lru_cache(maxsize=8)
-def worker_plant(spec: tuple[str, str, str]) -> Any:
-    """The plant of `spec`, built once per process (construction may factor matrices)."""
+def worker_plant(spec: PlantSpec) -> Any:
+    """The plant of `spec`, built once per process (construction may factor matrices); a plant
+    with files by its class's ``rebuild(config, {label: bytes})`` from the shipped bytes."""
     from sep_plant.device import on_device
-    from sep_plant.plants import make_plant
+    from sep_plant.plants import make_plant, resolve
 
-    type_name, config, device = spec
-    return on_device(make_plant(type_name, json.loads(config)), device)
+    spec = PlantSpec(*spec)
+    config = json.loads(spec.config)
+    rebuild = getattr(resolve(spec.type_name), "rebuild", None) if spec.files else None
+    if rebuild is None:          # no files, or a class that reads them from its paths
+        return on_device(make_plant(spec.type_name, config), spec.device)
+    missing = [label for label, sha in spec.files if sha not in _WORKER_FILES]
+    if missing:
+        raise RuntimeError(f"plant {spec.type_name!r}: the bytes of its file(s) {missing} were not shipped to "
+                           "this process (the engine ships them with the tasks)")
+    data = {label: _WORKER_FILES[sha] for label, sha in spec.files}
+    return on_device(rebuild(config, data), spec.device)
 
 
 def local_plant(plant: Any) -> Any:
@@ -126,12 +177,25 @@ class DaskEngine(InProcess):
     name = "dask"
     local = False
 
-    def ship(self, plant: Any) -> tuple[str, str, str]:
-        return plant_spec(plant)
+    def ship(self, plant: Any) -> PlantSpec:
+        """The plant's `PlantSpec`; the bytes of its files are scattered to every worker the first
+        time this engine sees them (by SHA-256) and go with every later task by reference."""
+        files = plant_files(plant, self._read)
+        for sha, data in files.values():
+            fut = self._files.get(sha)
+            if fut is None or fut.status != "finished":
+                self._files[sha] = self.client.scatter([data], broadcast=True, hash=False)[0]
+                self._file_bytes[sha] = data
+                self.files_scattered += 1
+        return plant_spec(plant, files)
 
     def __init__(self, client, cluster=None):
         self.client, self.cluster = client, cluster
         self._n = 0
+        self._files: dict[str, Any] = {}      # SHA-256 -> future of a plant file's bytes (on every worker)
+        self._file_bytes: dict[str, bytes] = {}   # the same bytes here (to scatter again if lost)
+        self._read: dict = {}                 # plant files read here (`plant_files`' cache)
+        self.files_scattered = 0              # how many times plant file bytes were scattered
 
     @property
     def workers(self) -> int:
@@ -152,8 +216,8 @@ class DaskEngine(InProcess):
         run = uuid.uuid4().hex[:12]
 
         def submit(i: int, attempt: int):
-            return self.client.submit(_apply, fn, chunks[i], sfut, key=f"sep-{tag}-{run}-{self._n}-{i}-{attempt}",
-                                      pure=False, retries=0)
+            return self.client.submit(_apply, fn, chunks[i], sfut, dict(self._files),
+                                      key=f"sep-{tag}-{run}-{self._n}-{i}-{attempt}", pure=False, retries=0)
 
         futures = [submit(i, 1) for i in range(len(chunks))]
         index = {f.key: i for i, f in enumerate(futures)}
@@ -176,6 +240,7 @@ class DaskEngine(InProcess):
                                         f"{attempts[i]} times (workers lost, or the cluster shut down)")
                     attempts[i] += 1
                     sfut = self._scatter(shared, sfut)
+                    self._rescatter_files()
                     futures[i] = submit(i, attempts[i])
                     index[futures[i].key] = i
                     pending.add(futures[i])
@@ -193,6 +258,13 @@ class DaskEngine(InProcess):
             for f in sfut.values():
                 f.release()
         return results
+
+    def _rescatter_files(self) -> None:
+        """Scatter again the plant files whose every holder was lost (from their bytes here)."""
+        for sha, fut in list(self._files.items()):
+            if fut.status != "finished":
+                self._files[sha] = self.client.scatter([self._file_bytes[sha]], broadcast=True, hash=False)[0]
+                self.files_scattered += 1
 
     def _scatter(self, shared: dict[str, Any], old: dict | None = None) -> dict:
         """Futures of the shared values on every worker; with `old`, only those no longer held
@@ -221,9 +293,12 @@ class DaskEngine(InProcess):
                 self.cluster.close()
 
 
-def _apply(fn: Callable[..., Any], chunk: Any, shared: dict[str, Any]) -> Any:
+def _apply(fn: Callable[..., Any], chunk: Any, shared: dict[str, Any], files: dict[str, bytes] | None = None) -> Any:
     """fn(chunk, **shared) on a worker (the shared values arrive as one argument, so none of their
-    names can collide with `Client.submit`'s own keywords)."""
+    names can collide with `Client.submit`'s own keywords); `files`: the plant files' bytes by
+    SHA-256, for `worker_plant` (references to the worker's one copy)."""
+    if files:
+        _WORKER_FILES.update(files)
     return fn(chunk, **shared)
 
 

@@ -79,12 +79,18 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     -------
     Design
         Scenario, plant info, objective, nominal and belief, the ROM's LQG, the Hankel singular
-        values and the metadata (settings, provenance, timings, optimizer, validation).
+        values and the metadata (settings, provenance, timings, optimizer, validation; "belief":
+        "ensemble", or "absent" for a plant whose states are opaque: its nominal is the mean-only
+        one and no EnKF runs, `DesignSettings.for_plant`).
     """
-    st = settings or DesignSettings()
-    st.check()
-    st.check_plant_dims(int(plant.n_u), int(plant.n_y))
+    given = settings or DesignSettings()
+    given.check()
+    given.check_plant_dims(int(plant.n_u), int(plant.n_y))
     check_plant(plant, problem.channels("u_init", int(plant.n_u)))
+    st = given.for_plant(plant)
+    if st.belief != given.belief:
+        log("the plant's states are opaque (state_is_opaque): mean-only nominal, no EnKF belief "
+            "(the belief refinement and the belief statistics need arithmetic on states)")
     scenario = scenario_of(plant, problem)
     problem = scenario.problem
     ctx = StageContext(show_progress, log, engine)
@@ -97,8 +103,8 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     U, belief = final.nominal.U, final.nominal.belief
     X_nom = ident.X_ext[: problem.n_steps + 1]
     F_nom = fields(plant, X_nom)
-    meta = _meta(st, ctx.timings, final, obj, F_nom, margins, experiments)
-    nominal = Nominal(U, outputs(plant, X_nom), F_nom, belief.mean, belief.std)
+    nominal = Nominal(U, outputs(plant, X_nom), F_nom, *((belief.mean, belief.std) if belief is not None else ()))
+    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind}
     return Design(scenario, PlantInfo.of(plant), obj, np.asarray(plant.field_coordinates(), dtype=float), nominal,
                   final.lqg, ident.hankel_sv, meta)
 

@@ -5,7 +5,7 @@ Pure Python/numpy: no ROS import.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -225,6 +225,15 @@ class DesignSettings:
                 n_steps * int(plant.n_u) > runs_per_batch(int(plant.n_x), int(plant.n_field), self.memory_budget):
             return "rom"
         return jac
+
+    def for_plant(self, plant: Plant) -> "DesignSettings":
+        """These settings as a design for `plant` uses (and records) them: a plant whose states
+        are opaque (`state_is_opaque`, e.g. a Co-Simulation FMU) gets no belief refinement, since
+        the EnKF does arithmetic on states; its design has the mean-only nominal and no belief
+        statistics."""
+        if self.belief and getattr(plant, "state_is_opaque", False):
+            return replace(self, belief=False)
+        return self
 
     @classmethod
     def for_scenario(cls, scenario: Scenario, **overrides: Any) -> "DesignSettings":

@@ -66,7 +66,7 @@ class NominalResult:
     U: np.ndarray                              # (N, n_u) the nominal input
     mean_only: OptimizationResult              # the mean-only optimizer's result
     refinement: OptimizationResult | None      # the belief-space refinement's (None: not refined)
-    belief: EnKFResult                         # the EnKF belief at U
+    belief: EnKFResult | None                  # the EnKF belief at U (None: opaque states, no EnKF)
     jacobian: str                              # the mean-only optimizer's Jacobian ("sensitivity" or "rom")
 
     @property
@@ -148,8 +148,9 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
                 f"({refined.iterations} iterations, {refined.seconds:.2f} s; stopped: {refined.stop})")
     ctx.took("optimize_s", t0)
     last = refined if refined is not None else opt
-    belief = last.belief if last.belief is not None else run_belief(plant, last.U, problem, st.ensemble,
-                                                                    st.enkf_seed, st.memory_budget)
+    belief = last.belief
+    if belief is None and not getattr(plant, "state_is_opaque", False):   # the EnKF adds and scales states
+        belief = run_belief(plant, last.U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
     return NominalResult(last.U, opt, refined, belief, kind)
 
 

@@ -4,7 +4,8 @@ Fields are drawn as lines over x for 1-D plants and as heat maps for grid plants
 middle slice along the last axis for 3-D), so every figure works for every plant (drawing
 primitives: `sep_control.plotting`; the recorded-bag report's figures: `sep_control.bags.figures`):
 
-nominal_belief_figure       nominal belief (mean +- 2 sigma, or maps) and optimal control (paper Fig. 2a-b)
+nominal_belief_figure       nominal belief (mean +- 2 sigma, or maps; the nominal field where the design
+                            has no belief) and optimal control (paper Fig. 2a-b)
 mc_mean_vs_nominal_figure   closed-loop mean field vs nominal at the band window's start and end (Fig. 1a)
 mc_estimation_figure        one run's estimation error with 2-sigma bounds at the two unsensed nodes
                             where the reconstruction std is largest, against the open-loop deviation
@@ -27,19 +28,21 @@ from sep_plant.protocol import PlantInfo
 
 
 def nominal_belief_figure(path: Path, info: PlantInfo, xyz: np.ndarray, target: np.ndarray, band: float,
-                          belief_mean: np.ndarray, belief_std: np.ndarray, u_nom: np.ndarray,
+                          belief_mean: np.ndarray, belief_std: np.ndarray | None, u_nom: np.ndarray,
                           window: tuple[int, int]) -> Path:
     """Nominal belief (mean +- 2 sigma over x at six times; maps at the window's start and end)
-    and the optimal open-loop inputs."""
+    and the optimal open-loop inputs. With `belief_std` None (a design without belief
+    statistics: opaque-state plants) `belief_mean` is the nominal field, drawn without a band."""
     plt = pyplot()
     N = u_nom.shape[0]
     t = np.arange(N + 1) * info.dt
     unit = unit_suffix(info.field_unit)
+    what = "nominal field" if belief_std is None else "belief mean"
     if is_map(info):
         fig, axes = plt.subplots(1, 3, figsize=(14, 4))
         lo, hi = band_limits(target, band)
         for ax, k in zip(axes[:2], window):
-            ax.set_title(f"belief mean, t = {t[k]:.4g} s")
+            ax.set_title(f"{what}, t = {t[k]:.4g} s")
             im = draw_field(ax, info, xyz, belief_mean[k], vmin=lo, vmax=hi)
             fig.colorbar(im, ax=ax, label=info.field_name + unit)
         b = axes[2]
@@ -49,13 +52,16 @@ def nominal_belief_figure(path: Path, info: PlantInfo, xyz: np.ndarray, target: 
             x, _ = line_coordinate(xyz)
             order = np.argsort(x)
             line = a.plot(x[order], belief_mean[k][order], label=f"t = {t[k]:.4g} s")[0]
-            a.fill_between(x[order], (belief_mean[k] - 2 * belief_std[k])[order],
-                           (belief_mean[k] + 2 * belief_std[k])[order], color=line.get_color(), alpha=0.2)
+            if belief_std is not None:
+                a.fill_between(x[order], (belief_mean[k] - 2 * belief_std[k])[order],
+                               (belief_mean[k] + 2 * belief_std[k])[order], color=line.get_color(), alpha=0.2)
         x, xl = line_coordinate(xyz)
         order = np.argsort(x)
         a.fill_between(x[order], (target - band)[order], (target + band)[order], color="0.85", zorder=0,
                        label="target band")
-        a.set(xlabel=xl, ylabel=info.field_name + unit, title="Nominal belief: mean +- 2 sigma (EnKF)")
+        a.set(xlabel=xl, ylabel=info.field_name + unit,
+              title="Nominal belief: mean +- 2 sigma (EnKF)" if belief_std is not None else
+              "Nominal field (no belief: opaque plant states)")
         a.legend(fontsize=8)
     for j in range(u_nom.shape[1]):
         b.step(t[:-1], u_nom[:, j], where="post", label=info.input_names[j])

@@ -50,6 +50,9 @@ def _central(fn, X: np.ndarray, e: np.ndarray, h: float) -> np.ndarray:
 def full_order_model(plant: Plant, X: np.ndarray, U: np.ndarray, dx: float = 1e-3,
                      du: float = 1e-4) -> LTVModel:
     """The full-order LTV model by central differences around the states X (N+1, n_x) and U."""
+    if getattr(plant, "state_is_opaque", False):
+        raise ValueError("no full-order oracle for a plant whose states are opaque (state_is_opaque, e.g. a "
+                         "Co-Simulation FMU's serialized state): it differentiates the step with respect to the state")
     N, n_u = U.shape
     n_x = X.shape[1]
     ex, eu = np.eye(n_x) * dx, np.eye(n_u) * du

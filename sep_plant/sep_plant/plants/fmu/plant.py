@@ -359,12 +359,12 @@ class FMUPlant:
             return self._stepper.read(X, list(self._field.refs), self.n_field)
 
     # ------------------------------------------------------------------ shipping
-    # How a cluster engine ships an FMU plant (sep_control.compute.engine; wired in phase 2): the
-    # plant's spec stays its type and config (JSON) as for every plant; the engine also reads the
-    # files of `source_files()` ONCE, scatters their bytes to every worker (broadcast), and a
-    # worker builds the plant with `rebuild(config, data)`: from its own copy of the file when it
-    # has one with the same SHA-256, else from the bytes, written once per machine to the cache
-    # (<cache>/<sha256>.fmu, sep_plant.plants.fmu.archive) and unpacked there once.
+    # How a cluster engine ships an FMU plant (sep_control.compute.engine): the plant's spec stays
+    # its type and config (JSON) as for every plant; the engine also reads the files of
+    # `source_files()` once, scatters their bytes to every worker (broadcast, once per engine), and
+    # a worker builds the plant with `rebuild(config, {"fmu": data})`: from its own copy of the
+    # file when it has one with the same SHA-256, else from the bytes, written once per machine to
+    # the cache (<cache>/<sha256>.fmu, sep_plant.plants.fmu.archive) and unpacked there once.
     @classmethod
     def from_bytes(cls, data: bytes, **config: Any) -> "FMUPlant":
         """The plant of `config` built from the FMU's bytes, where its file may be absent (a
@@ -392,9 +392,22 @@ class FMUPlant:
         return Path(self.path).read_bytes()
 
     @classmethod
-    def rebuild(cls, config: Mapping[str, Any], data: bytes) -> "FMUPlant":
+    def rebuild(cls, config: Mapping[str, Any], data: bytes | Mapping[str, bytes]) -> "FMUPlant":
         """The plant of `config`: from its `path` when that file has the config's SHA-256, else
-        from the FMU's bytes `data` (`from_bytes`)."""
+        from the FMU's bytes `data` (`from_bytes`).
+
+        Parameters
+        ----------
+        config : the plant's keys (`config()`).
+        data : the FMU file's bytes, or {label: bytes} of `source_files()` ({"fmu": bytes}, as a
+            cluster engine ships a plant's files).
+
+        Returns
+        -------
+        The plant.
+        """
+        if isinstance(data, Mapping):
+            data = data["fmu"]
         path = config.get("path")
         if path and os.path.isfile(path) and archive.sha256_file(path) == config.get("path_sha256"):
             return cls(**config)
