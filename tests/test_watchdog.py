@@ -1,4 +1,4 @@
-"""The nodes' middleware watchdog (sep_plant.ros.base._Watchdog): a phase that blocks past its
+"""The nodes' middleware watchdog (sep_plant.ros.process._Watchdog): a phase that blocks past its
 bound ends the process with every thread's stack on stderr and the chosen exit code."""
 import subprocess
 import sys
@@ -9,7 +9,7 @@ from node_harness import launcher, small_case  # noqa: F401
 
 SCRIPT = textwrap.dedent("""
     import time
-    from sep_plant.ros.base import _Watchdog
+    from sep_plant.ros.process import _Watchdog
     quick = _Watchdog(5.0, 'never fires', lambda: 9)
     quick.disarm()
     _Watchdog(0.3, 'demo: the middleware did not shut down within 0.3 s', lambda: 7)

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import sys
 
-from sep_plant.ros.base import NodeProcess, node_main, write_json
+from sep_plant.ros.base import write_json
+from sep_plant.ros.process import NodeProcess, node_main
 from sep_estimator.ros.estimator_node import PARAMETERS as EST_PARAMETERS
 from sep_estimator.ros.estimator_node import EstimatorNode
 

@@ -30,7 +30,8 @@ import numpy as np
 
 from sep_plant import gate
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import NodeProcess, SampleWindow, StartError, declare, fmt_s, node_main, steady
+from sep_plant.ros.base import SampleWindow, StartError, declare, fmt_s, steady
+from sep_plant.ros.process import NodeProcess, node_main
 from sep_estimator.disturbance import summary as disturbance_summary
 from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
 

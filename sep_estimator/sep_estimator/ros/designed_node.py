@@ -16,6 +16,7 @@ import numpy as np
 
 from sep_plant.ros import contract as c
 from sep_plant.ros.base import NodeBase, StartError, declare, steady
+from sep_plant.ros.process import spin_once
 
 _DESIGN_CACHE: dict[str, object] = {}
 
@@ -134,7 +135,7 @@ class DesignedNode(NodeBase):
             return
         t_end = steady() + self.wait_for_scenario_s
         while not self.plant_scenario_checked and self.fatal is None and steady() < t_end:
-            executor.spin_once(timeout_sec=0.05)
+            spin_once(executor, 0.05)
         if self.fatal is not None:
             raise self.fatal
         if not self.plant_scenario_checked:

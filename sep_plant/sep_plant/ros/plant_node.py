@@ -40,8 +40,8 @@ import numpy as np
 from sep_plant.episode import MODES, CommandTimeout, EpisodeError, PlantEpisode
 from sep_plant.noise import DEFAULT_SEED
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import (EXIT_OK, NodeBase, NodeProcess, StartError, declare, fmt_s, node_main,
-                                percentiles, steady)
+from sep_plant.ros.base import EXIT_OK, NodeBase, StartError, declare, fmt_s, percentiles, steady
+from sep_plant.ros.process import NodeProcess, node_main, spin_once
 
 PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_plant)/share/sep_plant/config/plant.yaml):
   scenario_file (str, '')          scenario YAML; '' = the shipped reference scenario
@@ -233,7 +233,7 @@ class PlantNode(NodeBase):
             now = steady()
             if now >= t_end:
                 return done()
-            self.executor.spin_once(timeout_sec=t_end - now)
+            spin_once(self.executor, t_end - now)
         return True
 
     def _wait_for_peers(self) -> None:
