@@ -66,11 +66,15 @@ def test_oracle_lqg_shapes_and_field_map():
     orc = lqg.model
     N, nx, nu, ny = s.problem.n_steps, s.plant.n_x, s.plant.n_u, s.plant.n_y
     assert lqg.name == "oracle_lqg"
-    assert orc.A.shape == (N, nx, nx) and lqg.K.shape == (N, nu, nx) and lqg.kf.L.shape == (N + 1, nx, ny)
-    np.testing.assert_array_equal(orc.G.matrix(3), np.eye(nx))
-    np.testing.assert_allclose(lqg.field_std, np.sqrt(np.einsum("kii->ki", lqg.kf.P_post)), rtol=1e-12)
+    # the design's LQG on the full-order model: its disturbance states (the same directions) too
+    nz = nx + lqg.n_d
+    assert lqg.n_d == d.lqg.n_d and lqg.rom.A.shape == (N, nx, nx)
+    np.testing.assert_array_equal(lqg.disturbance.map, d.disturbance.map)
+    assert orc.A.shape == (N, nz, nz) and lqg.K.shape == (N, nu, nz) and lqg.kf.L.shape == (N + 1, nz, ny)
+    np.testing.assert_array_equal(orc.G.matrix(3), np.eye(nx, nz))
+    np.testing.assert_allclose(lqg.field_std, np.sqrt(np.einsum("kii->ki", lqg.kf.P_post[:, :nx, :nx])), rtol=1e-12)
     # identical input-output behaviour: ROM and full-order Markov parameters agree
-    rom = rom_lqg(d).model
+    rom, orc = rom_lqg(d).rom, lqg.rom
     for j, k in [(0, 1), (0, 10), (5, 30), (20, 40), (30, 80)]:
         Mr, Mo = rom.B[j], orc.B[j]
         for i in range(j + 1, k):

@@ -157,7 +157,38 @@ def padded_field_map(G: FieldMap, n_d: int) -> FieldMap:
         return PODFieldMap(G.Phi, g)
     if isinstance(G, DenseFieldMap):
         return DenseFieldMap(np.concatenate([G.G, np.zeros(G.G.shape[:2] + (n_d,))], axis=2))
-    raise TypeError(f"disturbance states need a POD or dense field map, got {type(G).__name__}")
+    return PaddedFieldMap(G, n_d)
+
+
+class PaddedFieldMap:
+    """G_z = [G_k, 0] of any field map (the oracle's identity map of the full-order state) without
+    storing the padded matrices: every operation reads the first n columns."""
+
+    def __init__(self, G: FieldMap, n_d: int):
+        self.base, self.n_d = G, int(n_d)
+        self.n_field, self.n = int(G.n_field), int(G.n) + self.n_d
+
+    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
+        return self.base.apply(k, a[..., :self.base.n])
+
+    def matrix(self, k: int) -> np.ndarray:
+        return np.concatenate([self.base.matrix(k), np.zeros((self.n_field, self.n_d))], axis=1)
+
+    def std(self, k: int, P: np.ndarray) -> np.ndarray:
+        return self.base.std(k, P[:self.base.n, :self.base.n])
+
+    def std_all(self, P: np.ndarray) -> np.ndarray:
+        n = self.base.n
+        return np.stack([self.base.std(k, P[k, :n, :n]) for k in range(P.shape[0])])
+
+    def gram(self, k: int) -> np.ndarray:
+        out = np.zeros((self.n, self.n))
+        out[:self.base.n, :self.base.n] = self.base.gram(k)
+        return out
+
+    def project(self, k: int, v: np.ndarray) -> np.ndarray:
+        p = self.base.project(k, v)
+        return np.concatenate([p, np.zeros(p.shape[:-1] + (self.n_d,))], axis=-1)
 
 
 def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:

@@ -87,10 +87,13 @@ def full_order_model(plant: Plant, X: np.ndarray, U: np.ndarray, dx: float = 1e-
 
 def oracle_lqg(design: Design, plant: Plant | None = None) -> LQG:
     """Full-order LQG around the design's nominal (rebuilds the plant from the design's
-    scenario when none is given)."""
+    scenario when none is given): the design's LQG, disturbance states included (the same input
+    directions or sensor biases, prior and walk: they live in input and output space, not in
+    the ROM's coordinates), on the full-order Jacobians instead of the ROM."""
     plant = plant if plant is not None else design.scenario.plant
     X = nominal_states(plant, design.nominal.u)
-    return design_lqg(full_order_model(plant, X, design.nominal.u), design.problem).lqg("oracle_lqg")
+    full = full_order_model(plant, X, design.nominal.u)
+    return design_lqg(full, design.problem, design.disturbance).lqg("oracle_lqg")
 
 
 class OracleUnavailable(ValueError):
