@@ -18,7 +18,7 @@ package installed). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/
 Columns, all ROM-LQG on the truth with the same Monte Carlo seeds (seed 1, runs 0..R-1):
 
 * the model's designs, one per disturbance setting this build has (design setting
-  ``disturbance``: none, input; a build without the setting has only ``none``);
+  ``disturbance``: the default input, output, none);
 * matched: a design made on the truth itself (`run_design` on the truth plant; on the
   PerturbedPlant for a perturbation), disturbance none: the best a design can do there;
 * oracle (slab, n_x <= 500): the full-order oracle on the truth (affine, along the design's nominal).
@@ -62,13 +62,8 @@ ORACLE_MAX_NX = 500
 
 
 def disturbance_settings() -> list[str]:
-    """The design setting `disturbance` values to compare: the default first (only 'none' in a
-    build without the setting)."""
-    fields_ = DesignSettings.__dataclass_fields__
-    if "disturbance" not in fields_:
-        return ["none"]
-    default = DesignSettings().disturbance
-    return list(dict.fromkeys([default, "input", "none"]))
+    """The design setting `disturbance` values to compare, the default first."""
+    return list(dict.fromkeys([DesignSettings().disturbance, "input", "output", "none"]))
 
 
 def settings_for(scen, disturbance: str) -> DesignSettings:
