@@ -341,7 +341,7 @@ def write_bag(path: Path, ep: SynthEpisode, storage="mcap", skip=(), extra_topic
 
 def fake_design(ep: SynthEpisode, n_r: int = 4):
     """A structurally valid `Design` for `ep`'s scenario (nominal = ep's nominal; zero ROM)."""
-    from sep_estimator.design_file import Design, Nominal
+    from sep_estimator.design import Design, Nominal
     from sep_estimator.ltv import LQG, DenseFieldMap, KalmanSchedule, LTVModel
 
     info, p = ep.info, ep.scenario.problem

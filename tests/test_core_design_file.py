@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from core_helpers import flat
-from sep_estimator.design_file import (ARRAYS, SINGLE, VERSION, Design, DesignFileError, Nominal, arrays_of,
-                                       check_matches, load_design, save_design)
+from sep_estimator.design import Design, Nominal
+from sep_estimator.design_file import (ARRAYS, SINGLE, VERSION, DesignFileError, arrays_of, check_matches,
+                                       load_design, save_design)
 from sep_estimator.ltv import LQG, DenseFieldMap, KalmanSchedule, LTVModel, PODFieldMap
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.problem import Objective
@@ -626,7 +627,7 @@ def test_saved_design_records_its_sources_and_their_digest(design_path):
 
 
 def test_source_differences_name_each_changed_input(design_path):
-    from sep_estimator.design_file import source_differences
+    from sep_estimator.design_source import source_differences
 
     d = load_design(design_path)
     same = {"n_r": N_R, "method": "gn"}
@@ -641,7 +642,7 @@ def test_source_differences_name_each_changed_input(design_path):
 
 
 def test_source_record_missing_or_edited(design_path, tmp_path):
-    from sep_estimator.design_file import source_differences
+    from sep_estimator.design_source import source_differences
 
     same = {"n_r": N_R, "method": "gn"}
     old = rewrite(design_path, tmp_path / "old.npz",
@@ -657,7 +658,7 @@ def test_plant_files_are_recorded_by_content(tmp_path):
     new content under the same name is a difference."""
     import hashlib
 
-    from sep_estimator.design_file import source_differences
+    from sep_estimator.design_source import source_differences
 
     table = tmp_path / "table.txt"
     table.write_text("0.1\n")

@@ -42,29 +42,28 @@ ensemble belief.
 
 Version 1 files (sep 0.1, the slab only) are read too: their scenario is the flat slab format
 and their field is the state (``T_nom``).
+
+The objects a file holds, `Design` and `Nominal`, are in `sep_estimator.design`.
 """
 from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
-from sep_plant.plants import PlantTypeError, resolve
 from sep_plant.problem import Objective, Problem
 from sep_plant.protocol import PlantInfo
-from sep_plant.scenario import Scenario, ScenarioError, same_value
+from sep_plant.scenario import Scenario, ScenarioError, json_default, same_value
 
-from sep_estimator.design_source import (JACOBIAN_USED, plant_file_digests, record_differences, source_digest,
-                                         source_record)
+from sep_estimator.design import Design, Nominal
+from sep_estimator.design_source import design_source, source_digest
 from sep_estimator.disturbance import KINDS as DISTURBANCE_KINDS
 from sep_estimator.disturbance import Disturbance, DisturbanceError, augment, noise_covariance
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
-from sep_plant.scenario import json_default
 
 FORMAT = "sep-design"
 #: 4: disturbance states, the belief statistics may be absent (meta["belief"]); 3 (sep 0.4): belief
@@ -95,59 +94,6 @@ ARRAYS = ("u_nom", "y_nom", "field_nom", "belief_mean", "belief_std", "target", 
 
 class DesignFileError(ValueError):
     """The design file is unreadable, corrupt, of another version, or for another plant."""
-
-
-@dataclass
-class Nominal:
-    """The optimized open-loop nominal and its belief (k = 0..N); the belief statistics are None
-    when absent (opaque-state plants: no EnKF runs on their states)."""
-
-    u: np.ndarray                     # (N, n_u)      ubar_k
-    y: np.ndarray                     # (N+1, n_y)    ybar_k, noise-free outputs
-    field: np.ndarray                 # (N+1, n_field) fbar_k
-    belief_mean: np.ndarray | None = None   # (N+1, n_field) EnKF belief mean along the nominal observations
-    belief_std: np.ndarray | None = None    # (N+1, n_field) its per-node std
-
-    @property
-    def belief_kind(self) -> str:
-        """meta["belief"] of a design file: "ensemble" when the statistics are there, else "absent"."""
-        return "absent" if self.belief_mean is None else "ensemble"
-
-
-@dataclass
-class Design:
-    """Everything the online nodes and the evaluation need."""
-
-    scenario: Scenario                 # plant spec + problem (plain data)
-    info: PlantInfo                    # dimensions, names, dt, field description
-    objective: Objective               # resolved target, weights, band window
-    field_xyz: np.ndarray              # (n_field, 3) node coordinates [m]
-    nominal: Nominal
-    lqg: LQG                           # the ROM LQG (model: the ROM with its disturbance states; rom: the ROM)
-    hankel_sv: np.ndarray              # (N+1, n_sv)
-    meta: dict[str, Any] = field(default_factory=dict)   # settings, validation, provenance
-
-    @property
-    def rom(self) -> LTVModel:
-        """The identified ROM (n_r states), without disturbance states."""
-        return self.lqg.rom
-
-    @property
-    def disturbance(self) -> Disturbance | None:
-        """The filter's disturbance states (None: none)."""
-        return self.lqg.disturbance
-
-    @property
-    def problem(self):
-        return self.scenario.problem
-
-    @property
-    def n_r(self) -> int:
-        return self.rom.n
-
-    @property
-    def n_steps(self) -> int:
-        return int(self.nominal.u.shape[0])
 
 
 def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
@@ -208,8 +154,31 @@ def disturbance_meta(dist: Disturbance | None) -> dict[str, Any]:
 
 
 def save_design(path: str | Path, d: Design) -> Path:
-    """Write `d` to `path` (.npz, compressed) with its source record (`design_source`); the file
-    appears atomically."""
+    """Write `d` to `path` (.npz, compressed) with its source record (`design_source`).
+
+    Parameters
+    ----------
+    path : str or Path
+        The design file to write; its folder is created. The file appears atomically (written
+        to ``<path>.tmp``, then renamed).
+    d : Design
+        The design; ``d.meta`` is stored with the format's own keys (format, version, belief,
+        scenario, plant_info, n_r, disturbance, source, source_digest) added.
+
+    Returns
+    -------
+    Path
+        `path`.
+
+    Raises
+    ------
+    ValueError
+        An array of `d` does not have the shape the format expects for its plant, ROM order and
+        disturbance states, its field map is neither POD nor dense, or only one of the belief
+        statistics is given.
+    OSError
+        The file cannot be written.
+    """
     path = Path(path)
     arrays = arrays_of(d)
     dist = d.disturbance
@@ -272,10 +241,52 @@ def _widen(path: Path, raw: dict[str, np.ndarray]) -> None:
 
 
 def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> Design:
-    """Read and check a design file; with `expect_scenario`, refuse one made for another plant."""
+    """Read and check a design file (docs/reference/design-file.md).
+
+    Parameters
+    ----------
+    path : str or Path
+        The design file (.npz), of any version in `READS`; read with ``allow_pickle=False``.
+    expect_scenario : Scenario, optional
+        The scenario of the plant the design will run on: refuse a design made for another
+        plant or problem (`check_matches`; only the `RUN_TIME_KEYS` may differ).
+
+    Returns
+    -------
+    Design
+        The design, arrays as float64 (compressed trajectories expanded), with its ``meta``.
+
+    Raises
+    ------
+    DesignFileError
+        The file is missing, not a design file, corrupt (zip CRC, member headers, pickles), of an
+        unreadable version, has a missing, misshapen or non-finite array, or (with
+        `expect_scenario`) was made for another plant or problem. The message says what to fix.
+    """
     path = Path(path)
     if not path.is_file():
         raise DesignFileError(f"design file not found: {path} (create one with `design --out {path}`)")
+    raw = _read_archive(path)
+    meta = _read_meta(path, raw)
+    version = meta["version"]
+    if version == 1:
+        scenario, info, raw = _upgrade_v1(path, meta, raw)
+    else:
+        try:
+            scenario = Scenario.from_dict(meta.pop("scenario"), f"{path} scenario", canonical=False)
+            info = PlantInfo.from_dict(meta.pop("plant_info"))
+        except (ScenarioError, KeyError, TypeError, ValueError) as exc:
+            raise DesignFileError(f"{path}: bad scenario or plant record: {exc}") from None
+    kind = _check_arrays(path, raw, meta, version, scenario, info)
+    design = _assemble(path, scenario, info, meta, raw, kind)
+    if expect_scenario is not None:
+        check_matches(design, expect_scenario, str(path))
+    return design
+
+
+def _read_archive(path: Path) -> dict[str, np.ndarray]:
+    """Every member of the archive (CRCs checked), compressed trajectories expanded, float32
+    members widened; `DesignFileError` for anything unreadable."""
     try:
         _check_members(path)
         with np.load(path, allow_pickle=False) as z:
@@ -290,6 +301,12 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     except Exception as exc:  # zlib, zipfile, numpy header parsing: all mean "corrupt"
         raise DesignFileError(f"{path}: corrupt or not a design file ({type(exc).__name__}: {exc}); "
                               "re-run `design` to regenerate it") from None
+    return raw
+
+
+def _read_meta(path: Path, raw: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The JSON of member ``meta`` (popped from `raw`), checked to be this format in a version
+    this sep reads."""
     try:
         meta = json.loads(raw.pop("meta").tobytes().decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -301,14 +318,13 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
         raise DesignFileError(f"{path}: design file version {version!r}; this sep reads versions "
                               f"{', '.join(map(str, READS))}. Re-run `design --scenario SCENARIO --out {path}` "
                               "with this version to regenerate it")
-    if version == 1:
-        scenario, info, raw = _upgrade_v1(path, meta, raw)
-    else:
-        try:
-            scenario = Scenario.from_dict(meta.pop("scenario"), f"{path} scenario", canonical=False)
-            info = PlantInfo.from_dict(meta.pop("plant_info"))
-        except (ScenarioError, KeyError, TypeError, ValueError) as exc:
-            raise DesignFileError(f"{path}: bad scenario or plant record: {exc}") from None
+    return meta
+
+
+def _check_arrays(path: Path, raw: dict[str, np.ndarray], meta: dict, version: int, scenario: Scenario,
+                  info: PlantInfo) -> str:
+    """Check every member's presence, shape, dtype and finiteness against the plant and the
+    ROM order; returns the disturbance kind (sets meta["disturbance"], meta["belief"])."""
     n_r = meta.get("n_r")
     hsv, u = raw.get("hankel_sv"), raw.get("u_nom")
     if not isinstance(n_r, int) or n_r < 1 or hsv is None or hsv.ndim != 2 or u is None or u.ndim != 2:
@@ -335,10 +351,7 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
                 raise DesignFileError(f"{path}: rom_dims must be integers in [0, {n_r}]")
         elif arr.dtype != np.float64 or not np.all(np.isfinite(arr)):
             raise DesignFileError(f"{path}: array {name} is not finite float64")
-    design = _assemble(path, scenario, info, meta, raw, kind)
-    if expect_scenario is not None:
-        check_matches(design, expect_scenario, str(path))
-    return design
+    return kind
 
 
 def _belief_kind(path: Path, meta: dict, raw: dict[str, np.ndarray]) -> str:
@@ -457,63 +470,3 @@ def problem_mismatches(designed: Problem, running: Problem) -> list[str]:
     a, b = designed.resolved().to_dict(), running.resolved().to_dict()
     return [f"problem.{k}: {a[k]!r} != {b[k]!r}" for k in a
             if k not in RUN_TIME_KEYS and k != "n_steps" and not same_value(a[k], b[k])]
-
-
-# ------------------------------------------------------------------ source record
-def design_source(d: Design) -> dict[str, Any]:
-    """The source record of a design (`sep_estimator.design_source`): its scenario's plant and
-    resolved problem, the digests of the plant's files, its settings (``meta["settings"]``) with
-    the Jacobian it used (``meta["optimizer"]["jacobian"]``), and this format's version."""
-    settings = dict(d.meta.get("settings", {}))
-    used = d.meta.get("optimizer", {}).get("jacobian")
-    if used is not None:
-        settings[JACOBIAN_USED] = used
-    files = _plant_files(d.scenario)
-    if files is None:       # the plant's code is not importable here: keep what was recorded
-        files = d.meta.get("source", {}).get("plant_files", {})
-    return source_record(d.scenario.plant_type, d.scenario.plant_config, files, d.problem.resolved().to_dict(),
-                         settings, VERSION)
-
-
-def source_differences(design: Design, scenario: Scenario, settings: Mapping[str, Any]) -> list[str]:
-    """What differs between the inputs a design file was made from and `scenario` + `settings`.
-
-    Parameters
-    ----------
-    design : Design
-        A loaded design (its ``meta["source"]`` and ``meta["source_digest"]``).
-    scenario : Scenario
-        The scenario to design for now (canonical: complete plant keys).
-    settings : mapping
-        The design settings as a design would record them: ``dataclasses.asdict(settings)``
-        with ``jacobian_used``, the Jacobian 'auto' resolves to for this plant
-        (`sep_control.cli.design.recorded_settings`).
-
-    Returns
-    -------
-    list of str
-        Empty when the digest of the expected record equals the file's; else one line per
-        difference, e.g. "problem.target: 150.0 != 151.0" (the file's value first).
-    """
-    recorded, digest = design.meta.get("source"), design.meta.get("source_digest")
-    if not isinstance(recorded, Mapping) or not isinstance(digest, str):
-        return ["the design file has no source record (written by a sep that did not record its inputs)"]
-    if source_digest(recorded) != digest:
-        return ["the design file's source record does not match its digest (its metadata was edited)"]
-    files = _plant_files(scenario)
-    expected = source_record(scenario.plant_type, scenario.plant_config, {} if files is None else files,
-                             scenario.problem.resolved().to_dict(), settings, VERSION)
-    if source_digest(expected) == digest:
-        return []
-    return record_differences(recorded, expected) or [f"source digest {digest[:12]} != {source_digest(expected)[:12]}"]
-
-
-def _plant_files(scenario: Scenario) -> dict[str, str] | None:
-    """Digests of the scenario's plant files ({} for plant classes without `source_files`, None
-    when the plant type cannot be resolved here); builds the plant only when it has files."""
-    try:
-        cls = resolve(scenario.plant_type)
-    except PlantTypeError:
-        return None
-    return plant_file_digests(scenario.plant) if hasattr(cls, "source_files") else {}
-

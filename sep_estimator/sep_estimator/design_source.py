@@ -15,7 +15,8 @@ that names a file whose SHA-256 the configuration carries (``K_sha256``, e.g. th
 ``path``) is recorded by that digest only, not by its path: the same FMU in another folder is
 the same input, as scenarios compare it (`sep_plant.scenario`). Two designs with
 the same digest were made from the same inputs; a tool that would reuse a design file (`sep
-demo`) compares digests, and `record_differences` names what differs when they do not match.
+demo`) compares digests (`source_differences`), and `record_differences` names what differs
+when they do not match. `design_source` is the record of a `Design`.
 
 Settings that change how the work is spread but not the numbers beyond round-off are left out
 (`RESULT_NEUTRAL_SETTINGS`): the memory budget only splits batches of independent runs. It can
@@ -31,8 +32,10 @@ import json
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
-from sep_plant.scenario import json_default
+from sep_plant.plants import PlantTypeError, resolve
+from sep_plant.scenario import Scenario, json_default
+
+from sep_estimator.design import Design
 
 #: design settings left out of the record: they change the batching, not the design
 RESULT_NEUTRAL_SETTINGS = ("memory_budget",)
@@ -124,4 +127,71 @@ def _show(v: Any) -> str:
 
 def _short(v: Any) -> str:
     return "missing" if v is _MISSING else (v[:12] if isinstance(v, str) and len(v) == 64 else str(v))
+
+
+# ------------------------------------------------------------------ the record of a design
+def design_source(d: Design) -> dict[str, Any]:
+    """The source record of a design: its scenario's plant and resolved problem, the digests of
+    the plant's files, its settings (``meta["settings"]``) with the Jacobian it used
+    (``meta["optimizer"]["jacobian"]``), and the version of the design-file format that
+    writes it (`sep_estimator.design_file.VERSION`)."""
+    settings = dict(d.meta.get("settings", {}))
+    used = d.meta.get("optimizer", {}).get("jacobian")
+    if used is not None:
+        settings[JACOBIAN_USED] = used
+    files = _plant_files(d.scenario)
+    if files is None:       # the plant's code is not importable here: keep what was recorded
+        files = d.meta.get("source", {}).get("plant_files", {})
+    return source_record(d.scenario.plant_type, d.scenario.plant_config, files, d.problem.resolved().to_dict(),
+                         settings, _format_version())
+
+
+def source_differences(design: Design, scenario: Scenario, settings: Mapping[str, Any]) -> list[str]:
+    """What differs between the inputs a design file was made from and `scenario` + `settings`.
+
+    Parameters
+    ----------
+    design : Design
+        A loaded design (its ``meta["source"]`` and ``meta["source_digest"]``).
+    scenario : Scenario
+        The scenario to design for now (canonical: complete plant keys).
+    settings : mapping
+        The design settings as a design would record them: ``dataclasses.asdict(settings)``
+        with ``jacobian_used``, the Jacobian 'auto' resolves to for this plant
+        (`sep_control.cli.design.recorded_settings`).
+
+    Returns
+    -------
+    list of str
+        Empty when the digest of the expected record equals the file's; else one line per
+        difference, e.g. "problem.target: 150.0 != 151.0" (the file's value first).
+    """
+    recorded, digest = design.meta.get("source"), design.meta.get("source_digest")
+    if not isinstance(recorded, Mapping) or not isinstance(digest, str):
+        return ["the design file has no source record (written by a sep that did not record its inputs)"]
+    if source_digest(recorded) != digest:
+        return ["the design file's source record does not match its digest (its metadata was edited)"]
+    files = _plant_files(scenario)
+    expected = source_record(scenario.plant_type, scenario.plant_config, {} if files is None else files,
+                             scenario.problem.resolved().to_dict(), settings, _format_version())
+    if source_digest(expected) == digest:
+        return []
+    return record_differences(recorded, expected) or [f"source digest {digest[:12]} != {source_digest(expected)[:12]}"]
+
+
+def _format_version() -> int:
+    """The version of the design-file format (`sep_estimator.design_file.VERSION`)."""
+    from sep_estimator.design_file import VERSION   # imported here: design_file imports this module
+
+    return VERSION
+
+
+def _plant_files(scenario: Scenario) -> dict[str, str] | None:
+    """Digests of the scenario's plant files ({} for plant classes without `source_files`, None
+    when the plant type cannot be resolved here); builds the plant only when it has files."""
+    try:
+        cls = resolve(scenario.plant_type)
+    except PlantTypeError:
+        return None
+    return plant_file_digests(scenario.plant) if hasattr(cls, "source_files") else {}
 

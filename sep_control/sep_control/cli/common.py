@@ -13,7 +13,8 @@ import contextlib
 import sys
 from typing import Any, Callable, NoReturn
 
-from sep_estimator.design_file import Design, DesignFileError, load_design
+from sep_estimator.design import Design
+from sep_estimator.design_file import DesignFileError, load_design
 from sep_plant.protocol import PlantError
 from sep_plant.scenario import Scenario, ScenarioError, load_scenario
 

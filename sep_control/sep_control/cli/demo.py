@@ -83,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
 def reusable_design(path: Path, scenario, settings):
     """The design in `path` when it was made from `scenario` and `settings` (the SHA-256 of its
     source record matches), else None; says which, and what differs, on stdout."""
-    from sep_estimator.design_file import DesignFileError, load_design, source_differences
+    from sep_estimator.design_file import DesignFileError, load_design
+    from sep_estimator.design_source import source_differences
 
     try:
         d = load_design(path)

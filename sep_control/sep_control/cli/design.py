@@ -8,8 +8,8 @@ import time
 from dataclasses import asdict
 from typing import Any
 
-from sep_estimator.design_file import design_source, save_design
-from sep_estimator.design_source import source_digest
+from sep_estimator.design_file import save_design
+from sep_estimator.design_source import design_source, source_digest
 from sep_estimator.disturbance import STD0_BANDS
 from sep_estimator.disturbance import summary as disturbance_summary
 
@@ -175,7 +175,7 @@ def settings_fit_or_exit(settings: DesignSettings, plant) -> None:
 
 def recorded_settings(settings: DesignSettings, plant, n_steps: int) -> dict[str, Any]:
     """The settings as a design made with them records them in its source record
-    (`sep_estimator.design_file.source_differences`): every setting and the Jacobian 'auto'
+    (`sep_estimator.design_source.source_differences`): every setting and the Jacobian 'auto'
     resolves to for this plant and horizon (belief off for a plant with opaque states,
     `DesignSettings.for_plant`)."""
     return {**asdict(settings.for_plant(plant)), "jacobian_used": settings.resolved_jacobian_for(plant, n_steps)}

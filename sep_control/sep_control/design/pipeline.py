@@ -26,7 +26,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sep_estimator.design_file import Design, Nominal, disturbance_meta
+from sep_estimator.design import Design, Nominal
+from sep_estimator.design_file import disturbance_meta
 from sep_estimator.ltv import LTVModel
 from sep_plant.conformance import check_plant
 from sep_plant.plants import type_name_of

@@ -21,7 +21,7 @@ from typing import Iterable
 
 import numpy as np
 
-from sep_estimator.design_file import Design
+from sep_estimator.design import Design
 from sep_estimator.ltv import LQG
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.device import base_plant

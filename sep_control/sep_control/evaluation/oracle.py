@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sep_estimator.design_file import Design
+from sep_estimator.design import Design
 from sep_estimator.ltv import LQG, DenseFieldMap, IdentityFieldMap, LTVModel
 from sep_plant.protocol import Plant, nominal_states, noise_channels
 
