@@ -192,10 +192,29 @@ class PaddedFieldMap:
 
 
 def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
-    """The model on z = [a; d] (module docstring): A_z = [[A, B E], [0, I]] (input) or
-    blockdiag(A, I) (output), B_z = [B; 0], C_z = [C, 0] (input) or [C, F] (output),
-    G_z = [G, 0], B_w,z = blockdiag(B_w, I) (the walk's own channels, `noise_covariance`),
-    P0 = blockdiag(0, diag(sigma_0^2)); the ROM itself when `dist` is None."""
+    """The model on z = [a; d] (module docstring).
+
+    A_z = [[A, B E], [0, I]] (input) or blockdiag(A, I) (output), B_z = [B; 0], C_z = [C, 0]
+    (input) or [C, F] (output), G_z = [G, 0], B_w,z = blockdiag(B_w, I) (the walk's own
+    channels, `noise_covariance`), P0 = blockdiag(0, diag(sigma_0^2)).
+
+    Parameters
+    ----------
+    rom : LTVModel
+        The ROM on a (n_r states).
+    dist : Disturbance or None
+        The disturbance states; its map has n_u rows (input kind) or n_y rows (output kind).
+
+    Returns
+    -------
+    LTVModel
+        The augmented model (n_r + n_d states, dims n_k + n_d); `rom` itself when `dist` is None.
+
+    Raises
+    ------
+    DisturbanceError
+        The disturbance map's rows do not match the ROM's inputs (input) or outputs (output).
+    """
     if dist is None:
         return rom
     N, n, n_u, n_d = rom.n_steps, rom.n, rom.n_u, dist.n_d
@@ -317,44 +336,66 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     Returns
     -------
     Disturbance or None
+        The disturbance states: map E (input) or F = I (output), prior std sigma_0, walk std,
+        and the record of how they were chosen; None for kind 'none'.
+
+    Raises
+    ------
+    DisturbanceError
+        An unknown kind, `dims` out of range, no detectable input direction, or a direction
+        with no closed-loop offset and no `std` given.
     """
     if kind not in KINDS:
         raise DisturbanceError(f"disturbance must be one of {', '.join(KINDS)}, got {kind!r}")
     if kind == "none":
         return None
+    E, S, S_cl, note = _directions(rom, kind, window, dims, K)
+    n_d = E.shape[1]
+    if std is None:
+        std0, rule = _prior_std(kind, band, bands, S, S_cl, K is not None)
+    else:
+        std0 = per_direction("disturbance_std", std, n_d)
+        rule = "disturbance_std (given)"
+    walk = per_direction("disturbance_walk_std", walk_std, n_d)
+    return Disturbance(kind, E, std0, walk, note, rule)
+
+
+def _directions(rom: LTVModel, kind: str, window: Sequence[int], dims: int | None, K: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+    """(E or F, the open-loop step gains S_i, the closed-loop ones S_cl,i, the record) of `kind`
+    (S_cl = S without K; both 1 for the output kind, F = I)."""
     if kind == "input":
         E, S, note = input_directions(rom, window, dims)
         S_cl = S
         if K is not None:
             S_cl = np.linalg.norm(step_gain(rom, window, K) @ E, axis=0)
             note["closed_loop_gains"] = [float(v) for v in S_cl]
+        return E, S, S_cl, note
+    n_d = rom.n_y if dims is None else int(dims)
+    if n_d != rom.n_y:
+        raise DisturbanceError(f"disturbance_dims must be n_y = {rom.n_y} for the output kind (one bias per "
+                               f"sensor, F = I), got {n_d}")
+    S = np.ones(rom.n_y)
+    note = {"rule": "F = I: one bias per sensor", "singular_values": [1.0] * rom.n_y, "detectable": True}
+    return np.eye(rom.n_y), S, S, note
+
+
+def _prior_std(kind: str, band: float, bands: float, S: np.ndarray, S_cl: np.ndarray, closed_loop: bool
+               ) -> tuple[np.ndarray, str]:
+    """sigma_0,i = c band / sqrt(S_i S_cl,i), c = `bands` (module docstring), and the rule's text."""
+    scale = np.sqrt(S * S_cl)
+    if not np.all(scale > 0):
+        raise DisturbanceError("a disturbance direction leaves no closed-loop offset (S_cl,i = 0); give "
+                               "disturbance_std")
+    std0 = bands * float(band) / scale
+    if kind == "output":
+        rule = f"sigma_0 = {bands:g} band (a sensor bias of {bands:g} bands)"
+    elif closed_loop:
+        rule = (f"sigma_0,i = {bands:g} band / sqrt(S_i S_cl,i) (a bias moving the outputs by {bands:g} bands "
+                "on the geometric mean of the open-loop and the plain-LQR closed-loop step gains)")
     else:
-        n_d = rom.n_y if dims is None else int(dims)
-        if n_d != rom.n_y:
-            raise DisturbanceError(f"disturbance_dims must be n_y = {rom.n_y} for the output kind (one bias per "
-                                   f"sensor, F = I), got {n_d}")
-        E, S = np.eye(rom.n_y), np.ones(rom.n_y)
-        S_cl = S
-        note = {"rule": "F = I: one bias per sensor", "singular_values": [1.0] * rom.n_y, "detectable": True}
-    n_d = E.shape[1]
-    if std is None:
-        scale = np.sqrt(S * S_cl)
-        if not np.all(scale > 0):
-            raise DisturbanceError("a disturbance direction leaves no closed-loop offset (S_cl,i = 0); give "
-                                   "disturbance_std")
-        std0 = bands * float(band) / scale
-        if kind == "output":
-            rule = f"sigma_0 = {bands:g} band (a sensor bias of {bands:g} bands)"
-        elif K is not None:
-            rule = (f"sigma_0,i = {bands:g} band / sqrt(S_i S_cl,i) (a bias moving the outputs by {bands:g} bands "
-                    "on the geometric mean of the open-loop and the plain-LQR closed-loop step gains)")
-        else:
-            rule = f"sigma_0,i = {bands:g} band / S_i (a bias moving the outputs by {bands:g} bands in open loop)"
-    else:
-        std0 = per_direction("disturbance_std", std, n_d)
-        rule = "disturbance_std (given)"
-    walk = per_direction("disturbance_walk_std", walk_std, n_d)
-    return Disturbance(kind, E, std0, walk, note, rule)
+        rule = f"sigma_0,i = {bands:g} band / S_i (a bias moving the outputs by {bands:g} bands in open loop)"
+    return std0, rule
 
 
 def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.ndarray:

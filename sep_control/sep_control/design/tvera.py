@@ -142,6 +142,7 @@ def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:
     return H.reshape(p * n_y, q_k * n_ch)
 
 
+# ~63 lines: 26 of them the public function's numpydoc docstring
 def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 1e-10,
            show_progress: bool = False, field_tol: float = FIELD_TOL) -> tuple[LTVModel, np.ndarray]:
     """Realize (A_k, B_k, C_k, G_k) for k = 0..N from Markov parameters (the module docstring).

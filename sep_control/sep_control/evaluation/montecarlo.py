@@ -54,7 +54,7 @@ class MonteCarloResult:
 __all__ = ["CONTROLLER_NAMES", "MonteCarloResult", "portable", "simulate"]
 
 
-# ~65 lines: 38 of them the public function's numpydoc docstring
+# ~72 lines: 42 of them the public function's numpydoc docstring
 def simulate(plant: Plant, design: Design, controller: str, seed: int, runs: int | Iterable[int],
              oracle: LQG | Oracle | None = None, keep_estimates: int | None = None,
              keep_trajectories: int | None = None, memory_budget: int | None = None,
