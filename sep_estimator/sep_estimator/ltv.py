@@ -197,15 +197,33 @@ def field_std(G: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 @dataclass
 class LTVModel:
-    """(A_k, B_k, C_k, G_k) for k = 0..N, zero-padded to n states (see the module docstring)."""
+    """(A_k, B_k, C_k, G_k) for k = 0..N, zero-padded to n states (see the module docstring).
 
-    A: np.ndarray            # (N, n, n)
-    B: np.ndarray            # (N, n, n_u)
-    C: np.ndarray            # (N+1, n_y, n)
-    G: FieldMap              # field output map
-    dims: np.ndarray         # (N+1,) int: true order n_k at step k
-    Bw: np.ndarray | None = None   # (N, n, n_w) noise input map; None: noise enters the inputs (B)
-    P0: np.ndarray | None = None   # (n, n) covariance of the initial state; None: zero (known exactly)
+    Attributes
+    ----------
+    A : ndarray, shape (N, n, n)
+        State transitions A_k, k < N.
+    B : ndarray, shape (N, n, n_u)
+        Input maps B_k, k < N.
+    C : ndarray, shape (N+1, n_y, n)
+        Output maps C_k, k <= N.
+    G : FieldMap
+        The field output map G_k (an operator: dense, POD, identity, padded).
+    dims : ndarray, shape (N+1,), int
+        The true order n_k at step k (the states beyond it are zero padding).
+    Bw : ndarray, shape (N, n, n_w), or None
+        The noise input map B_w,k; None: the noise enters through the inputs (B).
+    P0 : ndarray, shape (n, n), or None
+        The covariance of the initial state a_0; None: zero (known exactly).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    G: FieldMap
+    dims: np.ndarray
+    Bw: np.ndarray | None = None
+    P0: np.ndarray | None = None
 
     def initial_covariance(self) -> np.ndarray:
         """P_0 (n, n): the prior covariance of a_0 (zeros when `P0` is None)."""
@@ -282,11 +300,21 @@ def sensed_nodes(model: LTVModel, k: int | None = None, rtol: float = 1e-3,
 
 @dataclass
 class KalmanSchedule:
-    """Time-varying Kalman gains and covariances along the horizon (k = 0..N)."""
+    """Time-varying Kalman gains and covariances along the horizon (k = 0..N).
 
-    L: np.ndarray        # (N+1, n, n_y)
-    P_post: np.ndarray   # (N+1, n, n) after the update at k
-    P_prior: np.ndarray  # (N+1, n, n) before it
+    Attributes
+    ----------
+    L : ndarray, shape (N+1, n, n_y)
+        Kalman gains L_k.
+    P_post : ndarray, shape (N+1, n, n)
+        P_{k|k}, the covariance after the measurement update at k.
+    P_prior : ndarray, shape (N+1, n, n)
+        P_{k|k-1}, the covariance before it.
+    """
+
+    L: np.ndarray
+    P_post: np.ndarray
+    P_prior: np.ndarray
 
 
 @dataclass
@@ -298,17 +326,44 @@ class LQG:
     `model` is the filter's: the ROM itself (z = a), or the ROM augmented with disturbance
     states, z = [a; d] (`sep_estimator.disturbance.augment`; `disturbance` says how), on which
     K, the schedule and W are; `rom` is the ROM alone (n_r states: validation, the ROM sweep).
+
+    Attributes
+    ----------
+    name : str
+        'rom_lqg' or 'oracle_lqg'.
+    model : LTVModel
+        The filter's model (n_z = n_r + n_d states).
+    K : ndarray, shape (N, n_u, n_z)
+        LQR gains K_k.
+    kf : KalmanSchedule
+        Kalman gains and covariances on `model`.
+    W : ndarray, shape (n_w, n_w)
+        Process noise covariance (with the disturbance walk's channels).
+    V : ndarray, shape (n_y, n_y)
+        Sensor noise covariance.
+    field_std : ndarray, shape (N+1, n_field)
+        Reconstruction std sqrt(diag(G_k P_{k|k} G_k')) after the update; computed from the
+        schedule when not given.
+    disturbance : Disturbance or None
+        The disturbance states (None: z = a).
+    rom : LTVModel
+        The ROM on a; `model` itself when not given (an LQG with disturbance states needs it).
+
+    Raises
+    ------
+    ValueError
+        Disturbance states without `rom`.
     """
 
-    name: str                    # 'rom_lqg' or 'oracle_lqg'
-    model: LTVModel              # the filter's model (n_z = n_r + n_d states)
-    K: np.ndarray                # (N, n_u, n_z)
+    name: str
+    model: LTVModel
+    K: np.ndarray
     kf: KalmanSchedule
-    W: np.ndarray                # (n_w, n_w) process noise covariance (with the walk's channels)
-    V: np.ndarray                # (n_y, n_y) sensor noise covariance
-    field_std: np.ndarray | None = None   # (N+1, n_field) reconstruction std after the update
-    disturbance: "Disturbance | None" = None   # the disturbance states (None: z = a)
-    rom: LTVModel | None = None  # the ROM on a (None: `model` itself; set in __post_init__)
+    W: np.ndarray
+    V: np.ndarray
+    field_std: np.ndarray | None = None
+    disturbance: "Disturbance | None" = None
+    rom: LTVModel | None = None
 
     def __post_init__(self) -> None:
         if self.rom is None:

@@ -41,8 +41,24 @@ def time_update(P: np.ndarray, A: np.ndarray, Bw: np.ndarray, W: np.ndarray) -> 
 
 
 def kalman_gains(model: LTVModel, W: np.ndarray, V: np.ndarray, P0: np.ndarray | None = None) -> KalmanSchedule:
-    """Forward Riccati recursion for k = 0..N from P_{0|-1} = `P0` (default the model's prior,
-    `LTVModel.initial_covariance`)."""
+    """The Kalman gains of `model`: the forward Riccati recursion (module docstring) for k = 0..N.
+
+    Parameters
+    ----------
+    model : LTVModel
+        The filter's model (A_k, B_w,k, C_k).
+    W : ndarray, shape (n_w, n_w)
+        Process noise covariance.
+    V : ndarray, shape (n_y, n_y)
+        Sensor noise covariance.
+    P0 : ndarray, shape (n, n), optional
+        P_{0|-1}; default the model's prior (`LTVModel.initial_covariance`).
+
+    Returns
+    -------
+    KalmanSchedule
+        L_k, P_{k|k} and P_{k|k-1} for k = 0..N.
+    """
     A, Bw, C = model.A, model.noise_input, model.C
     N1, n_y, n = C.shape
     L = np.zeros((N1, n, n_y))
@@ -68,6 +84,27 @@ class KalmanFilter:
     Per step k: `update(k, dy)` (or `skip(k)` when the measurement is missing or rejected),
     then `predict(k, du_applied)`. `a` holds the current estimate (M, n) of the model's whole
     state (z = [a; d] with disturbance states).
+
+    Parameters
+    ----------
+    lqg : LQG
+        Its model, Kalman schedule, noise covariances and field std schedule.
+    batch : int, default 1
+        Number of runs M.
+
+    Attributes
+    ----------
+    a : ndarray, shape (M, n)
+        The current estimate of step `k`: zhat_{k|k-1}, or zhat_{k|k} after the update.
+    P : ndarray, shape (n, n)
+        Its covariance.
+    k : int
+        The step the estimate refers to.
+    posterior : bool
+        Whether `a` already includes the measurement of step k.
+    on_schedule : bool
+        Every update so far happened: the precomputed gains apply (else the filter propagates
+        its own covariance).
     """
 
     def __init__(self, lqg: LQG, batch: int = 1):

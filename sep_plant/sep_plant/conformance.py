@@ -46,7 +46,23 @@ def check_plant(plant: Any, u: np.ndarray | None = None, *, batch: int = 3, step
                 name: str | None = None) -> None:
     """Raise `PlantError` naming every way `plant` breaks the protocol (silent when it conforms).
 
-    `u` (n_u,) is the input to step with (the optimizer's start, typically); zeros if None.
+    Parameters
+    ----------
+    plant : object
+        The object to check against the plant protocol (`sep_plant.protocol`).
+    u : ndarray, shape (n_u,), optional
+        The input to step with (the optimizer's start, typically); zeros if None.
+    batch : int, default 3
+        Runs of the batched calls (a batch must equal its runs stepped one by one).
+    steps : int, default 3
+        Steps of the test trajectories.
+    name : str, optional
+        The plant's name in the message (default ``module:Class`` of the plant).
+
+    Raises
+    ------
+    PlantError
+        The plant does not conform; the message lists every problem (`conformance_problems`).
     """
     problems = conformance_problems(plant, u, batch=batch, steps=steps)
     if problems:

@@ -146,6 +146,19 @@ class PlantInfo:
 
     @classmethod
     def of(cls, plant: Plant) -> "PlantInfo":
+        """The description of a plant object.
+
+        Parameters
+        ----------
+        plant : Plant
+            Any object of the plant protocol; its optional attributes default as the module
+            docstring says.
+
+        Returns
+        -------
+        PlantInfo
+            Dimensions, names, dt and field description, as plain data.
+        """
         grid = getattr(plant, "grid_shape", None)
         return cls(dt=float(plant.dt), n_x=int(plant.n_x), n_u=int(plant.n_u), n_y=int(plant.n_y),
                    n_field=int(plant.n_field), input_names=tuple(str(n) for n in plant.input_names),
@@ -165,7 +178,22 @@ class PlantInfo:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "PlantInfo":
-        """Parse and check a plant description (ValueError naming what is wrong)."""
+        """Parse and check a plant description (the inverse of `to_dict`).
+
+        Parameters
+        ----------
+        d : mapping
+            A plant description as `to_dict` writes it (JSON data); unknown keys are ignored.
+
+        Returns
+        -------
+        PlantInfo
+
+        Raises
+        ------
+        ValueError
+            A key is missing or has a bad value (the message names it).
+        """
         if not isinstance(d, Mapping):
             raise ValueError(f"plant description must be a mapping, got {type(d).__name__}")
         known = {f for f in cls.__dataclass_fields__}
@@ -212,7 +240,24 @@ def noise_channels(plant: Plant) -> int:
 
 
 def rollout(plant: Plant, x0: np.ndarray, U: np.ndarray, W: np.ndarray | None = None) -> np.ndarray:
-    """States x_0..x_T of a batch: x0 (M, n_x), U (M, T, n_u) or (T, n_u) -> (M, T+1, n_x)."""
+    """States x_0..x_T of a batch stepped from x0 with inputs U (and process noise W).
+
+    Parameters
+    ----------
+    plant : Plant
+        The plant.
+    x0 : ndarray, shape (M, n_x) or (n_x,)
+        Initial states.
+    U : ndarray, shape (M, T, n_u) or (T, n_u)
+        Inputs u_0..u_{T-1} per run, or the same for every run.
+    W : ndarray, shape (M, T, n_w), optional
+        Process noise w_k per run; None: noise-free.
+
+    Returns
+    -------
+    ndarray, shape (M, T+1, n_x)
+        x_0..x_T of every run.
+    """
     X0 = np.atleast_2d(x0)
     M = X0.shape[0]
     U = np.asarray(U, dtype=float)
@@ -226,24 +271,76 @@ def rollout(plant: Plant, x0: np.ndarray, U: np.ndarray, W: np.ndarray | None = 
 
 
 def nominal_states(plant: Plant, U: np.ndarray) -> np.ndarray:
-    """The noise-free states xbar_0..xbar_N from the known initial state: (N+1, n_x)."""
+    """The noise-free nominal states from the plant's known initial state.
+
+    Parameters
+    ----------
+    plant : Plant
+        The plant.
+    U : ndarray, shape (N, n_u)
+        The nominal inputs ubar_0..ubar_{N-1}.
+
+    Returns
+    -------
+    ndarray, shape (N+1, n_x)
+        xbar_0..xbar_N.
+    """
     return rollout(plant, plant.initial_state(1), U)[0]
 
 
 def fields(plant: Plant, X: np.ndarray) -> np.ndarray:
-    """`plant.field` over any leading axes: X (..., n_x) -> (..., n_field)."""
+    """`plant.field` over any leading axes.
+
+    Parameters
+    ----------
+    plant : Plant
+        The plant.
+    X : ndarray, shape (..., n_x)
+        States.
+
+    Returns
+    -------
+    ndarray, shape (..., n_field)
+        The field of every state.
+    """
     lead = X.shape[:-1]
     return plant.field(X.reshape(-1, X.shape[-1])).reshape(lead + (-1,))
 
 
 def outputs(plant: Plant, X: np.ndarray) -> np.ndarray:
-    """`plant.observe` over any leading axes: X (..., n_x) -> (..., n_y)."""
+    """`plant.observe` over any leading axes.
+
+    Parameters
+    ----------
+    plant : Plant
+        The plant.
+    X : ndarray, shape (..., n_x)
+        States.
+
+    Returns
+    -------
+    ndarray, shape (..., n_y)
+        The noise-free outputs h(x) of every state.
+    """
     lead = X.shape[:-1]
     return plant.observe(X.reshape(-1, X.shape[-1])).reshape(lead + (-1,))
 
 
 def clip_inputs(u: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float) -> np.ndarray:
-    """Input limits [lo, hi] per channel (a no-op where both are infinite)."""
+    """Inputs clipped to the limits [lo, hi] per channel.
+
+    Parameters
+    ----------
+    u : ndarray, shape (..., n_u)
+        Inputs.
+    lo, hi : float or ndarray, shape (n_u,)
+        Lower and upper limits (-inf / inf: none).
+
+    Returns
+    -------
+    ndarray, shape (..., n_u)
+        The clipped inputs; `u` itself (not a copy) when every limit is infinite.
+    """
     if np.all(np.isinf(lo)) and np.all(np.isinf(hi)):
         return u
     return np.clip(u, lo, hi)
