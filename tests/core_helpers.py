@@ -14,10 +14,12 @@ against an independent reference:
 
 The slab helpers take a `SlabPlant` (its keys are attributes: n_x, length, k0, beta, ...).
 * `one_blas_thread`: a fixture limiting BLAS to one thread (import it into a test module).
+* `rewrite_design_file`: a copy of a design file with its meta or members changed (format tests).
 """
 from __future__ import annotations
 
 import functools
+import json
 import math
 
 import numpy as np
@@ -209,3 +211,21 @@ lqr_k_switch: 19
 w_std: 0.12
 v_std: 0.4
 """
+
+
+# --------------------------------------------------------------- design files
+def rewrite_design_file(src, dst, edit_meta=None, **arrays):
+    """Copy a design file with meta changed by `edit_meta(dict)` and members replaced/removed (None)."""
+    with np.load(src, allow_pickle=False) as z:
+        members = {k: z[k] for k in z.files}
+    m = json.loads(members["meta"].tobytes().decode())
+    if edit_meta is not None:
+        m = edit_meta(m)
+    members["meta"] = np.frombuffer(json.dumps(m).encode(), dtype=np.uint8)
+    for k, v in arrays.items():
+        if v is None:
+            members.pop(k)
+        else:
+            members[k] = v
+    np.savez(dst, **members)
+    return dst

@@ -7,7 +7,8 @@ plants (ME stepped by sep, CS stepped by the FMU) must equal it to round-off (th
 is the same formula evaluated by numpy instead of C).
 
 `build(path, **variant)` builds an FMU with examples/fmu_rod/build_fmu.py, `session_fmu` once per
-test session; `compiler()` says whether a C compiler is there (the tests skip without one).
+test session; `compiler()` says whether a C compiler is there, and `skip_without_toolchain()`
+skips the calling test module (or test) without fmpy or a C compiler.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "fmu_rod"
 
@@ -30,6 +32,15 @@ def build_module():
 
 def compiler() -> str | None:
     return build_module().compiler()
+
+
+def skip_without_toolchain() -> None:
+    """Skip (the calling module when called at import) without fmpy or a C compiler: the FMU
+    tests build their FMUs from C source and run them with fmpy."""
+    pytest.importorskip("fmpy", reason="the fmu plant needs fmpy (requirements.txt)")
+    if compiler() is None:
+        pytest.skip("no C compiler (cc, gcc or $CC): the FMU tests build their FMUs from C source",
+                    allow_module_level=True)
 
 
 def build(out: Path, **variant) -> Path:

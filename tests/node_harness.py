@@ -265,6 +265,22 @@ def joint_matrix(probe: Probe, topic: str, dt: float, steps: int, field: str):
     return np.array([r if r is not None else np.full(n, np.nan) for r in rows])
 
 
+def wait_for_episode(probe: Probe, plant: NodeProcess, controllers: list[NodeProcess], case: Case) -> None:
+    """Wait for a lockstep episode's end: the plant and the controllers exit 0, and every field,
+    field estimate, applied input and measurement of the episode (k = 0..N) reached the probe."""
+    from sep_plant.ros import contract as c
+
+    assert plant.wait(120) == 0, plant.output()
+    for p in controllers:
+        assert p.wait(30) == 0, p.output()
+    dt, N = case.dt, case.n_steps
+    probe.wait_for(lambda: len(probe.by_step(c.FIELD, dt)) == N + 1, 10, 'all field messages')
+    probe.wait_for(lambda: len(probe.by_step(c.FIELD_ESTIMATE, dt)) == N + 1, 10, 'all field estimates')
+    probe.wait_for(lambda: len(probe.by_step(c.APPLIED_INPUT, dt)) == N, 10,
+                   f'all applied_input (have {sorted(probe.by_step(c.APPLIED_INPUT, dt))})')
+    probe.wait_for(lambda: len(probe.by_step(c.MEASUREMENTS, dt)) == N + 1, 10, 'all measurements')
+
+
 # ------------------------------------------------------------------------------ fixtures
 import pytest  # noqa: E402
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core_helpers import flat
+from core_helpers import flat, rewrite_design_file
 from sep_estimator.design import Design, Nominal
 from sep_estimator.design_file import (ARRAYS, SINGLE, VERSION, DesignFileError, arrays_of, check_matches,
                                        load_design, save_design)
@@ -65,23 +65,6 @@ def assert_same(a: Design, b: Design):
         else:
             np.testing.assert_array_equal(x, y, err_msg=name)
     assert a.scenario == b.scenario and a.info == b.info
-
-
-def rewrite(src: Path, dst: Path, edit_meta=None, **arrays):
-    """Copy a design file with meta changed by `edit_meta(dict)` and members replaced/removed (None)."""
-    with np.load(src, allow_pickle=False) as z:
-        members = {k: z[k] for k in z.files}
-    m = json.loads(members["meta"].tobytes().decode())
-    if edit_meta is not None:
-        m = edit_meta(m)
-    members["meta"] = np.frombuffer(json.dumps(m).encode(), dtype=np.uint8)
-    for k, v in arrays.items():
-        if v is None:
-            members.pop(k)
-        else:
-            members[k] = v
-    np.savez(dst, **members)
-    return dst
 
 
 # ------------------------------------------------------------------ round trip
@@ -316,7 +299,7 @@ def test_pickled_object_arrays_refused_without_executing_code(design_path, tmp_p
     evil = np.empty(1, dtype=object)
     evil[0] = _Payload(marker)
     for member in ("A", "meta", "extra_member"):
-        p = rewrite(design_path, tmp_path / f"pickle_{member}.npz", **{member: evil})
+        p = rewrite_design_file(design_path, tmp_path / f"pickle_{member}.npz", **{member: evil})
         refused(p)
         assert not marker.exists(), "loading executed code from a pickle"
     # a bare pickle file too
@@ -329,18 +312,18 @@ def test_pickled_object_arrays_refused_without_executing_code(design_path, tmp_p
 
 
 def test_wrong_version_refused(design_path, tmp_path):
-    p = rewrite(design_path, tmp_path / "v.npz", edit_meta=lambda m: {**m, "version": VERSION + 1})
+    p = rewrite_design_file(design_path, tmp_path / "v.npz", edit_meta=lambda m: {**m, "version": VERSION + 1})
     assert "version" in refused(p)
-    p = rewrite(design_path, tmp_path / "v0.npz", edit_meta=lambda m: {k: v for k, v in m.items() if k != "version"})
+    p = rewrite_design_file(design_path, tmp_path / "v0.npz", edit_meta=lambda m: {k: v for k, v in m.items() if k != "version"})
     assert "version" in refused(p)
 
 
 def test_wrong_format_or_meta_refused(design_path, tmp_path):
-    refused(rewrite(design_path, tmp_path / "f.npz", edit_meta=lambda m: {**m, "format": "other"}))
-    refused(rewrite(design_path, tmp_path / "list.npz", edit_meta=lambda m: [1, 2]))
+    refused(rewrite_design_file(design_path, tmp_path / "f.npz", edit_meta=lambda m: {**m, "format": "other"}))
+    refused(rewrite_design_file(design_path, tmp_path / "list.npz", edit_meta=lambda m: [1, 2]))
     refused(_without_meta(design_path, tmp_path / "nometa.npz"), "meta")
     p = tmp_path / "badjson.npz"
-    rewrite(design_path, p)
+    rewrite_design_file(design_path, p)
     with np.load(p, allow_pickle=False) as z:
         members = {k: z[k] for k in z.files}
     members["meta"] = np.frombuffer(b"{not json", dtype=np.uint8)
@@ -375,7 +358,7 @@ def _without_meta(src, dst):
     lambda m: {**m, "n_r": N_R + 1},
 ])
 def test_bad_scenario_record_or_order_refused(design_path, tmp_path, change):
-    refused(rewrite(design_path, tmp_path / "m.npz", edit_meta=change))
+    refused(rewrite_design_file(design_path, tmp_path / "m.npz", edit_meta=change))
 
 
 @pytest.mark.parametrize("name", ["A", "K", "P_post", "field_nom", "hankel_sv", "u_nom", "target", "field_xyz"])
@@ -384,7 +367,7 @@ def test_non_finite_array_refused(design_path, tmp_path, name, bad):
     d = load_design(design_path)
     arr = arrays_of(d)[name].copy()
     arr.reshape(-1)[arr.size // 2] = bad
-    msg = refused(rewrite(design_path, tmp_path / "nan.npz", **{name: arr}))
+    msg = refused(rewrite_design_file(design_path, tmp_path / "nan.npz", **{name: arr}))
     assert name in msg
 
 
@@ -402,28 +385,28 @@ def test_non_finite_array_refused(design_path, tmp_path, name, bad):
 ])
 def test_wrong_shape_refused(design_path, tmp_path, name, shape):
     arr = np.ones(shape, dtype=np.int64 if name == "rom_dims" else np.float64)
-    msg = refused(rewrite(design_path, tmp_path / "shape.npz", **{name: arr}))
+    msg = refused(rewrite_design_file(design_path, tmp_path / "shape.npz", **{name: arr}))
     assert name in msg or "Hankel" in msg or "nominal" in msg
 
 
 @pytest.mark.parametrize("name", [n for n in ARRAYS])
 def test_missing_member_refused(design_path, tmp_path, name):
-    refused(rewrite(design_path, tmp_path / "missing.npz", **{name: None}))
+    refused(rewrite_design_file(design_path, tmp_path / "missing.npz", **{name: None}))
 
 
 def test_wrong_dtypes_refused(design_path, tmp_path):
     d = arrays_of(load_design(design_path))
-    refused(rewrite(design_path, tmp_path / "a.npz", A=d["A"].astype(np.float32)), "A")
-    refused(rewrite(design_path, tmp_path / "b.npz", K=d["K"].astype(np.int64)), "K")
-    refused(rewrite(design_path, tmp_path / "c.npz", rom_dims=d["rom_dims"].astype(np.float64)), "rom_dims")
-    refused(rewrite(design_path, tmp_path / "d.npz", rom_dims=d["rom_dims"] + N_R), "rom_dims")
-    refused(rewrite(design_path, tmp_path / "e.npz", rom_dims=d["rom_dims"] - 10), "rom_dims")
-    refused(rewrite(design_path, tmp_path / "f.npz", u_nom=d["u_nom"].astype(complex)), "u_nom")
+    refused(rewrite_design_file(design_path, tmp_path / "a.npz", A=d["A"].astype(np.float32)), "A")
+    refused(rewrite_design_file(design_path, tmp_path / "b.npz", K=d["K"].astype(np.int64)), "K")
+    refused(rewrite_design_file(design_path, tmp_path / "c.npz", rom_dims=d["rom_dims"].astype(np.float64)), "rom_dims")
+    refused(rewrite_design_file(design_path, tmp_path / "d.npz", rom_dims=d["rom_dims"] + N_R), "rom_dims")
+    refused(rewrite_design_file(design_path, tmp_path / "e.npz", rom_dims=d["rom_dims"] - 10), "rom_dims")
+    refused(rewrite_design_file(design_path, tmp_path / "f.npz", u_nom=d["u_nom"].astype(complex)), "u_nom")
 
 
 def test_a_rewritten_but_intact_file_still_loads(design_path, tmp_path):
-    """(control for the tests above: `rewrite` itself does not corrupt anything)"""
-    p = rewrite(design_path, tmp_path / "same.npz")
+    """(control for the tests above: `rewrite_design_file` itself does not corrupt anything)"""
+    p = rewrite_design_file(design_path, tmp_path / "same.npz")
     assert_same(load_design(p), load_design(design_path))
 
 
@@ -501,7 +484,7 @@ def test_version_1_file_of_sep01_is_read(tmp_path):
 
 
 def test_newer_version_refused_with_how_to_regenerate(design_path, tmp_path):
-    msg = refused(rewrite(design_path, tmp_path / "v9.npz", edit_meta=lambda m: {**m, "version": 9}))
+    msg = refused(rewrite_design_file(design_path, tmp_path / "v9.npz", edit_meta=lambda m: {**m, "version": 9}))
     assert "version 9" in msg and "re-run `design" in msg.lower()
 
 
@@ -530,11 +513,11 @@ def test_large_trajectories_are_stored_compressed(tmp_path, monkeypatch):
     back = load_design(path)
     np.testing.assert_allclose(back.nominal.field, d.nominal.field, rtol=0, atol=1e-9)
     np.testing.assert_allclose(back.lqg.field_std, d.lqg.field_std, rtol=0, atol=1e-9)
-    refused(rewrite(path, tmp_path / "half.npz", field_nom__coef=None))
+    refused(rewrite_design_file(path, tmp_path / "half.npz", field_nom__coef=None))
     with np.load(path, allow_pickle=False) as z:
         bad = z["field_std__basis"].copy()
     bad[0, 0] = np.nan
-    refused(rewrite(path, tmp_path / "nan.npz", field_std__basis=bad), "field_std")
+    refused(rewrite_design_file(path, tmp_path / "nan.npz", field_std__basis=bad), "field_std")
 
 
 def test_belief_statistics_are_stored_in_float32_and_read_as_float64(tmp_path, monkeypatch):
@@ -556,7 +539,7 @@ def test_belief_statistics_are_stored_in_float32_and_read_as_float64(tmp_path, m
         x, y = getattr(d.nominal, name), getattr(back.nominal, name)
         assert y.dtype == np.float64
         np.testing.assert_allclose(y, x, rtol=1e-7, atol=1e-30)
-    old = rewrite(path, tmp_path / "old.npz", edit_meta=lambda m: {**m, "version": 2},
+    old = rewrite_design_file(path, tmp_path / "old.npz", edit_meta=lambda m: {**m, "version": 2},
                   belief_mean=d.nominal.belief_mean, belief_std=None,
                   belief_std__coef=d.nominal.belief_std[:, :1] * 0 + 1.0,
                   belief_std__basis=np.full((N_X, 1), 0.5))
@@ -565,8 +548,8 @@ def test_belief_statistics_are_stored_in_float32_and_read_as_float64(tmp_path, m
     np.testing.assert_array_equal(back.nominal.belief_std, np.full((N_STEPS + 1, N_X), 0.5))
     bad = d.nominal.belief_std.astype(np.float32)
     bad[1, 1] = np.inf
-    refused(rewrite(path, tmp_path / "inf.npz", belief_std=bad), "belief_std")
-    refused(rewrite(path, tmp_path / "f32.npz", target=d.objective.target.astype(np.float32)), "target")
+    refused(rewrite_design_file(path, tmp_path / "inf.npz", belief_std=bad), "belief_std")
+    refused(rewrite_design_file(path, tmp_path / "f32.npz", target=d.objective.target.astype(np.float32)), "target")
 
 
 def test_absent_belief_statistics_round_trip(tmp_path):
@@ -587,13 +570,13 @@ def test_absent_belief_statistics_round_trip(tmp_path):
     assert back.nominal.belief_mean is None and back.nominal.belief_std is None
     assert_same(d, back)
     # the file says "absent" but holds a belief member, or names another kind: refused
-    refused(rewrite(path, tmp_path / "both.npz", belief_mean=np.zeros((N_STEPS + 1, N_X), np.float32)),
+    refused(rewrite_design_file(path, tmp_path / "both.npz", belief_mean=np.zeros((N_STEPS + 1, N_X), np.float32)),
             "belief is 'absent' but the file holds")
-    refused(rewrite(path, tmp_path / "kind.npz", edit_meta=lambda m: {**m, "belief": "particles"}), "belief")
+    refused(rewrite_design_file(path, tmp_path / "kind.npz", edit_meta=lambda m: {**m, "belief": "particles"}), "belief")
     # an ensemble file without its belief members: missing arrays
     ens = save_design(tmp_path / "ens.npz", synthetic_design())
     assert load_design(ens).meta["belief"] == "ensemble"
-    refused(rewrite(ens, tmp_path / "nobelief.npz", belief_mean=None, belief_std=None), "missing arrays")
+    refused(rewrite_design_file(ens, tmp_path / "nobelief.npz", belief_mean=None, belief_std=None), "missing arrays")
     with pytest.raises(ValueError, match="both"):
         save_design(tmp_path / "half.npz", replace(d, nominal=Nominal(d.nominal.u, d.nominal.y, d.nominal.field,
                                                                       d.nominal.field)))
@@ -607,7 +590,7 @@ def test_version_3_file_holds_the_ensemble_belief_and_no_opaque_flag(design_path
         m["plant_info"] = {k: v for k, v in m["plant_info"].items() if k != "state_is_opaque"}
         return {**m, "version": 3}
 
-    back = load_design(rewrite(design_path, tmp_path / "v3.npz", edit_meta=v3))
+    back = load_design(rewrite_design_file(design_path, tmp_path / "v3.npz", edit_meta=v3))
     assert back.meta["belief"] == "ensemble" and back.nominal.belief_mean is not None
     assert back.info.state_is_opaque is False
 
@@ -645,10 +628,10 @@ def test_source_record_missing_or_edited(design_path, tmp_path):
     from sep_estimator.design_source import source_differences
 
     same = {"n_r": N_R, "method": "gn"}
-    old = rewrite(design_path, tmp_path / "old.npz",
+    old = rewrite_design_file(design_path, tmp_path / "old.npz",
                   edit_meta=lambda m: {k: v for k, v in m.items() if k not in ("source", "source_digest")})
     assert "no source record" in source_differences(load_design(old), SCENARIO, same)[0]
-    edited = rewrite(design_path, tmp_path / "edited.npz",
+    edited = rewrite_design_file(design_path, tmp_path / "edited.npz",
                      edit_meta=lambda m: {**m, "source": {**m["source"], "settings": {"n_r": 99}}})
     assert "does not match its digest" in source_differences(load_design(edited), SCENARIO, same)[0]
 

@@ -159,9 +159,7 @@ def fmu_rods(tmp_path_factory):
     import fmu_rod
     from sep_plant.scenario import load_scenario
 
-    pytest.importorskip("fmpy", reason="the fmu plant needs fmpy (requirements.txt)")
-    if fmu_rod.compiler() is None:
-        pytest.skip("no C compiler (cc, gcc or $CC): the FMU tests build their FMUs from C source")
+    fmu_rod.skip_without_toolchain()
     d = tmp_path_factory.mktemp("dask_fmu")
     (d / "rod.fmu").write_bytes(fmu_rod.session_fmu(tmp_path_factory).read_bytes())
     out = {}

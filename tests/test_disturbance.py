@@ -15,7 +15,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core_helpers import TINY_YAML, cached_design, coarse_scenario, ltv_system, one_blas_thread  # noqa: F401
+from core_helpers import (TINY_YAML, cached_design, coarse_scenario, ltv_system, one_blas_thread,  # noqa: F401
+                          rewrite_design_file)
 from sep_control.control.controllers import make_controller
 from sep_control.control.mpc import RomMPC
 from sep_control.design.gains import augmented_lqr, design_lqg, lqr_gains, output_weights, tv_lqr
@@ -352,24 +353,6 @@ def test_version_4_round_trip_with_disturbance_states(design, tmp_path):
     assert simulate(d.scenario.plant, back, "rom_lqg", 2, 5).summary["cost_mean"] == a
 
 
-def _rewrite(src, dst, edit_meta=None, **arrays):
-    import json
-
-    with np.load(src, allow_pickle=False) as z:
-        members = {k: z[k] for k in z.files}
-    m = json.loads(members["meta"].tobytes().decode())
-    if edit_meta is not None:
-        m = edit_meta(m)
-    members["meta"] = np.frombuffer(json.dumps(m).encode(), dtype=np.uint8)
-    for k, v in arrays.items():
-        if v is None:
-            members.pop(k)
-        else:
-            members[k] = v
-    np.savez(dst, **members)
-    return dst
-
-
 @pytest.mark.parametrize("edit,arrays,match", [
     (None, {"dist_map": None}, "missing arrays \\['dist_map'\\]"),
     (None, {"dist_std0": np.ones(4)}, "dist_std0 has shape"),
@@ -384,7 +367,7 @@ def _rewrite(src, dst, edit_meta=None, **arrays):
 def test_version_4_members_are_checked(design, tmp_path, edit, arrays, match):
     path = save_design(tmp_path / "d.npz", design)
     with pytest.raises(DesignFileError, match=match):
-        load_design(_rewrite(path, tmp_path / "bad.npz", edit, **arrays))
+        load_design(rewrite_design_file(path, tmp_path / "bad.npz", edit, **arrays))
 
 
 def test_older_versions_read_as_kind_none(design, tmp_path):
@@ -392,7 +375,7 @@ def test_older_versions_read_as_kind_none(design, tmp_path):
     saved again it is a version 4 file of kind none."""
     plain = with_disturbance(design, "none")
     path = save_design(tmp_path / "plain.npz", plain)
-    v3 = _rewrite(path, tmp_path / "v3.npz", lambda m: {k: v for k, v in m.items() if k != "disturbance"}
+    v3 = rewrite_design_file(path, tmp_path / "v3.npz", lambda m: {k: v for k, v in m.items() if k != "disturbance"}
                   | {"version": 3})
     d = load_design(v3)
     assert d.disturbance is None and d.lqg.n_d == 0 and d.lqg.model is d.rom

@@ -25,10 +25,7 @@ from node_harness import Case, launcher, make_case, probe  # noqa: F401
 from test_loop_equivalence import check_equivalence, run_episode
 
 pytestmark = pytest.mark.ros
-pytest.importorskip("fmpy", reason="the fmu plant needs fmpy (requirements.txt)")
-if fmu_rod.compiler() is None:
-    pytest.skip("no C compiler (cc, gcc or $CC): the FMU tests build their FMUs from C source",
-                allow_module_level=True)
+fmu_rod.skip_without_toolchain()
 
 #: the rod of examples/fmu_rod at dt = 0.5 s (8 RK4 substeps), 40 s, with the fast design
 #: settings in its `design:` section (the demo designs with them, and reuses a design made so)

@@ -27,10 +27,7 @@ from sep_plant.conformance import check_plant
 from sep_plant.plants import PlantConfigError, make_plant
 from sep_plant.scenario import ScenarioError, load_scenario
 
-pytest.importorskip("fmpy", reason="the fmu plant needs fmpy (requirements.txt)")
-if fmu_rod.compiler() is None:
-    pytest.skip("no C compiler (cc, gcc or $CC): the FMU tests build their FMUs from C source",
-                allow_module_level=True)
+fmu_rod.skip_without_toolchain()
 
 HEATERS = ["heater_1", "heater_2", "heater_3"]
 ME = {"inputs": HEATERS, "field": "T", "substeps": 4, "field_coordinates": "(i + 0.5) / n"}

@@ -26,10 +26,7 @@ from sep_control.cli.main import main as sep
 from sep_estimator.design_file import SINGLE, load_design
 from sep_plant.scenario import load_scenario
 
-pytest.importorskip("fmpy", reason="the fmu plant needs fmpy (requirements.txt)")
-if fmu_rod.compiler() is None:
-    pytest.skip("no C compiler (cc, gcc or $CC): the FMU tests build their FMUs from C source",
-                allow_module_level=True)
+fmu_rod.skip_without_toolchain()
 
 #: a short version of examples/fmu_rod/scenario.yaml: heat the rod to 120 F +- 2 F over
 #: t = 35..40 s, in steps of 0.5 s (8 RK4 substeps of the example's 0.0625 s)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from node_harness import (SMALL, _cached_case, field_matrix, joint_matrix, launcher, probe, reference_case,  # noqa: F401
-                          small_case)
+                          small_case, wait_for_episode)
 from sep_control.evaluation.montecarlo import simulate
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.ros import contract as c
@@ -45,15 +45,7 @@ def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run:
         'real_time_factor': rtf, 'wait_for_subscribers': subscribers,
         'wait_for_field_subscribers': field_subscribers, 'summary_file': tmp_path / 'plant.json',
         'command_timeout_s': 20.0})
-    assert plant.wait(120) == 0, plant.output()
-    for p in controllers:
-        assert p.wait(30) == 0, p.output()
-    dt, N = case.dt, case.n_steps
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD, dt)) == N + 1, 10, 'all field messages')
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD_ESTIMATE, dt)) == N + 1, 10, 'all field estimates')
-    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) == N, 10,
-                f'all applied_input (have {sorted(pr.by_step(c.APPLIED_INPUT, dt))})')
-    pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, dt)) == N + 1, 10, 'all measurements')
+    wait_for_episode(pr, plant, controllers, case)
     summary = json.loads((tmp_path / 'plant.json').read_text())
     return pr, summary
 

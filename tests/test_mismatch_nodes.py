@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from node_harness import field_matrix, joint_matrix, launcher, probe, small_case, SMALL  # noqa: F401
+from node_harness import field_matrix, joint_matrix, launcher, probe, small_case, SMALL, wait_for_episode  # noqa: F401
 from sep_control.evaluation.montecarlo import simulate
 from sep_plant.ros import contract as c
 from sep_plant.scenario import scenario_payload
@@ -75,14 +75,7 @@ def run_rehearsal(launcher, probe, case, truth_file, tmp_path, *, three: bool, s
         'scenario_file': truth_file, 'seed': seed, 'run': run, 'input_gain': 0.8,
         'sensor_bias': '[' + ', '.join(str(b) for b in BIAS) + ']', 'wait_for_subscribers': subscribers,
         'wait_for_field_subscribers': 1, 'summary_file': tmp_path / 'plant.json', 'command_timeout_s': 20.0})
-    assert plant.wait(120) == 0, plant.output()
-    for p in controllers:
-        assert p.wait(30) == 0, p.output()
-    dt, N = case.dt, case.n_steps
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD, dt)) == N + 1, 10, 'all field messages')
-    pr.wait_for(lambda: len(pr.by_step(c.FIELD_ESTIMATE, dt)) == N + 1, 10, 'all field estimates')
-    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) == N, 10, 'all applied_input')
-    pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, dt)) == N + 1, 10, 'all measurements')
+    wait_for_episode(pr, plant, controllers, case)
     return pr, controllers, json.loads((tmp_path / 'plant.json').read_text())
 
 
