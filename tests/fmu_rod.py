@@ -139,3 +139,35 @@ class RodPlant:
         xyz = np.zeros((self.n_x, 3))
         xyz[:, 0] = self.x
         return xyz
+
+
+#: the short rod problem of the FMU product and node tests: heat the rod to 120 F +- 2 F over
+#: t = 35..40 s, in steps of 0.5 s (8 RK4 substeps of the example's 0.0625 s)
+ROD_PROBLEM = """\
+n_steps: 80
+target: 120.0
+band: 2.0
+band_window: [70, 80]
+r_u: 1.0e-3
+w_std: 0.05
+v_std: 0.1
+u_init: 0.3
+lqr_r: 1.0e-3
+"""
+
+
+def rod_plant_yaml(interface: str, outputs: str = "sensor_1, sensor_2, sensor_3") -> str:
+    """The `plant:` section of the example rod FMU (next to the scenario as rod.fmu) at dt = 0.5 s."""
+    return f"""\
+plant:
+  type: fmu
+  path: rod.fmu
+  interface: {interface}
+  inputs: [heater_1, heater_2, heater_3]
+  outputs: [{outputs}]
+  field: T
+  field_name: temperature
+  field_coordinates: "(i + 0.5) / n"
+  dt: 0.5
+  start_values: {{t_right: 120.0, n_substeps: 8}}
+"""

@@ -27,31 +27,13 @@ from test_loop_equivalence import check_equivalence, run_episode
 pytestmark = pytest.mark.ros
 fmu_rod.skip_without_toolchain()
 
-#: the rod of examples/fmu_rod at dt = 0.5 s (8 RK4 substeps), 40 s, with the fast design
-#: settings in its `design:` section (the demo designs with them, and reuses a design made so)
-ROD_YAML = """\
-plant:
-  type: fmu
-  path: rod.fmu
-  interface: {interface}
-  inputs: [heater_1, heater_2, heater_3]
-  outputs: [sensor_1, sensor_2]
-  field: T
-  field_name: temperature
-  field_coordinates: "(i + 0.5) / n"
-  dt: 0.5
-  start_values: {{t_right: 120.0, n_substeps: 8}}
-n_steps: 80
-target: 120.0
-band: 2.0
-band_window: [70, 80]
-r_u: 1.0e-3
-w_std: 0.05
-v_std: 0.1
-u_init: 0.3
-lqr_r: 1.0e-3
-design: {{p: 8, q: 8, n_r: 12, ensemble: 20, belief_iter: 1}}
-"""
+def rod_yaml(interface: str) -> str:
+    """The rod of examples/fmu_rod at dt = 0.5 s (8 RK4 substeps), 40 s, with the fast design
+    settings in its `design:` section (the demo designs with them, and reuses a design made so)."""
+    return (fmu_rod.rod_plant_yaml(interface, "sensor_1, sensor_2") + fmu_rod.ROD_PROBLEM
+            + "design: {p: 8, q: 8, n_r: 12, ensemble: 20, belief_iter: 1}\n")
+
+
 FAST = {"p": 8, "q": 8, "n_r": 12, "ensemble": 20, "belief_iter": 1}
 _CASES: dict[str, Case] = {}
 
@@ -63,7 +45,7 @@ def rod_case(tmp_path_factory, name: str) -> Case:
         root = tmp_path_factory.mktemp(f"fmu_{name}")
         shutil.copy(fmu_rod.session_fmu(tmp_path_factory), root / "rod.fmu")
         interface = "model_exchange\n  substeps: 8" if name == "me" else "co_simulation"
-        case = make_case(root, name, yaml_text=ROD_YAML.format(interface=interface), settings=FAST)
+        case = make_case(root, name, yaml_text=rod_yaml(interface), settings=FAST)
         _CASES[name] = Case(case.scenario, Path(os.path.relpath(case.scenario_file)), case.design, case.design_file)
     return _CASES[name]
 

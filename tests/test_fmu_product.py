@@ -28,32 +28,6 @@ from sep_plant.scenario import load_scenario
 
 fmu_rod.skip_without_toolchain()
 
-#: a short version of examples/fmu_rod/scenario.yaml: heat the rod to 120 F +- 2 F over
-#: t = 35..40 s, in steps of 0.5 s (8 RK4 substeps of the example's 0.0625 s)
-PROBLEM = """\
-n_steps: 80
-target: 120.0
-band: 2.0
-band_window: [70, 80]
-r_u: 1.0e-3
-w_std: 0.05
-v_std: 0.1
-u_init: 0.3
-lqr_r: 1.0e-3
-"""
-FMU_PLANT = """\
-plant:
-  type: fmu
-  path: rod.fmu
-  interface: {interface}
-  inputs: [heater_1, heater_2, heater_3]
-  outputs: [sensor_1, sensor_2, sensor_3]
-  field: T
-  field_name: temperature
-  field_coordinates: "(i + 0.5) / n"
-  dt: 0.5
-  start_values: {{t_right: 120.0, n_substeps: 8}}
-"""
 NATIVE_PLANT = "plant:\n  type: 'fmu_rod:RodPlant'\n  t_right: 120.0\n  dt: 0.5\n  substeps: 8\n"
 FAST = ["--p", "8", "--q", "8", "--n-r", "12", "--ensemble", "20", "--belief-iter", "1", "--quiet"]
 
@@ -61,9 +35,9 @@ FAST = ["--p", "8", "--q", "8", "--n-r", "12", "--ensemble", "20", "--belief-ite
 def rod_scenarios(folder, fmu) -> dict[str, object]:
     """me.yaml, cs.yaml (the FMU next to them) and native.yaml in `folder`."""
     shutil.copy(fmu, folder / "rod.fmu")
-    files = {"me": FMU_PLANT.format(interface="model_exchange") + "  substeps: 8\n" + PROBLEM,
-             "cs": FMU_PLANT.format(interface="co_simulation") + PROBLEM,
-             "native": NATIVE_PLANT + PROBLEM}
+    files = {"me": fmu_rod.rod_plant_yaml("model_exchange") + "  substeps: 8\n" + fmu_rod.ROD_PROBLEM,
+             "cs": fmu_rod.rod_plant_yaml("co_simulation") + fmu_rod.ROD_PROBLEM,
+             "native": NATIVE_PLANT + fmu_rod.ROD_PROBLEM}
     for name, text in files.items():
         (folder / f"{name}.yaml").write_text(text)
     return {name: folder / f"{name}.yaml" for name in files}

@@ -303,8 +303,7 @@ def fields(plant: Plant, X: np.ndarray) -> np.ndarray:
     ndarray, shape (..., n_field)
         The field of every state.
     """
-    lead = X.shape[:-1]
-    return plant.field(X.reshape(-1, X.shape[-1])).reshape(lead + (-1,))
+    return _over_leading_axes(plant.field, X)
 
 
 def outputs(plant: Plant, X: np.ndarray) -> np.ndarray:
@@ -322,8 +321,13 @@ def outputs(plant: Plant, X: np.ndarray) -> np.ndarray:
     ndarray, shape (..., n_y)
         The noise-free outputs h(x) of every state.
     """
+    return _over_leading_axes(plant.observe, X)
+
+
+def _over_leading_axes(fn, X: np.ndarray) -> np.ndarray:
+    """A batched plant method (M, n_x) -> (M, m) applied over any leading axes of X."""
     lead = X.shape[:-1]
-    return plant.observe(X.reshape(-1, X.shape[-1])).reshape(lead + (-1,))
+    return fn(X.reshape(-1, X.shape[-1])).reshape(lead + (-1,))
 
 
 def clip_inputs(u: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float) -> np.ndarray:
