@@ -105,6 +105,8 @@ def test_lockstep_against_a_truth_equals_offline(launcher, probe, small_case, tr
         assert s['model_mismatch'] == EXPECTED, s
     for p in controllers:
         assert 'model mismatch (allow_model_mismatch)' in p.output() and 'plant.t_right: 150.0 -> 147.0' in p.output()
+        # the closing summary line names the mismatch too
+        assert '; model mismatch: ' + '; '.join(EXPECTED) in p.output(), p.output()
     pr.wait_for(lambda: pr.diagnostics('lqr') and pr.diagnostics('estimator'), 5, 'controller diagnostics')
     for name in ('lqr', 'estimator'):
         assert json.loads(pr.diagnostics(name)[-1]['model_mismatch']) == EXPECTED

@@ -220,8 +220,7 @@ class LqrNode(DesignedNode):
                f"fallbacks" if s['controller'] == 'rom_mpc' else '')
         return (f"{s['commands']} commands ({s['controller']}), {s['fallbacks']} nominal fallbacks, "
                 f"{s['late_estimates']} late estimates, {s['rejected_messages']} rejected, compute p50 "
-                f"{fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}{mpc}"
-                + (f"; model mismatch: {'; '.join(s['model_mismatch'])}" if s.get('model_mismatch') else ''))
+                f"{fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}{mpc}" + self.mismatch_note(s))
 
     def publishers(self):
         return [self.pub_cmd, self.pub_diag]

@@ -124,6 +124,12 @@ class DesignedNode(NodeBase):
             self.log.info(f'plant scenario on {self.sub_scenario.topic_name} matches the design')
         self.plant_scenario_checked = True
 
+    @staticmethod
+    def mismatch_note(summary: dict) -> str:
+        """The end of a summary line: '; model mismatch: ...', or '' when the plant is the model."""
+        diffs = summary.get('model_mismatch')
+        return f"; model mismatch: {'; '.join(diffs)}" if diffs else ''
+
     def _log_mismatch(self, source: str) -> None:
         if self.model_mismatch:
             self.log.warning(f'model mismatch (allow_model_mismatch): {source} differs from the design\'s model: '

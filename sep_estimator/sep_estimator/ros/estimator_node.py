@@ -243,8 +243,7 @@ class EstimatorNode(DesignedNode):
         nis = 'n/a' if s['nis_mean'] is None else f"{s['nis_mean']:.2f} (expected {s['nis_expected']})"
         return (f"{s['updates']} updates, {s['skipped_updates']} skipped, {s['missing_measurements']} missing, "
                 f"{s['rejected_messages']} rejected, {s['restarts']} restarts, mean NIS {nis}, "
-                f"compute p50 {fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}"
-                + (f"; model mismatch: {'; '.join(s['model_mismatch'])}" if s.get('model_mismatch') else ''))
+                f"compute p50 {fmt_s(s['compute_p50_s'])} p99 {fmt_s(s['compute_p99_s'])}" + self.mismatch_note(s))
 
     def publishers(self):
         return [p for p in (self.pub_est, self.pub_field, self.pub_image, self.pub_diag) if p is not None]
