@@ -181,12 +181,8 @@ class DaskEngine(InProcess):
         """The plant's `PlantSpec`; the bytes of its files are scattered to every worker the first
         time this engine sees them (by SHA-256) and go with every later task by reference."""
         files = plant_files(plant, self._read)
-        for sha, data in files.values():
-            fut = self._files.get(sha)
-            if fut is None or fut.status != "finished":
-                self._files[sha] = self.client.scatter([data], broadcast=True, hash=False)[0]
-                self._file_bytes[sha] = data
-                self.files_scattered += 1
+        self._file_bytes.update(files.values())
+        self._scatter_files()
         return plant_spec(plant, files)
 
     def __init__(self, client, cluster=None):
@@ -240,7 +236,7 @@ class DaskEngine(InProcess):
                                         f"{attempts[i]} times (workers lost, or the cluster shut down)")
                     attempts[i] += 1
                     sfut = self._scatter(shared, sfut)
-                    self._rescatter_files()
+                    self._scatter_files()
                     futures[i] = submit(i, attempts[i])
                     index[futures[i].key] = i
                     pending.add(futures[i])
@@ -259,12 +255,12 @@ class DaskEngine(InProcess):
                 f.release()
         return results
 
-    def _rescatter_files(self) -> None:
-        """Scatter again the plant files whose every holder was lost (from their bytes here)."""
-        for sha, fut in list(self._files.items()):
-            if fut.status != "finished":
-                self._files[sha] = self.client.scatter([self._file_bytes[sha]], broadcast=True, hash=False)[0]
-                self.files_scattered += 1
+    def _scatter_files(self) -> None:
+        """Scatter the plant files that no worker holds (new ones, or those whose every holder was
+        lost), from their bytes here."""
+        new = self._scatter(self._file_bytes, self._files)
+        self.files_scattered += sum(new[sha] is not self._files.get(sha) for sha in new)
+        self._files = new
 
     def _scatter(self, shared: dict[str, Any], old: dict | None = None) -> dict:
         """Futures of the shared values on every worker; with `old`, only those no longer held

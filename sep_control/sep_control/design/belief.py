@@ -33,7 +33,7 @@ def belief_cost(belief: EnKFResult, U: np.ndarray, obj: Objective) -> float:
 
 
 def run_belief(plant: Plant, U: np.ndarray, problem: Problem, members: int, seed: int,
-               memory_budget: int | None = None) -> EnKFResult:
+               memory_budget: int | None = None, X: np.ndarray | None = None) -> EnKFResult:
     """EnKF belief of the field along the nominal observations of U (same random numbers for every U).
 
     The members' forecast steps go in batches that fit `memory_budget` (`sep_control.compute.budget`):
@@ -51,13 +51,15 @@ def run_belief(plant: Plant, U: np.ndarray, problem: Problem, members: int, seed
         Seed of the EnKF's random numbers (the design's `enkf_seed`).
     memory_budget : int, optional
         Bytes for one batch of member steps (None: the default budget).
+    X : ndarray, shape (N+1, n_x), optional
+        The nominal states of U when the caller has them (None: rolled out here).
 
     Returns
     -------
     EnKFResult
         Belief mean and std of the field, (N+1, n_field) each.
     """
-    ybar = plant.observe(nominal_states(plant, U))
+    ybar = plant.observe(nominal_states(plant, U) if X is None else X)
     n_w = noise_channels(plant)
     batch = runs_per_batch(int(plant.n_x), int(plant.n_field), memory_budget)
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sep_plant.device import base_plant
-from sep_plant.protocol import Plant, noise_channels, rollout
+from sep_plant.protocol import Plant, noise_channels, nominal_states
 
 from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
 from sep_control.compute.progress import progress
@@ -120,7 +120,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     N, n_u = U.shape
     U_ext = extend_nominal(U, lags)
     if Xbar_ext is None:
-        Xbar_ext = rollout(plant, plant.initial_state(1), U_ext)[0]
+        Xbar_ext = nominal_states(plant, U_ext)
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
     n_ch = n_u + n_w
     n_y, n_f = int(plant.n_y), int(plant.n_field)

@@ -202,11 +202,11 @@ class Optimizer:
     def _evaluate(self, U: np.ndarray) -> Point:
         """The objective at U (a rollout, and for the belief objective an EnKF run)."""
         X = nominal_states(self.plant, U)
-        F = fields(self.plant, X)
         if self.options.objective == "nominal":
+            F = fields(self.plant, X)
             return Point(U, float(self.obj.cost(F, U)), X, F)
         o = self.options
-        b = run_belief(self.plant, U, self.problem, o.members, o.enkf_seed, o.memory_budget)
+        b = run_belief(self.plant, U, self.problem, o.members, o.enkf_seed, o.memory_budget, X=X)
         return Point(U, belief_cost(b, U, self.obj), X, b.mean, b)
 
     @staticmethod
@@ -232,12 +232,13 @@ class Optimizer:
         "converged" when `predict_stop` and the model predicts a decrease below tol relative
         (that trial is not evaluated), else "rejected"."""
         o = self.options
-        frozen = active_bounds(at.U, lin.gradient(), self.lo, self.hi) if self.bounded else None
+        grad = lin.gradient()
+        frozen = active_bounds(at.U, grad, self.lo, self.hi) if self.bounded else None
         for _ in range(o.max_trials):
             if o.method == "gn":
                 dU = lin.step(lam, frozen)
             else:
-                dU = -alpha * lin.gradient()
+                dU = -alpha * grad
                 if frozen is not None:
                     dU[frozen] = 0.0
             U_try = np.clip(at.U + dU, self.lo, self.hi)

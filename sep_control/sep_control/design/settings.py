@@ -142,7 +142,7 @@ class DesignSettings:
             raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
         if not 0.0 < self.field_map_tol < 1.0:
             raise ValueError(f"field_map_tol must be in (0, 1), got {self.field_map_tol}")
-        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol", "relinearize_rtol", "field_map_tol"):
+        for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")

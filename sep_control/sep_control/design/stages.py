@@ -19,7 +19,7 @@ import numpy as np
 from sep_estimator.enkf import EnKFResult
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Problem
-from sep_plant.protocol import Plant, rollout
+from sep_plant.protocol import Plant, nominal_states
 
 from sep_control.design.belief import run_belief
 from sep_control.design.field_map import compressed_lqg
@@ -104,8 +104,7 @@ class DesignPass:
 
     nominal: NominalResult
     identification: IdentificationStage
-    gains: GainsResult            # on the identified model (full field map)
-    lqg: LQG                      # the design's LQG: those gains, the compressed field map
+    lqg: LQG                      # the design's LQG: its gains, the compressed field map
 
 
 def mean_only_jacobian(st: DesignSettings, kind: str, engine=None) -> Jacobian:
@@ -164,7 +163,7 @@ def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResul
     if not reused:
         ident = st.rom(ctx.engine).identify(plant, U, ctx.show_progress)
     elif not np.array_equal(ident.U, U):
-        ident = replace(ident, X_ext=rollout(plant, plant.initial_state(1), extend_nominal(U, st.p + st.q))[0],
+        ident = replace(ident, X_ext=nominal_states(plant, extend_nominal(U, st.p + st.q)),
                         U=U.copy())     # the same linear model; the nominal of the final input
     ctx.took("identify_s", t0)
     err = markov_relative_error(ident.model, ident.data.Y)
@@ -217,4 +216,4 @@ def design_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageCo
     nominal = nominal_stage(plant, problem, st, ctx, U0, bounds)
     identified = identification_stage(plant, st, nominal, ctx)
     gains = gains_stage(identified, problem, st, ctx)
-    return DesignPass(nominal, identified, gains, field_map_stage(gains, st, ctx))
+    return DesignPass(nominal, identified, field_map_stage(gains, st, ctx))

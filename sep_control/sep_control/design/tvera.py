@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sep_estimator.ltv import LTVModel, PODFieldMap
-from sep_plant.protocol import Plant, rollout
+from sep_plant.protocol import Plant, nominal_states
 
 from sep_control.compute.progress import progress
 from sep_control.design.basis import truncate
@@ -122,7 +122,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     """
     N = U.shape[0]
     lags = p + q
-    X_ext = rollout(plant, plant.initial_state(1), extend_nominal(U, lags))[0]
+    X_ext = nominal_states(plant, extend_nominal(U, lags))
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     ftol = FIELD_TOL if field_tol is None else field_tol
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
