@@ -163,7 +163,8 @@ def save_design(path: str | Path, d: Design) -> Path:
         to ``<path>.tmp``, then renamed).
     d : Design
         The design; ``d.meta`` is stored with the format's own keys (format, version, belief,
-        scenario, plant_info, n_r, disturbance, source, source_digest) added.
+        scenario, plant_info, n_r, disturbance, source, source_digest) added; ``source`` and
+        ``source_digest`` are also set in ``d.meta``, as a loaded design has them.
 
     Returns
     -------
@@ -189,9 +190,9 @@ def save_design(path: str | Path, d: Design) -> Path:
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
     source = design_source(d)
+    d.meta.update(source=source, source_digest=source_digest(source))
     meta = {**d.meta, "format": FORMAT, "version": VERSION, "belief": belief, "scenario": d.scenario.to_dict(),
-            "plant_info": d.info.to_dict(), "n_r": d.n_r, "disturbance": disturbance_meta(dist),
-            "source": source, "source_digest": source_digest(source)}
+            "plant_info": d.info.to_dict(), "n_r": d.n_r, "disturbance": disturbance_meta(dist)}
     arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
     for name in SINGLE:
         if name in arrays:

@@ -226,8 +226,7 @@ def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
     A = np.zeros((N, nz, nz))
     A[:, :n, :n] = rom.A
     A[:, n:, n:] = np.eye(n_d)
-    if dist.kind == "input":
-        A[:, :n, n:] = rom.B @ dist.map
+    A[:, :n, n:] = cross_input(rom, dist)
     B = np.concatenate([rom.B, np.zeros((N, n_d, n_u))], axis=1)
     C = np.concatenate([rom.C, np.zeros(rom.C.shape[:2] + (n_d,))], axis=2)
     if dist.kind == "output":

@@ -107,7 +107,7 @@ class DemoRun:
     def __init__(self, args: argparse.Namespace):
         self.args = args
         self.scenario = scenario_or_exit(args.scenario)
-        plant_or_exit(self.scenario, args.scenario or 'reference scenario')
+        self.plant = plant_or_exit(self.scenario, args.scenario or 'reference scenario')   # checked, on the CPU
         self.out = Path(args.out).resolve()
         self.out.mkdir(parents=True, exist_ok=True)
         self.exes = {name: executable(pkg, name) for pkg, name in
@@ -137,7 +137,8 @@ class DemoRun:
             d = reusable_design(path, scenario, settings)
             if d is not None:
                 return d, path
-        plant = plant_or_exit(scenario, args.scenario or 'reference scenario', device=args.device)
+        plant = (self.plant if args.device == 'cpu' else
+                 plant_or_exit(scenario, args.scenario or 'reference scenario', device=args.device))
         settings_fit_or_exit(settings, plant)
         log(f'designing for {args.scenario or "the reference scenario"} (plant {scenario.plant_type}, '
             f'n_x={plant.n_x}, N={scenario.problem.n_steps}) ...')

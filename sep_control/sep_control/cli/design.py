@@ -9,7 +9,6 @@ from dataclasses import asdict
 from typing import Any
 
 from sep_estimator.design_file import save_design
-from sep_estimator.design_source import design_source, source_digest
 from sep_estimator.disturbance import STD0_BANDS
 from sep_estimator.disturbance import summary as disturbance_summary
 
@@ -220,7 +219,7 @@ def design_summary(design) -> dict:
         "max_dev_in_band_window": m["validation"]["max_dev_in_band_window"],
         "markov_rel_error": m["validation"]["markov_rel_error"],
         "timings": m["timings"],
-        "source_digest": source_digest(design_source(design)),
+        "source_digest": m.get("source_digest"),     # set by save_design
     }
 
 

@@ -97,9 +97,9 @@ def run(args: argparse.Namespace) -> int:
         return run_sweep(args, design, budget)
     truth = truth_cli.truth_or_exit(args, design)
     plant = plant_or_exit(design.scenario, f"{args.design} (its scenario)", device=args.device) if truth is None \
-        else truth_cli.truth_plant_or_exit(truth, design, args.device)
+        else truth_cli.truth_plant_or_exit(truth, args.device)
     controllers = chosen_controllers(args, design)
-    oracle_fits = design.info.n_x <= args.oracle_max_nx and not design.info.state_is_opaque
+    oracle_fits = oracle_skip_reason(design, args.oracle_max_nx) is None
     N = design.n_steps
     total = len(controllers) * args.runs * N + \
         (sweep_run_steps(plant, design, args.sweep_orders, args.sweep_runs, oracle_fits) if args.sweep else 0)
@@ -172,6 +172,16 @@ def run_sweep(args: argparse.Namespace, design, budget) -> int:
     return 0
 
 
+def oracle_skip_reason(design, max_nx: int) -> str | None:
+    """Why the full-order oracle cannot be built for this design's plant (None: it can)."""
+    if design.info.state_is_opaque:
+        return ("the plant's states are opaque (state_is_opaque, e.g. a Co-Simulation FMU's serialized state): "
+                "the full-order oracle differentiates the step with respect to the state")
+    if design.info.n_x > max_nx:
+        return f"n_x = {design.info.n_x} > --oracle-max-nx = {max_nx}"
+    return None
+
+
 def chosen_controllers(args: argparse.Namespace, design) -> list[str]:
     """--controllers, or the defaults (rom_mpc only with input limits); oracle_lqg left out (with
     a line saying so) above --oracle-max-nx."""
@@ -179,12 +189,9 @@ def chosen_controllers(args: argparse.Namespace, design) -> list[str]:
     limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
     controllers = list(dict.fromkeys(args.controllers)) if args.controllers else \
         [c for c in CONTROLLERS if c != "rom_mpc" or limited]
-    if "oracle_lqg" in controllers and design.info.state_is_opaque:
-        print("oracle_lqg skipped: the plant's states are opaque (state_is_opaque, e.g. a Co-Simulation FMU's "
-              "serialized state): the full-order oracle differentiates the step with respect to the state")
-        controllers.remove("oracle_lqg")
-    elif "oracle_lqg" in controllers and design.info.n_x > args.oracle_max_nx:
-        print(f"oracle_lqg skipped: n_x = {design.info.n_x} > --oracle-max-nx = {args.oracle_max_nx}")
+    why = oracle_skip_reason(design, args.oracle_max_nx) if "oracle_lqg" in controllers else None
+    if why is not None:
+        print(f"oracle_lqg skipped: {why}")
         controllers.remove("oracle_lqg")
     if not controllers:
         fail("no controller left to evaluate (oracle_lqg skipped, see above); name others with --controllers")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from sep_control.cli.common import fail, groups, scenario_or_exit
+from sep_control.cli.common import groups, plant_or_exit, scenario_or_exit
 
 PLANTS_HELP = "list the plant types this installation knows (built-ins and `sep.plants` entry points)"
 PLANTS_DESCRIPTION = """\
@@ -44,17 +44,10 @@ def configure_check(parser: argparse.ArgumentParser) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from sep_plant.conformance import check_plant
-    from sep_plant.protocol import PlantError, PlantInfo
-    from sep_plant.scenario import ScenarioError
+    from sep_plant.protocol import PlantInfo
 
     scenario = scenario_or_exit(args.scenario)
-    where = args.scenario or "reference scenario"
-    try:
-        plant = scenario.plant
-        check_plant(plant, scenario.problem.channels("u_init", int(plant.n_u)), name=scenario.plant_type)
-    except (ScenarioError, PlantError) as exc:
-        fail(f"{where}: {exc}")
+    plant = plant_or_exit(scenario, args.scenario or "reference scenario")
     print(f"ok: {describe(scenario.plant_type, PlantInfo.of(plant))}")
     return 0
 

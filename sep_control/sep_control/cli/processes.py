@@ -13,9 +13,11 @@ from pathlib import Path
 def executable(pkg: str, exe: str) -> str | None:
     """ros2run's lookup: <prefix of pkg in the ament index>/lib/<pkg>/<exe>, or None."""
     try:
-        from ament_index_python import PackageNotFoundError, get_package_prefix
+        from ament_index_python import get_package_prefix
         prefix = get_package_prefix(pkg)
-    except (ImportError, LookupError, Exception):  # noqa: BLE001 - PackageNotFoundError et al.
+    # not installed; package not found (PackageNotFoundError is a LookupError); a bad name;
+    # AMENT_PREFIX_PATH unset (OSError)
+    except (ImportError, LookupError, ValueError, OSError):
         return None
     path = Path(prefix) / 'lib' / pkg / exe
     return str(path) if path.is_file() and os.access(path, os.X_OK) else None

@@ -64,15 +64,15 @@ def sweep_or_exit(args: argparse.Namespace, design) -> tuple[Sweep, list[Truth]]
         fail(str(exc))
 
 
-def truth_plant_or_exit(truth: Truth, design, device: str):
+def truth_plant_or_exit(truth: Truth, device: str):
     """The truth's plant, checked against the plant protocol and placed on `device` (exit 2)."""
     return plant_or_exit(truth.scenario, f"truth plant ({truth.describe()})", device=device, plant=truth.plant)
 
 
-def oracle_or_none(design, truth: Truth | None, plant, model=None):
+def oracle_or_none(design, truth: Truth | None, plant):
     """The oracle on the truth (`oracle_on`), or None with a line saying why it cannot be built."""
     try:
-        return oracle_on(design, truth, plant, model)
+        return oracle_on(design, truth, plant)
     except OracleUnavailable as exc:
         print(f"oracle_lqg skipped: {exc}")
         return None
@@ -88,11 +88,10 @@ def run_robustness(args: argparse.Namespace, design, controllers: list[str], swe
                    budget, engine, bar) -> dict[str, Any]:
     """Every controller on every truth of the sweep (same seeds); prints the table; returns the
     JSON object (`robustness_figure` draws it)."""
-    model = design.scenario.plant
     points = []
     for value, truth in zip(sweep.values, truths):
-        plant = truth_plant_or_exit(truth, design, args.device)
-        oracle = oracle_or_none(design, truth, plant, model) if "oracle_lqg" in controllers else None
+        plant = truth_plant_or_exit(truth, args.device)
+        oracle = oracle_or_none(design, truth, plant) if "oracle_lqg" in controllers else None
         t0 = time.perf_counter()
         rows = evaluate_truth(plant, design, controllers, args.seed, args.runs, oracle=oracle,
                               on_done=lambda name, row: bar.add(args.runs, design.n_steps),

@@ -62,7 +62,7 @@ def oracle_on(design: Any, truth: Truth | None, plant: Any, model: Any | None = 
     plant : Plant
         The plant object the Monte Carlo steps (the truth's, possibly on a device).
     model : Plant, optional
-        The design's plant (its nominal states); rebuilt from the design's scenario when None.
+        The design's plant (its nominal states); the design scenario's (cached) plant when None.
 
     Returns
     -------

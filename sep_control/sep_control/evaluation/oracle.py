@@ -25,7 +25,7 @@ from sep_estimator.design import Design
 from sep_estimator.ltv import LQG, DenseFieldMap, IdentityFieldMap, LTVModel
 from sep_plant.protocol import Plant, nominal_states, noise_channels
 
-from sep_control.design.gains import GainsResult, design_lqg, output_weights, tv_lqr
+from sep_control.design.gains import GainsResult, design_lqg, lqr_gains
 from sep_estimator.tvkf import kalman_gains
 
 
@@ -182,9 +182,7 @@ def truth_oracle(design: Design, truth: Plant, model: Plant | None = None) -> Or
     nom, problem = design.nominal, design.problem
     X = nominal_states(model, nom.u)
     lin = full_order_model(truth, X, nom.u)
-    Q = output_weights(lin.C, problem.lqr_output_weights(lin.n_y))
-    R = np.eye(lin.n_u) * problem.lqr_r
-    K, S = tv_lqr(lin.A, lin.B, Q, R)
+    K, S, _, R = lqr_gains(lin, problem)
     W, V = problem.noise_covariances(lin.noise_input.shape[2], lin.n_y)
     lqg = GainsResult(lin, K, kalman_gains(lin, W, V), W, V).lqg("oracle_lqg")
     r = np.asarray(truth.step(X[:-1], nom.u)) - X[1:]

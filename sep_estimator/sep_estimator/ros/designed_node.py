@@ -21,9 +21,9 @@ from sep_plant.ros.process import spin_once
 _DESIGN_CACHE: dict[str, object] = {}
 
 
-def load_design_checked(path: str, scenario_file: str = '', allow_model_mismatch: bool = False):
-    """Load a design file (cached per path within the process) and check it against the
-    scenario file if one is given (`check_scenario_file`); StartError with a clear message otherwise."""
+def load_design_checked(path: str):
+    """Load a design file (cached per path within the process); StartError with a clear message
+    when there is none or it is unreadable (the plant is checked by `check_scenario_file`)."""
     from sep_estimator.design_file import DesignFileError, load_design
 
     if not path:
@@ -34,7 +34,6 @@ def load_design_checked(path: str, scenario_file: str = '', allow_model_mismatch
     except DesignFileError as exc:
         raise StartError(f'design_file: {exc}') from None
     _DESIGN_CACHE[path] = design
-    check_scenario_file(design, path, scenario_file, allow_model_mismatch)
     return design
 
 
