@@ -393,6 +393,27 @@ def test_pickles_with_its_bytes_and_rebuilds_without_the_file(fmus, tmp_path, mo
         type(plant).from_bytes(fmus["rod40"].read_bytes(), **plant.config())
 
 
+def test_a_perturbed_fmu_rebuilds_from_its_shipped_bytes(fmus, tmp_path, monkeypatch):
+    """What a cluster worker without the FMU file does (`sep_control.compute.engine.worker_plant`)."""
+    from sep_control.compute import engine
+    from sep_plant.perturb import PerturbedPlant
+
+    monkeypatch.setenv("SEP_FMU_CACHE", str(tmp_path / "cache"))
+    path = tmp_path / "rod.fmu"
+    shutil.copy(fmus["rod"], path)
+    plant = PerturbedPlant.around(fmu(path, **ME), input_gain=0.8, sensor_bias=0.5)
+    files = engine.plant_files(plant)
+    spec = engine.plant_spec(plant, files)
+    path.unlink()                                             # a worker's disk: no such file
+    monkeypatch.setattr(engine, "_WORKER_FILES", {sha: data for sha, data in files.values()})
+    worker = engine.worker_plant(spec)
+    assert isinstance(worker, PerturbedPlant) and worker.perturbation() == plant.perturbation()
+    U, W = inputs(2, 3)
+    for got, want in zip(run(worker, worker.initial_state(2), U, W), run(plant, plant.initial_state(2), U, W)):
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(worker.observe(got), plant.observe(want))
+
+
 # ------------------------------------------------------------------ design
 @pytest.mark.slow
 def test_short_design_agrees_with_the_native_rod(fmus):

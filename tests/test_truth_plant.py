@@ -1,5 +1,7 @@
 """The truth plant of a model-mismatch evaluation: key overrides, another scenario, the generic
 perturbation wrapper, and the refusals (unknown key, other interface, bad perturbation)."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -7,7 +9,8 @@ from sep_plant.conformance import check_plant
 from sep_plant.perturb import PerturbationError, PerturbedPlant
 from sep_plant.plants import make_plant
 from sep_plant.scenario import Scenario, load_scenario
-from sep_plant.truth import TruthError, parse_assignments, truth_plant
+from sep_plant.protocol import PlantInfo
+from sep_plant.truth import TruthError, interface_differences, parse_assignments, truth_plant
 
 SMALL = {"n_x": 30}
 
@@ -76,6 +79,22 @@ def test_perturbation_wrapper_conforms_and_acts_on_the_boundary():
     assert p.perturbation() == {"input_gain": [0.8] * 5, "input_offset": [0.1, 0, 0, 0, 0],
                                 "sensor_bias": [1.0] * 5}
     assert p.n_u == 5 and p.dt == inner.dt and p.input_names == inner.input_names
+    assert p.inner is inner                                   # the object wrapped, not a rebuild of it
+
+
+def test_a_truth_builds_its_plant_once():
+    model = small_model()
+    assert model.canonical().plant is model.plant            # the canonical scenario keeps the plant built
+    t = truth_plant(model, perturbation={"input_gain": 0.8})
+    assert t.plant.inner is t.scenario.plant
+
+
+def test_interface_names_are_compared_where_their_counts_agree():
+    model = PlantInfo.of(make_plant("slab", SMALL))
+    truth = dataclasses.replace(model, n_u=3, input_names=("a", "b", "c"),
+                                output_names=tuple(f"s{i}" for i in range(model.n_y)))
+    problems = interface_differences(model, truth)
+    assert [p.split(" ")[0] for p in problems] == ["n_u", "output_names"], problems
 
 
 def test_perturbation_refusals():

@@ -178,7 +178,7 @@ class PlantEpisode:
             self.k = k
             self._measure(k, x, sink)
             if k == self.N:
-                sink.field(k, lambda x=x: self.plant.field(x)[0])
+                self._field(k, x, sink)
                 break
             u = clip_inputs(self._await_command(k, wait, sink), self.lo, self.hi)
             self.pending = None
@@ -186,18 +186,26 @@ class PlantEpisode:
             if self.U is not None:
                 self.U[k] = u
             sink.applied(k, u)
-            sink.field(k, lambda x=x: self.plant.field(x)[0])
+            self._field(k, x, sink)
             x = self.plant.step(x, u[None], self.w[k][None])
         self.k = self.N
 
     def _measure(self, k: int, x: np.ndarray, sink: EpisodeSink) -> None:
         y = self.plant.observe(x)[0] + self.v[k]
-        if self.Y is not None:
+        if self.Y is not None:      # kept here, so that an episode cut short at step k has F[k]
             self.Y[k] = y
             self.F[k] = self.plant.field(x)[0]
         sink.clock(k)
         self.t_pub[k] = self.clock()
         sink.measurement(k, y)
+
+    def _field(self, k: int, x: np.ndarray, sink: EpisodeSink) -> None:
+        """The field of step k for the sink, after the command: the kept one, else computed only
+        if the sink asks for it."""
+        if self.F is not None:
+            sink.field(k, lambda k=k: self.F[k])
+        else:
+            sink.field(k, lambda x=x: self.plant.field(x)[0])
 
     def _await_command(self, k: int, wait: Wait, sink: EpisodeSink) -> np.ndarray:
         """The command of step k (realtime: the held input after a deadline miss)."""

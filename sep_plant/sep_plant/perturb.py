@@ -20,7 +20,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sep_plant.plants import make_plant, type_name_of
+from sep_plant.plants import make_plant, resolve, type_name_of
 
 #: perturbation keys and the plant dimension each one's per-channel values follow
 PERTURBATIONS = {"input_gain": "n_u", "input_offset": "n_u", "sensor_bias": "n_y"}
@@ -63,15 +63,17 @@ class PerturbedPlant:
         rebuilds the wrapper, on a Dask worker too).
     input_gain, input_offset, sensor_bias : float or list of float
         g, b (n_u values) and s (n_y values); a number applies to every channel.
+    inner : plant, optional
+        The plant object `plant` describes, when the caller has it (not built again).
     """
 
     def __init__(self, plant: Mapping[str, Any], input_gain: Any = 1.0, input_offset: Any = 0.0,
-                 sensor_bias: Any = 0.0):
+                 sensor_bias: Any = 0.0, *, inner: Any = None):
         if not isinstance(plant, Mapping) or not isinstance(plant.get("type"), str):
             raise PerturbationError(f"plant must be a mapping with 'type' and the plant's keys, got {plant!r}")
         spec = dict(plant)
         self._type = spec.pop("type")
-        self.inner = make_plant(self._type, spec)
+        self.inner = make_plant(self._type, spec) if inner is None else inner
         p = check_perturbation({"input_gain": input_gain, "input_offset": input_offset,
                                 "sensor_bias": sensor_bias}, int(self.inner.n_u), int(self.inner.n_y))
         self.gain, self.offset, self.bias = p["input_gain"], p["input_offset"], p["sensor_bias"]
@@ -79,8 +81,19 @@ class PerturbedPlant:
 
     @classmethod
     def around(cls, plant: Any, **perturbation: Any) -> "PerturbedPlant":
-        """The wrapper of an existing plant object (rebuilt from its type and `config()`)."""
-        return cls({"type": type_name_of(plant), **plant.config()}, **perturbation)
+        """The wrapper of an existing plant object (the object itself, described by its type and
+        `config()`)."""
+        return cls({"type": type_name_of(plant), **plant.config()}, inner=plant, **perturbation)
+
+    @classmethod
+    def rebuild(cls, config: Mapping[str, Any], files: Mapping[str, bytes]) -> "PerturbedPlant":
+        """The wrapper of `config` (`config()`) whose wrapped plant reads files, from their bytes
+        (on a cluster worker: the wrapped class's own ``rebuild(config, files)``, e.g. an FMU's)."""
+        spec = dict(config["plant"])
+        kind = spec.pop("type")
+        rebuild = getattr(resolve(kind), "rebuild", None)
+        inner = rebuild(spec, files) if rebuild is not None else make_plant(kind, spec)
+        return cls(config["plant"], **{k: v for k, v in config.items() if k != "plant"}, inner=inner)
 
     def __getattr__(self, name: str) -> Any:
         # the description (dt, n_x, names, grid_shape, field_is_state, ...) is the wrapped plant's

@@ -24,7 +24,7 @@ import dataclasses
 import math
 import operator
 from dataclasses import dataclass, fields
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 

@@ -99,9 +99,12 @@ class Scenario:
         return PlantInfo.of(self.plant)
 
     def canonical(self) -> "Scenario":
-        """The same scenario with the plant's complete configuration (builds the plant)."""
-        return Scenario(self.plant_type, plain_config(self.plant.config()), self.problem.resolved(),
-                        dict(self.design))
+        """The same scenario with the plant's complete configuration (builds the plant, which the
+        new scenario keeps: its configuration is that plant's)."""
+        out = Scenario(self.plant_type, plain_config(self.plant.config()), self.problem.resolved(),
+                       dict(self.design))
+        out.__dict__["plant"] = self.plant       # the cached_property's slot
+        return out
 
     # ------------------------------------------------------------ variations
     def replace(self, **problem_changes: Any) -> "Scenario":

@@ -141,8 +141,8 @@ def interface_differences(model: PlantInfo, truth: PlantInfo) -> list[str]:
         a, b = getattr(model, attr), getattr(truth, attr)
         if a != b:
             problems.append(f"{attr} {b} (the design's plant has {a})")
-    for attr in ("input_names", "output_names"):
-        if getattr(model, attr) != getattr(truth, attr) and getattr(model, "n_u") == getattr(truth, "n_u"):
+    for attr, count in (("input_names", "n_u"), ("output_names", "n_y")):   # names, where the counts agree
+        if getattr(model, attr) != getattr(truth, attr) and getattr(model, count) == getattr(truth, count):
             problems.append(f"{attr} {list(getattr(truth, attr))} (the design's: {list(getattr(model, attr))})")
     return problems
 

@@ -18,7 +18,6 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from sep_plant.episode import EXIT_TIMEOUT, EpisodeError  # noqa: F401  (ROS-free: the plant's episode raises it)
 from sep_plant.ros import contract as c
 from sep_plant.scenario import json_default
 

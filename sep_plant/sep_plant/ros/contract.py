@@ -46,7 +46,7 @@ from std_msgs.msg import Header, String
 from sep_plant import topics as T
 from sep_plant.topics import (CLOCK, DIAGNOSTICS, FIELD, FIELD_ESTIMATE, FIELD_ESTIMATE_IMAGE, FIELD_IMAGE,  # noqa: F401
                      FRAME_ID, APPLIED_INPUT, COMMAND, MEASUREMENTS, NAMESPACE, SCENARIO, STATE_ESTIMATE,
-                     dt_ns, stamp_ns)
+                     dt_ns, stamp_ns, state_labels)
 
 _CLASSES = {T.JOINT_STATE: JointState, T.POINT_CLOUD2: PointCloud2, T.IMAGE: Image, T.STRING: String,
             T.CLOCK_TYPE: Clock, T.DIAGNOSTIC_ARRAY: DiagnosticArray}
@@ -71,11 +71,6 @@ DIAGNOSTICS_QOS = TOPIC_QOS[DIAGNOSTICS]
 CLOCK_QOS = TOPIC_QOS[CLOCK]
 #: for subscribers of the field clouds and images that only display them (loss is fine)
 VIEWER_QOS = qos_profile_sensor_data
-
-
-def state_labels(n_r: int, n_d: int = 0) -> list[str]:
-    """Names of the state estimate entries: a_0 .. a_{n_r-1}, d_0 .. d_{n_d-1} (`sep_plant.topics.state_labels`)."""
-    return T.state_labels(n_r, n_d)
 
 
 # --------------------------------------------------------------------------- stamps

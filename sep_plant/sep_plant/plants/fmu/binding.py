@@ -37,6 +37,7 @@ class Binding:
     """What both FMI versions share: the fmpy object, the component and fast raw functions."""
 
     version = 0
+    FREE_STATE = ""     # the name of fmi{2,3}FreeFMU{s,S}tate
 
     def __init__(self, fmu: Any, label: str, interface: str):
         self.fmu = fmu
@@ -56,11 +57,10 @@ class Binding:
 
     def close(self, states: Sequence[c_void_p] = ()) -> None:
         """Free the FMU states `states` (of get/deserialize FMU state), then the instance."""
-        free = "fmi2FreeFMUstate" if self.version == 2 else "fmi3FreeFMUState"
         for handle in states:
             if handle.value:
                 try:
-                    self.raw(free)(self.c, byref(handle))
+                    self.raw(self.FREE_STATE)(self.c, byref(handle))
                 except Exception:  # noqa: BLE001 - best effort at exit
                     pass
         try:
@@ -72,9 +72,26 @@ class Binding:
         except Exception:  # noqa: BLE001
             pass
 
+    def completed_step(self) -> None:
+        """fmi{2,3}CompletedIntegratorStep; FMICallError when the FMU asks for events or to stop."""
+        enter, term = self.fmu.completedIntegratorStep()
+        if enter or term:
+            raise FMICallError(f"FMU {self.label}: fmi{self.version}CompletedIntegratorStep asks for "
+                               f"{'event mode' if enter else 'termination'}: sep steps without events")
+
+    def continuous_states(self, n: int) -> np.ndarray:
+        """The FMU's continuous-state vector x (n,)."""
+        x = np.empty(n)
+        name = f"fmi{self.version}GetContinuousStates"
+        st = self.raw(name)(self.c, c_void_p(x.ctypes.data), c_size_t(n))
+        if st > WARNING:
+            raise self.fail(name, st)
+        return x
+
 
 class Fmi2(Binding):
     version = 2
+    FREE_STATE = "fmi2FreeFMUstate"
 
     def __init__(self, fmu: Any, label: str, interface: str):
         super().__init__(fmu, label, interface)
@@ -89,6 +106,7 @@ class Fmi2(Binding):
             self.get_state = self.raw("fmi2GetFMUstate")
             self.state_size = self.raw("fmi2SerializedFMUstateSize")
             self.serialize = self.raw("fmi2SerializeFMUstate")
+            self.free_state = self.raw(self.FREE_STATE)
             self.do_step = self.raw("fmi2DoStep")
         self._false = c_int(0)
 
@@ -100,25 +118,10 @@ class Fmi2(Binding):
         """Arguments of fmi2DoStep from time t (a c_double the caller may update) by h."""
         return (self.c, t, h, self._false)
 
-    def step_status(self) -> None:
-        return None
-
-    def completed_step(self) -> None:
-        enter, term = self.fmu.completedIntegratorStep()
-        if enter or term:
-            raise FMICallError(f"FMU {self.label}: fmi2CompletedIntegratorStep asks for "
-                               f"{'event mode' if enter else 'termination'}: sep steps without events")
-
-    def continuous_states(self, n: int) -> np.ndarray:
-        x = np.empty(n)
-        st = self.raw("fmi2GetContinuousStates")(self.c, c_void_p(x.ctypes.data), c_size_t(n))
-        if st > WARNING:
-            raise self.fail("fmi2GetContinuousStates", st)
-        return x
-
 
 class Fmi3(Binding):
     version = 3
+    FREE_STATE = "fmi3FreeFMUState"
 
     def __init__(self, fmu: Any, label: str, interface: str):
         super().__init__(fmu, label, interface)
@@ -133,6 +136,7 @@ class Fmi3(Binding):
             self.get_state = self.raw("fmi3GetFMUState")
             self.state_size = self.raw("fmi3SerializedFMUStateSize")
             self.serialize = self.raw("fmi3SerializeFMUState")
+            self.free_state = self.raw(self.FREE_STATE)
             self.do_step = self.raw("fmi3DoStep")
         self._event, self._term, self._early = c_bool(False), c_bool(False), c_bool(False)
         self._last = c_double(0.0)
@@ -155,19 +159,6 @@ class Fmi3(Binding):
         if self._early.value:
             return f"it returned early at t = {self._last.value:g}"
         return None
-
-    def completed_step(self) -> None:
-        enter, term = self.fmu.completedIntegratorStep()
-        if enter or term:
-            raise FMICallError(f"FMU {self.label}: fmi3CompletedIntegratorStep asks for "
-                               f"{'event mode' if enter else 'termination'}: sep steps without events")
-
-    def continuous_states(self, n: int) -> np.ndarray:
-        x = np.empty(n)
-        st = self.raw("fmi3GetContinuousStates")(self.c, c_void_p(x.ctypes.data), c_size_t(n))
-        if st > WARNING:
-            raise self.fail("fmi3GetContinuousStates", st)
-        return x
 
 
 # ------------------------------------------------------------------------------ set-up
@@ -203,7 +194,7 @@ def open_instance(unzipdir: Path, md: Any, interface: str, start_values: list[tu
     attrs = md.modelExchange if interface == "model_exchange" else md.coSimulation
     kw = dict(guid=md.guid, unzipDirectory=str(unzipdir), modelIdentifier=attrs.modelIdentifier,
               instanceName="sep")
-    step = "loading the shared library"
+    step, fmu = "loading the shared library", None
     try:
         if version == 2:
             from fmpy.fmi2 import FMU2Model, FMU2Slave
@@ -235,10 +226,25 @@ def open_instance(unzipdir: Path, md: Any, interface: str, start_values: list[tu
             _event_iteration(lambda: fmu.updateDiscreteStates()[0:2], label)
             fmu.enterContinuousTimeMode()
         return Fmi3(fmu, label, interface)
-    except FMICallError:
-        raise
     except Exception as exc:  # noqa: BLE001 - fmpy raises plain Exception / FMICallException
+        _release(fmu)
+        if isinstance(exc, FMICallError):
+            raise
         raise FMICallError(f"FMU {label}: {step} failed: {exc}") from None
+
+
+def _release(fmu: Any) -> None:
+    """After a failed set-up: free the instance (and the library), or the library alone when
+    there is no instance yet; best effort, the set-up's error is what the caller reports."""
+    if fmu is None:
+        return
+    try:
+        if getattr(fmu, "component", None):
+            fmu.freeInstance()
+        else:
+            fmu.freeLibrary()
+    except Exception:  # noqa: BLE001 - best effort
+        pass
 
 
 def _event_iteration(update, label: str, limit: int = 100) -> None:

@@ -73,6 +73,7 @@ class Workspace:
         self.outs = [b.values_args(st._read_refs, st._n_read_refs, st.n_read, p) for p in row_pointers(self.reads)]
         self.save = [(b.c, st._out_state, p, st._size) for p in row_pointers(self.new)]
         self.get_state = (b.c, h_out)
+        self.free_in = (b.c, h_in)
         self.size_of = (b.c, st._out_state, byref(st._size))
 
 
@@ -97,7 +98,9 @@ class CoSimStepper:
         self.n_read = int(n_read)
         self.dt = float(dt)
         self._h = c_double(self.dt)
-        self._in_state = c_void_p()           # FMU state objects, reused (the FMU overwrites them)
+        # FMU state objects: the one deserialized into is freed as soon as it is set (FMI does not
+        # promise that deserialize reuses it); the one got is reused (FMI promises that get does)
+        self._in_state = c_void_p()
         self._out_state = c_void_p()
         self._size = c_size_t(0)
         self.width = 0                         # payload values per row, fixed by `initial_row`
@@ -109,7 +112,7 @@ class CoSimStepper:
 
     @property
     def fmu_states(self) -> tuple[c_void_p, c_void_p]:
-        """The two FMU state objects this stepper reuses (to free with the instance)."""
+        """The two FMU state objects of this stepper (to free with the instance)."""
         return self._in_state, self._out_state
 
     def workspace(self, M: int) -> Workspace:
@@ -172,16 +175,17 @@ class CoSimStepper:
         ws.new[...] = 0
         ws.V[...] = V
         b = self.b
-        deser, set_state, set_v, do_step = b.deserialize, b.set_state, b.set_reals, b.do_step
+        deser, set_state, free, set_v, do_step = b.deserialize, b.set_state, b.free_state, b.set_reals, b.do_step
         get_r, get_state, size_of, ser = b.get_reals, b.get_state, b.state_size, b.serialize
         h_in, size, cap = self._in_state, self._size, ws.raw.shape[1]
-        status = b.step_status if b.version == 3 else None          # fmi3DoStep's four results
+        status = getattr(b, "step_status", None)          # fmi3DoStep's four results (FMI 3 only)
         n_bytes, crcs = [0] * M, [0] * M
         for m, (n, t) in enumerate(zip(sizes.tolist(), X[:, 2].tolist())):
             ws.sizes[m].value, ws.times[m].value = n, t
-            st = deser(*ws.load[m]) | set_state(b.c, h_in) | set_v(*ws.inputs[m]) | do_step(*ws.steps[m])
+            st = (deser(*ws.load[m]) | set_state(b.c, h_in) | free(*ws.free_in) | set_v(*ws.inputs[m])
+                  | do_step(*ws.steps[m]))
             if st > WARNING:
-                raise b.fail(f"stepping run {m} (deserialize / set FMU state / set inputs / do step)", st)
+                raise b.fail(f"stepping run {m} (deserialize / set / free FMU state / set inputs / do step)", st)
             why = status() if status is not None else None
             if why:
                 raise FMICallError(f"FMU {b.label}: do step of run {m}: {why}")

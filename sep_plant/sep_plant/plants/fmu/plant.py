@@ -213,7 +213,6 @@ class FMUPlant:
         """The protocol's description attributes."""
         self.input_names = tuple(self._in.names)
         self.output_names = tuple(self._out.names)
-        self.inputs, self.outputs = list(self._in.names), list(self._out.names)
         self.noise_inputs = None if self._noise is None else list(self._noise.names)
         self.n_u, self.n_y, self.n_field = len(self.input_names), len(self.output_names), self._field.n
         self.noise_on_inputs = self._noise is None
@@ -292,7 +291,7 @@ class FMUPlant:
     def config(self) -> dict[str, Any]:
         """The plant's keys, complete (path absolute, the FMU's SHA-256 in path_sha256)."""
         return {"path": self.path, "path_sha256": self.path_sha256, "interface": self.interface, "dt": self.dt,
-                "inputs": list(self.inputs), "outputs": list(self.outputs),
+                "inputs": list(self.input_names), "outputs": list(self.output_names),
                 "field": self.field_spec if not isinstance(self.field_spec, tuple) else list(self.field_spec),
                 "field_coordinates": self._field_coordinates_key,
                 "grid_shape": None if self._grid_key is None else list(self._grid_key),
