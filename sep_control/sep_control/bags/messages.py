@@ -139,32 +139,20 @@ def index_messages(raw: RawBag, namespace: str) -> tuple[Messages, list[str]]:
     return Messages(raw, Decoder(raw), index, stamps, origin=int(raw.log_times.min())), ignored
 
 
-def read_scenario(msgs: Messages, notes: list[str]) -> tuple[Scenario, PlantInfo] | None:
-    """The plant's scenario and description from the scenario topic (the last readable
-    message; sep 0.1's flat slab JSON too), or None."""
-    return _last_scenario_payload(msgs, parse_scenario_payload, (ScenarioError, ValueError), "message", notes)
-
-
-def read_perturbation(msgs: Messages, notes: list[str]) -> dict[str, list[float]]:
-    """The perturbation of the plant's actuators and sensors that its scenario message carries
-    (the last readable one; {} when none, as for every unperturbed plant)."""
-    found = _last_scenario_payload(msgs, payload_perturbation, (ScenarioError,), "perturbation", notes)
-    return {} if found is None else found
-
-
-def _last_scenario_payload(msgs: Messages, parse: Callable[[str], Any], errors: tuple[type[Exception], ...],
-                           what: str, notes: list[str]) -> Any:
-    """`parse` of the last scenario message it reads (None: none); a message it refuses with
-    one of `errors` is noted as '<topic> <what> unreadable (<reason>)'."""
+def read_scenario(msgs: Messages, notes: list[str]) -> tuple[Scenario, PlantInfo, dict[str, list[float]]] | None:
+    """(scenario, plant description, perturbation) of the plant from the last readable scenario
+    message (sep 0.1's flat slab JSON too; perturbation {} when the message carries none, as for
+    every unperturbed plant), or None. All three come from the same message; one that does not
+    parse is noted once as '<topic> message unreadable (<reason>)'."""
     found = None
     for i in msgs.of(T.SCENARIO).tolist():
         msg = msgs.decode(i, T.STRING)
         if msg is None:
             continue
         try:
-            found = parse(msg.data)
-        except errors as exc:
-            notes.append(f"{msgs.decode.topic(i)} {what} unreadable ({exc})")
+            found = (*parse_scenario_payload(msg.data), payload_perturbation(msg.data))
+        except (ScenarioError, ValueError) as exc:
+            notes.append(f"{msgs.decode.topic(i)} message unreadable ({exc})")
     return found
 
 
