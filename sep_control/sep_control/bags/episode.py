@@ -97,13 +97,6 @@ class Episode:
         """Steps k that have a message on topic `key`."""
         return np.flatnonzero(np.isfinite(self.step_recv_ns[key]))
 
-    @property
-    def last_step(self) -> int:
-        """Last step with a measurement or field (-1 when none)."""
-        ks = [self.steps_with(k) for k in (T.MEASUREMENTS, T.FIELD) if k in self.step_recv_ns]
-        ks = [k[-1] for k in ks if k.size]
-        return int(max(ks)) if ks else -1
-
 
 # ------------------------------------------------------------------------- the step grid
 def infer_timing(msgs: Messages, name: str) -> tuple[float, int]:
@@ -239,7 +232,7 @@ def read_images(msgs: Messages) -> dict[str, PerStep]:
     return {key: read_per_step(msgs, key, image_pixels) for key in IMAGE_TOPICS if key in msgs.index}
 
 
-# ~63 lines: 32 of them the public function's numpydoc docstring
+# ~64 lines: 32 of them the public function's numpydoc docstring
 def read_episode(path: str | Path, scenario: Scenario | None = None, info: PlantInfo | None = None, *,
                  namespace: str | None = None, allow_truncated: bool = False) -> Episode:
     """Read a bag of one episode into arrays indexed by step k.

@@ -95,8 +95,7 @@ class BagSink:
         self.qos_lookup = qos_lookup or (lambda topic: [])
         self.types: dict[str, str] = {}
         self.counts: dict[str, int] = {}
-        self.first_msg: float | None = None   # monotonic time of the first / last message
-        self.last_msg: float | None = None
+        self.last_msg: float | None = None    # monotonic time of the last message
         self.final_seen: float | None = None  # monotonic time the final step's measurement arrived
         self.n_steps: int | None = None
         self.last_meas_ns = -1                # latest measurement stamp seen
@@ -189,8 +188,6 @@ class BagSink:
         writer.write(conn, t_ns, data)
         now = time.monotonic()
         self.counts[topic] = self.counts.get(topic, 0) + 1
-        if self.first_msg is None:
-            self.first_msg = now
         self.last_msg = now
         self._observe(topic, data, now)
 
