@@ -119,15 +119,20 @@ def group_by_topic(raw: RawBag, namespace: str) -> tuple[dict[str, np.ndarray], 
     return index, sorted(ignored)
 
 
+def cdr_stamp_ns(data: bytes) -> int | None:
+    """Stamp [ns] of a serialized message that starts with a builtin_interfaces/Time (after the
+    4-byte CDR encapsulation: int32 sec, uint32 nanosec); None for one too short to hold it."""
+    if len(data) < 12:
+        return None
+    sec, nsec = _STAMP(data, 4)
+    return sec * 1_000_000_000 + nsec
+
+
 def header_stamps(raw: RawBag, idx: np.ndarray) -> np.ndarray:
-    """Stamps [ns] of messages that start with a builtin_interfaces/Time (after the 4-byte CDR
-    encapsulation: int32 sec, uint32 nanosec); 0 for a message too short to hold one."""
+    """Stamps [ns] (`cdr_stamp_ns`) of the messages `idx`; 0 for a message too short to hold one."""
     out = np.zeros(len(idx), dtype=np.int64)
     for j, i in enumerate(idx.tolist()):
-        d = raw.data[i]
-        if len(d) >= 12:
-            sec, nsec = _STAMP(d, 4)
-            out[j] = sec * 1_000_000_000 + nsec
+        out[j] = cdr_stamp_ns(raw.data[i]) or 0
     return out
 
 

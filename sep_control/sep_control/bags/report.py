@@ -151,8 +151,9 @@ def write_report(rep: EpisodeReport | AggregateReport, out_dir: str | Path, figu
     out_dir : str or Path
         Report directory (created if needed; existing files of the same names are replaced).
     figures : bool, default True
-        Draw field.png, estimation.png, inputs.png (and field_image.png when the bags have the
-        image topic); False: the Markdown alone.
+        Draw field.png, estimation.png, inputs.png (and disturbance.png when the estimates have
+        disturbance states, field_image.png when the bags have the image topic); False: the
+        Markdown alone.
 
     Returns
     -------

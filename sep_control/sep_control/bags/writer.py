@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from sep_control.bags.messages import cdr_stamp_ns
 from sep_plant import topics as T
 
 _STOP = object()
@@ -216,9 +217,8 @@ class BagSink:
         """Track N and dt (scenario topic) and the latest measurement stamp; set `final_seen`."""
         if topic == self.scenario_topic:
             self._note_scenario(data)
-        elif topic == self.final_topic and len(data) >= 12:
-            sec, nsec = struct.unpack_from("<iI", data, 4)
-            self.last_meas_ns = max(self.last_meas_ns, sec * 1_000_000_000 + nsec)
+        elif topic == self.final_topic and (stamp := cdr_stamp_ns(data)) is not None:
+            self.last_meas_ns = max(self.last_meas_ns, stamp)
         # the scenario may arrive after the final measurement (discovery order)
         if self.final_seen is None and self._final_step_recorded():
             self.final_seen = now
