@@ -161,6 +161,9 @@ def bench_recorder(work: Path, design: str | None, rtf: float, repeats: int, rt_
 
 
 def main() -> None:
+    from sep_control.cli.common import add_deprecated, set_prog
+
+    set_prog("bench_analyze")                   # the deprecation line names this script
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bags", type=int, default=50)
     ap.add_argument("--skip-analysis", action="store_true")
@@ -168,15 +171,12 @@ def main() -> None:
     ap.add_argument("--design", help="design file for the real-time part (reference scenario)")
     ap.add_argument("--real-time-factor", type=float, default=10.0,
                     help="plant real_time_factor (default 10: 25 ms steps)")
-    ap.add_argument("--rtf", type=float, default=None, help=argparse.SUPPRESS)     # old spelling
+    add_deprecated(ap, "--rtf", "--real-time-factor", "real_time_factor", type=float)
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--grid", default="40x30", help="grid of the synthetic 2-D plant bag (default 40x30)")
     ap.add_argument("--rt-scenario", default="n_x=100,n_steps=250",
                     help="scenario designed on the fly when --design is not given (default: the reference grid)")
     args = ap.parse_args()
-    if args.rtf is not None:
-        print("bench_analyze: --rtf is deprecated; use --real-time-factor", file=sys.stderr)
-        args.real_time_factor = args.rtf
     with tempfile.TemporaryDirectory(prefix="bench_analyze_") as tmp:
         work = Path(tmp)
         if not args.skip_analysis:

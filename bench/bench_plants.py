@@ -45,7 +45,6 @@ largest difference from the CPU step (relative to the field's change in the step
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import tempfile
 import time
@@ -86,31 +85,13 @@ DEVICE_CASES = [  # label, type, config, batch
 ]
 
 
-def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> float:
-    """Best-of-`repeats` time of one step of a batch, per node and run [ns]."""
-    rng = np.random.default_rng(0)
-    X = plant.initial_state(batch) + 0.1 * rng.standard_normal((batch, plant.n_x))
-    U = np.full((batch, plant.n_u), 0.1)
-    plant.step(X, U)                                                   # warm up
-    t0 = time.perf_counter()
-    plant.step(X, U)
-    once = time.perf_counter() - t0
-    reps = max(1, int(budget_s / max(once, 1e-6) / repeats))
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            plant.step(X, U)
-        best = min(best, (time.perf_counter() - t0) / reps)
-    return best / (batch * plant.n_x) * 1e9
-
-
 ROOT = Path(__file__).resolve().parent.parent
 FMU_BATCHES = (1, 64, 400)
 
 
 def best_seconds(fn, repeats: int, budget_s: float = 0.3) -> float:
-    """Best-of-`repeats` seconds of one call of fn()."""
+    """Best-of-`repeats` seconds of one call of fn() (after a warm-up call; each repeat calls it
+    as often as fits `budget_s` / `repeats`)."""
     fn()
     t0 = time.perf_counter()
     fn()
@@ -122,6 +103,14 @@ def best_seconds(fn, repeats: int, budget_s: float = 0.3) -> float:
             fn()
         best = min(best, (time.perf_counter() - t0) / reps)
     return best
+
+
+def ns_per_node_step(plant, batch: int, repeats: int, budget_s: float = 0.3) -> float:
+    """Best-of-`repeats` time of one step of a batch, per node and run [ns]."""
+    rng = np.random.default_rng(0)
+    X = plant.initial_state(batch) + 0.1 * rng.standard_normal((batch, plant.n_x))
+    U = np.full((batch, plant.n_u), 0.1)
+    return best_seconds(lambda: plant.step(X, U), repeats, budget_s) / (batch * plant.n_x) * 1e9
 
 
 def me_floor(plant, X: np.ndarray, U: np.ndarray):
@@ -209,21 +198,30 @@ def alternating(fns: list, repeats: int, rounds: int = 3) -> list[float]:
     return best
 
 
-def fmu_plants(tmp: Path):
-    """(label, plant, floor) of the native rod and the rod FMU (FMI 2.0 and 3.0, ME and CS),
-    built into `tmp`; None without a C compiler."""
-    spec = importlib.util.spec_from_file_location("sep_example_build_fmu", ROOT / "examples" / "fmu_rod" / "build_fmu.py")
-    build = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(build)
-    if build.compiler() is None:
-        return None
-    sys.path.insert(0, str(ROOT / "tests"))
-    from fmu_rod import RodPlant
+def rod_module():
+    """tests/fmu_rod.py: the native rod and the build of its FMUs (examples/fmu_rod/build_fmu.py)."""
+    if str(ROOT / "tests") not in sys.path:
+        sys.path.insert(0, str(ROOT / "tests"))
+    import fmu_rod
 
+    return fmu_rod
+
+
+def build_rods(tmp: Path) -> dict[int, Path] | None:
+    """The example rod FMU built into `tmp` for FMI 2.0 and 3.0, each compiled once for the
+    cost and the design tables; None without a C compiler."""
+    rod = rod_module()
+    if rod.compiler() is None:
+        return None
+    return {v: rod.build(tmp / f"rod{v}.fmu", fmi_version=v) for v in (2, 3)}
+
+
+def fmu_plants(rods: dict[int, Path]):
+    """(label, plant, floor) of the native rod and the rod FMUs `rods` (FMI 2.0 and 3.0, ME and CS)."""
     keys = {"inputs": ["heater_1", "heater_2", "heater_3"], "field": "T"}
-    plants = [("native rod (numpy RK4)", RodPlant(), None)]
-    for v in (2, 3):
-        path = str(build.build_fmu(tmp / f"rod{v}.fmu", fmi_version=v))
+    plants = [("native rod (numpy RK4)", rod_module().RodPlant(), None)]
+    for v, fmu in rods.items():
+        path = str(fmu)
         plants.append((f"FMI {v}.0 ME (sep RK4)", make_plant("fmu", {"path": path, **keys, "substeps": 4}), me_floor))
         plants.append((f"FMI {v}.0 CS (FMU RK4)", make_plant("fmu", {"path": path, **keys, "interface": "co_simulation"}),
                        cs_floor))
@@ -243,23 +241,31 @@ def fmu_row(label: str, p, floor, M: int, U: np.ndarray, repeats: int) -> tuple[
     return row, (label, t[0] / M, None if t[1] is None else t[1] / M, None if t[2] is None else t[2] / M)
 
 
-def fmu_table(repeats: int) -> None:
-    """Cost of the FMU plants next to the native rod and their floors (module docstring)."""
-    rows, where = [], []
+def fmu_tables(repeats: int, designs: bool) -> None:
+    """The FMU cost table, and with `designs` the design table, of the example rod built once."""
     with tempfile.TemporaryDirectory() as tmp:
-        plants = fmu_plants(Path(tmp))
-        if plants is None:
+        rods = build_rods(Path(tmp))
+        if rods is None:
             print("\nFMU plants: skipped (no C compiler to build examples/fmu_rod)")
             return
-        rng = np.random.default_rng(0)
-        for M in FMU_BATCHES:
-            U = 0.3 + 0.05 * rng.standard_normal((M, 3))
-            for label, p, floor in plants:
-                row, times = fmu_row(label, p, floor, M, U, repeats)
-                rows.append(row)
-                if M == 64 and floor is not None:
-                    where.append(times)
-            print(f"FMU table: M = {M} done", file=sys.stderr, flush=True)
+        fmu_table(repeats, rods)
+        if designs:
+            fmu_design_table(rods[2])
+
+
+def fmu_table(repeats: int, rods: dict[int, Path]) -> None:
+    """Cost of the FMU plants `rods` next to the native rod and their floors (module docstring)."""
+    rows, where = [], []
+    plants = fmu_plants(rods)
+    rng = np.random.default_rng(0)
+    for M in FMU_BATCHES:
+        U = 0.3 + 0.05 * rng.standard_normal((M, 3))
+        for label, p, floor in plants:
+            row, times = fmu_row(label, p, floor, M, U, repeats)
+            rows.append(row)
+            if M == 64 and floor is not None:
+                where.append(times)
+        print(f"FMU table: M = {M} done", file=sys.stderr, flush=True)
     print_table(f"FMU plants: the example rod (50 nodes, dt 0.25 s, RK4 4 substeps) [best of {repeats}; one core]; "
                 "floor = the same FMU calls alone in a tight loop",
                 ["plant", "n_x", "M", "us/run-step", "ns/node-step", "FMU calls alone (floor)", "sep / floor",
@@ -277,10 +283,10 @@ def fmu_table(repeats: int) -> None:
                   f"({over / 48 * 1e9:.0f} ns per call) + sep's RK4 arithmetic (numpy) {(sep - floor) * 1e6:.1f} us")
 
 
-def rod_scenarios(fmu: Path, build) -> dict:
+def rod_scenarios(fmu: Path) -> dict:
     """The example scenario (examples/fmu_rod/scenario.yaml) with the FMU `fmu` as Model
     Exchange and Co-Simulation plant, and with the native rod of the same outputs (sensor
-    positions: the FMU's defaults, `build`.PARAMETERS)."""
+    positions: the FMU's defaults, build_fmu.PARAMETERS)."""
     from sep_plant.scenario import Scenario, load_scenario
 
     text = (ROOT / "examples" / "fmu_rod" / "scenario.yaml").read_text()
@@ -290,56 +296,49 @@ def rod_scenarios(fmu: Path, build) -> dict:
     (folder / "cs.yaml").write_text("\n".join(line for line in cs.splitlines() if not line.lstrip().startswith("substeps:")))
     me = load_scenario(folder / "me.yaml")
     plant = me.plant
-    position = {name.replace("_position", ""): start for name, start, *_ in build.PARAMETERS}
+    position = {name.replace("_position", ""): start for name, start, *_ in rod_module().build_module().PARAMETERS}
     native = Scenario("fmu_rod:RodPlant", {"t_right": 120.0, "substeps": plant.substeps, "dt": plant.dt,
                                            "sensor_positions": [position[n] for n in plant.output_names]},
                       me.problem).canonical()
     return {"native rod (numpy RK4)": native, "FMI 2.0 ME (sep RK4)": me, "FMI 2.0 CS (FMU RK4)": load_scenario(folder / "cs.yaml")}
 
 
-def fmu_design_table() -> None:
-    """Whole designs of the example scenario: native rod, ME and CS FMU, and ME on --dask local:2."""
+def fmu_design_table(fmu: Path) -> None:
+    """Whole designs of the example scenario with the FMI 2.0 rod `fmu`: native rod, ME and CS
+    FMU, and ME on --dask local:2."""
     from sep_control.compute.engine import open_engine
     from sep_control.design.pipeline import DesignSettings, run_design
 
-    with tempfile.TemporaryDirectory() as tmp:
-        spec = importlib.util.spec_from_file_location("sep_example_build_fmu", ROOT / "examples" / "fmu_rod" / "build_fmu.py")
-        build = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(build)
-        if build.compiler() is None:
-            print("\nFMU designs: skipped (no C compiler to build examples/fmu_rod)")
-            return
-        sys.path.insert(0, str(ROOT / "tests"))
-        scenarios = rod_scenarios(build.build_fmu(Path(tmp) / "rod.fmu"), build)
-        quiet = {"show_progress": False, "log": lambda m: None}
-        rows, designs = [], {}
-        for label, sc in scenarios.items():
-            t0 = time.perf_counter()
-            d = designs[label] = run_design(sc.plant, sc.problem, DesignSettings.for_scenario(sc), **quiet)
-            wall = time.perf_counter() - t0
-            t, opt = d.meta["timings"], d.meta["optimizer"]
-            rows.append([label, str(sc.plant.n_x), f"{wall:.1f}", f"{t['optimize_s']:.1f}", f"{t['identify_s']:.1f}",
-                         f"{opt['experiments'] + opt['belief_experiments']}", d.meta["belief"],
-                         f"{opt['nominal_cost']:.8g}"])
-            print(f"FMU designs: {label} done", file=sys.stderr, flush=True)
-        ref = designs["native rod (numpy RK4)"].meta["optimizer"]["nominal_cost"]
-        for row, d in zip(rows, designs.values()):
-            row.append(f"{abs(d.meta['optimizer']['nominal_cost'] - ref) / ref:.1e}")
-        print_table("Designs of examples/fmu_rod/scenario.yaml [s; default settings, in-process, one core]",
-                    ["plant", "n_x", "design s", "optimize s", "identify s", "experiments", "belief",
-                     "nominal cost", "vs native (rel)"], rows)
-        me_label = "FMI 2.0 ME (sep RK4)"
-        me, here = scenarios[me_label], designs[me_label]
-        with open_engine("local:2") as eng:
-            t0 = time.perf_counter()
-            there = run_design(me.plant, me.problem, DesignSettings.for_scenario(me), engine=eng, **quiet)
-            wall = time.perf_counter() - t0
-            scattered = eng.files_scattered
-        diff = max(float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300)) for a, b in (
-            (there.nominal.u, here.nominal.u), (there.lqg.K, here.lqg.K), (there.lqg.field_std, here.lqg.field_std),
-            (there.rom.C, here.rom.C), (there.hankel_sv, here.hankel_sv)))
-        print(f"  {me_label} on --dask local:2: design {wall:.1f} s, largest relative difference from in-process "
-              f"(u_nom, K, field_std, C, Hankel SVs) {diff:.1e}, the FMU's bytes scattered {scattered} time(s)")
+    scenarios = rod_scenarios(fmu)
+    quiet = {"show_progress": False, "log": lambda m: None}
+    rows, designs = [], {}
+    for label, sc in scenarios.items():
+        t0 = time.perf_counter()
+        d = designs[label] = run_design(sc.plant, sc.problem, DesignSettings.for_scenario(sc), **quiet)
+        wall = time.perf_counter() - t0
+        t, opt = d.meta["timings"], d.meta["optimizer"]
+        rows.append([label, str(sc.plant.n_x), f"{wall:.1f}", f"{t['optimize_s']:.1f}", f"{t['identify_s']:.1f}",
+                     f"{opt['experiments'] + opt['belief_experiments']}", d.meta["belief"],
+                     f"{opt['nominal_cost']:.8g}"])
+        print(f"FMU designs: {label} done", file=sys.stderr, flush=True)
+    ref = designs["native rod (numpy RK4)"].meta["optimizer"]["nominal_cost"]
+    for row, d in zip(rows, designs.values()):
+        row.append(f"{abs(d.meta['optimizer']['nominal_cost'] - ref) / ref:.1e}")
+    print_table("Designs of examples/fmu_rod/scenario.yaml [s; default settings, in-process, one core]",
+                ["plant", "n_x", "design s", "optimize s", "identify s", "experiments", "belief",
+                 "nominal cost", "vs native (rel)"], rows)
+    me_label = "FMI 2.0 ME (sep RK4)"
+    me, here = scenarios[me_label], designs[me_label]
+    with open_engine("local:2") as eng:
+        t0 = time.perf_counter()
+        there = run_design(me.plant, me.problem, DesignSettings.for_scenario(me), engine=eng, **quiet)
+        wall = time.perf_counter() - t0
+        scattered = eng.files_scattered
+    diff = max(float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300)) for a, b in (
+        (there.nominal.u, here.nominal.u), (there.lqg.K, here.lqg.K), (there.lqg.field_std, here.lqg.field_std),
+        (there.rom.C, here.rom.C), (there.hankel_sv, here.hankel_sv)))
+    print(f"  {me_label} on --dask local:2: design {wall:.1f} s, largest relative difference from in-process "
+          f"(u_nom, K, field_std, C, Hankel SVs) {diff:.1e}, the FMU's bytes scattered {scattered} time(s)")
 
 
 def device_row(label: str, kind: str, cfg: dict, batch: int, xp, repeats: int) -> list[str]:
@@ -440,8 +439,7 @@ def main() -> None:
     ap.add_argument("--only-fmu", action="store_true", help="the FMU plants' table alone")
     args = ap.parse_args()
     if args.only_fmu:
-        fmu_table(args.repeats)
-        fmu_design_table()
+        fmu_tables(args.repeats, designs=True)
         return
     args.blocks = args.blocks or args.only_blocks
     if args.only_device and args.device == "cpu":
@@ -499,7 +497,7 @@ def main() -> None:
                     + [f"2^{k}{' (default)' if k == default else ''}" for k in BLOCK_SIZES], rows)
 
     if not args.only_blocks:
-        fmu_table(args.repeats)
+        fmu_tables(args.repeats, designs=False)
 
     if args.device != "cpu":
         xp = array_module(args.device)

@@ -22,6 +22,7 @@ wrote (under `out/`). Commands write only under `out/` or `/tmp`.
     python docs/check_commands.py --fast                     # the cheap blocks, in a scratch folder
     python docs/check_commands.py --long                     # fresh clone, make build, the long blocks
     python docs/check_commands.py --long --only README.md docs/reference/cli.md --grep "sep demo"
+    python docs/check_commands.py --fast --grep "sep analyze"      # --grep selects in every mode
 
 Exit status 1 when a block fails (its output is printed), 2 for bad arguments. Standard library
 only.
@@ -127,9 +128,10 @@ def parse_blocks(path: Path) -> list[Block]:
     return blocks
 
 
-def command_blocks(paths: list[Path], kind: str | None = None) -> list[Block]:
-    """The shell blocks of `paths` (of one kind when given), in file order."""
-    return [b for p in paths for b in parse_blocks(p) if b.is_command and (kind is None or b.kind == kind)]
+def command_blocks(paths: list[Path], kind: str | None = None, grep: str | None = None) -> list[Block]:
+    """The shell blocks of `paths` (of one kind, and containing `grep`, when given), in file order."""
+    return [b for p in paths for b in parse_blocks(p)
+            if b.is_command and (kind is None or b.kind == kind) and (grep is None or grep in b.text)]
 
 
 # ----------------------------------------------------------------------------- running
@@ -183,11 +185,13 @@ def run_blocks(blocks: list[Block], cwd: Path, env: dict[str, str], timeout: flo
     return failed
 
 
-def run_fast(paths: list[Path], workdir: Path, log=print) -> list[tuple[Block, subprocess.CompletedProcess]]:
-    """The fast blocks of each file in a scratch folder of its own under `workdir`."""
+def run_fast(paths: list[Path], workdir: Path, grep: str | None = None,
+             log=print) -> list[tuple[Block, subprocess.CompletedProcess]]:
+    """The fast blocks of each file (those containing `grep` when given) in a scratch folder of
+    its own under `workdir`."""
     failed = []
     for p in paths:
-        blocks = command_blocks([p], "fast")
+        blocks = command_blocks([p], "fast", grep)
         if blocks:
             dest = workdir / p.relative_to(REPO).as_posix().replace("/", "_")
             failed += run_blocks(blocks, dest, scratch_folder(dest), FAST_TIMEOUT_S, log)
@@ -196,8 +200,8 @@ def run_fast(paths: list[Path], workdir: Path, log=print) -> list[tuple[Block, s
 
 def run_long(paths: list[Path], workdir: Path, grep: str | None = None,
              log=print) -> list[tuple[Block, subprocess.CompletedProcess]]:
-    """A fresh clone of the committed tree, `make build` there, then the long blocks (all files
-    in one folder, the clone's root, in document order)."""
+    """A fresh clone of the committed tree, `make build` there, then the long blocks (those
+    containing `grep` when given; all files in one folder, the clone's root, in document order)."""
     clone = workdir / "clone"
     subprocess.run(["git", "clone", "--quiet", str(REPO), str(clone)], check=True)
     env = dict(os.environ)
@@ -208,8 +212,7 @@ def run_long(paths: list[Path], workdir: Path, grep: str | None = None,
                            stderr=subprocess.STDOUT, text=True)
     if build.returncode != 0:
         raise SystemExit(f"make build failed in the clone:\n{build.stdout[-4000:]}")
-    blocks = [b for b in command_blocks([clone / p.relative_to(REPO) for p in paths], "long")
-              if grep is None or grep in b.text]
+    blocks = command_blocks([clone / p.relative_to(REPO) for p in paths], "long", grep)
     return run_blocks(blocks, clone, env, LONG_TIMEOUT_S, log)
 
 
@@ -221,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     what.add_argument("--fast", action="store_true", help="run the cheap blocks here (what the tests run)")
     what.add_argument("--long", action="store_true", help="run the long blocks in a fresh clone")
     ap.add_argument("--only", nargs="+", metavar="FILE", help="only these Markdown files (repository paths)")
-    ap.add_argument("--grep", metavar="TEXT", help="only the blocks that contain TEXT")
+    ap.add_argument("--grep", metavar="TEXT", help="only the blocks that contain TEXT (with --list, --fast or --long)")
     ap.add_argument("--keep", action="store_true", help="keep the scratch folder (its path is printed)")
     args = ap.parse_args(argv)
     paths = doc_files()
@@ -232,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"no such file: {', '.join(missing)}")
         paths = [p for p in paths if p.resolve() in wanted]
     try:
-        blocks = command_blocks(paths)
+        blocks = command_blocks(paths, grep=args.grep)
     except DocError as exc:
         print(f"check_commands: error: {exc}", file=sys.stderr)
         return 2
@@ -244,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(tempfile.mkdtemp(prefix="sep-doc-commands-"))
     try:
         if args.fast:
-            failed = run_fast(paths, workdir)
+            failed = run_fast(paths, workdir, args.grep)
         else:
             failed = run_long(paths, workdir, args.grep)
     finally:

@@ -240,6 +240,11 @@ def test_progress_in_run_steps(setup):
     assert aggregate(bags, on_progress=lambda done, total: calls.append((done, total))).metrics["n_runs"] == 4
     assert calls == [(0, None)] + [(i * N, 4 * N) for i in range(1, 5)]
     assert aggregate(bags, dpath).metrics == agg.metrics                 # silent by default, same numbers
+    from sep_control.cli.analyze import ProgressBar                      # what `sep analyze` draws
+    for dsg in (dpath, None):
+        with ProgressBar(enabled=False) as bar:
+            assert aggregate(bags, dsg, on_progress=bar).metrics["n_runs"] == 4
+        assert bar.bar.done == bar.bar.total == 4 * N
 
 
 @pytest.fixture(scope="module")

@@ -248,6 +248,23 @@ def test_block_parser(tmp_path):
             cc.parse_blocks(md)
 
 
+def test_grep_selects_blocks_in_every_mode(tmp_path, monkeypatch, capsys):
+    """--grep TEXT keeps the blocks that contain TEXT with --list and --fast (as with --long)."""
+    md = tmp_path / "a.md"
+    md.write_text("```sh\nsep plants\n```\n\n<!-- long -->\n```sh\nmake demo\nsep plants\n```\n\n"
+                  "```sh\nsep --version\n```\n")
+    assert [b.line for b in cc.command_blocks([md], grep="sep plants")] == [1, 6]
+    assert [b.line for b in cc.command_blocks([md], "fast", "sep plants")] == [1]
+    wanted = cc.command_blocks(cc.doc_files(), grep="sep plants")
+    assert wanted and len(wanted) < len(cc.command_blocks(cc.doc_files()))
+    assert cc.main(["--list", "--grep", "sep plants"]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == len(wanted)
+    ran = []
+    monkeypatch.setattr(cc, "run_block", lambda b, *a: ran.append(b) or argparse.Namespace(returncode=0))
+    assert cc.main(["--fast", "--grep", "sep plants"]) == 0
+    assert ran == [b for b in wanted if b.kind == "fast"] and ran
+
+
 FAST_FILES = [f for f in cc.doc_files() if cc.command_blocks([f], "fast")]
 
 

@@ -61,3 +61,22 @@ def test_analyze_cli_names_the_mismatch(rehearsal, tmp_path, capsys):
     md = (out / "report.md").read_text()
     assert "Model mismatch (the design ran on another plant than its model): plant.t_right: 150.0 -> 147.0; " \
            "input_gain: 0.8" in md
+
+
+def test_scenario_and_perturbation_come_from_one_message(rehearsal, tmp_path):
+    """The scenario topic is read in one pass: a later scenario message whose perturbation does
+    not parse is noted once and skipped whole, so scenario and perturbation stay the earlier
+    message's (never one message's scenario with another's perturbation)."""
+    from bag_synth import string
+    from sep_control.bags.episode import read_episode
+
+    d, dpath, ep, bag, _ = rehearsal
+    data = json.loads(ep.payload)
+    data["perturbation"] = {"input_gain": "not a number"}
+    data["scenario"]["plant"]["t_right"] = 140.0
+    bad = (T.topic_name(T.SCENARIO), T0_NS + 2, bytes(string(json.dumps(data))))
+    e = read_episode(write_messages(tmp_path / "bag", episode_messages(ep) + [bad]))
+    unreadable = [n for n in e.notes if "unreadable" in n]
+    assert len(unreadable) == 1 and "message unreadable" in unreadable[0] and "input_gain" in unreadable[0], e.notes
+    assert e.scenario == ep.scenario and e.scenario.plant_config["t_right"] == 147.0
+    assert e.perturbation == {"input_gain": [0.8] * ep.info.n_u}

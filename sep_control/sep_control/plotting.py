@@ -27,12 +27,9 @@ def pyplot():
 
 
 def save_figure(fig, path: Path) -> Path:
-    """Lay out, write as PNG (110 dpi) and close `fig`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Lay out (`tight_layout`), write as PNG (110 dpi) and close `fig`."""
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    pyplot().close(fig)
-    return path
+    return save_keeping_layout(fig, path)
 
 
 def save_keeping_layout(fig, path: Path) -> Path:

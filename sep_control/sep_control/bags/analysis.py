@@ -67,7 +67,12 @@ class EpisodeReport:
     latency_est_s: np.ndarray
     mismatch: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
-    model_mismatch: list[str] = field(default_factory=list)   # see the module docstring
+
+    @property
+    def model_mismatch(self) -> list[str]:
+        """How the episode's plant differed from the design's model (the module docstring), kept
+        in ``metrics['model_mismatch']``."""
+        return self.metrics["model_mismatch"]
 
     @property
     def inputs(self) -> np.ndarray:
@@ -105,10 +110,6 @@ class AggregateReport:
     rows: dict[str, dict[str, Any]]     # episode name -> its metrics
     notes: list[str] = field(default_factory=list)
 
-    @property
-    def F_runs(self) -> np.ndarray:
-        return np.stack([r.episode.F for r in self.reports])
-
 
 def reports_of(rep: EpisodeReport | AggregateReport) -> list[EpisodeReport]:
     """The episode reports of an aggregate, or [rep] for one episode."""
@@ -124,17 +125,12 @@ def _load_design(design):
     return load_design(design)
 
 
-def check_scenario(ep: Episode, design, allow_mismatch: bool, name: str) -> list[str]:
-    """Where the bag's plant (type, keys, horizon) differs from the design's; raises
-    `AnalysisError` on a difference unless `allow_mismatch`."""
+def scenario_differences(ep: Episode, design) -> list[str]:
+    """Where the bag's plant (type, keys, horizon) differs from the design's ([] without a
+    design or without a scenario in the bag)."""
     if design is None or ep.scenario is None or ep.scenario_source != "bag":
         return []
-    diff = design.scenario.plant_mismatches(ep.scenario)
-    if diff and not allow_mismatch:
-        raise AnalysisError(f"{name}: the bag was recorded with another scenario than the design file: "
-                            + "; ".join(diff) + ". Use the design file of that plant, or --allow-mismatch "
-                            "to analyse it anyway (nominal comparisons are then skipped where shapes differ)")
-    return diff
+    return design.scenario.plant_mismatches(ep.scenario)
 
 
 def reported_mismatch(ep: Episode) -> list[str]:
@@ -203,7 +199,7 @@ def _episode_name(bag_path: Path, name: str | None) -> str:
     return bag_path.stem if bag_path.is_file() else bag_path.name
 
 
-# ~67 lines: 37 of them the public function's numpydoc docstring
+# ~68 lines: 37 of them the public function's numpydoc docstring
 def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, allow_truncated: bool = False,
             namespace: str | None = None, name: str | None = None,
             on_progress: ProgressHook | None = None) -> EpisodeReport:
@@ -252,25 +248,26 @@ def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, 
                       info=design.info if design is not None else None,
                       namespace=namespace, allow_truncated=allow_truncated)
     reported = reported_mismatch(ep)
-    diff = check_scenario(ep, design, True, str(bag_path))
+    diff = scenario_differences(ep, design)
     if reported and all(d.startswith("plant.") for d in diff):
         diff = []                  # a rehearsal: the design's goal applies on the other plant
     elif diff and not allow_mismatch:
-        check_scenario(ep, design, False, str(bag_path))      # raises, naming the differences
-    mm = model_mismatch(ep, design, reported)
+        raise AnalysisError(f"{bag_path}: the bag was recorded with another scenario than the design file: "
+                            + "; ".join(diff) + ". Use the design file of that plant, or --allow-mismatch "
+                            "to analyse it anyway (nominal comparisons are then skipped where shapes differ)")
     notes = list(ep.notes)
     scen, obj, F_nom = objective_and_nominal(ep, design, diff, notes)
     m, mnotes, (lat_cmd, lat_est) = episode_metrics(ep, obj, F_nom)
     if diff:
         m["scenario_mismatch"] = diff
-    m["model_mismatch"] = mm
+    m["model_mismatch"] = model_mismatch(ep, design, reported)
     if ep.missing:
         notes.append("missing topics: " + ", ".join(ep.missing))
     if on_progress is not None:
         on_progress(ep.n_steps, ep.n_steps)
     return EpisodeReport(name=_episode_name(bag_path, name), episode=ep, scenario=scen, design=design,
                          objective=obj, F_nom=F_nom, metrics=m, err=ep.F_hat - ep.F, latency_cmd_s=lat_cmd,
-                         latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes, model_mismatch=mm)
+                         latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes)
 
 
 def _unique_rows(reports: Sequence[EpisodeReport]) -> dict[str, dict[str, Any]]:

@@ -23,7 +23,7 @@ import numpy as np
 
 from sep_control.bags.messages import (IMAGE_TOPICS, NO_MESSAGES, VECTOR_TOPICS, Messages, PerStep, cloud_points,
                                        image_pixels, index_messages, joint_values, open_bag, read_diagnostics,
-                                       read_per_step, read_perturbation, read_scenario)
+                                       read_per_step, read_scenario)
 from sep_control.bags.storage import BagError
 from sep_plant import topics as T
 from sep_plant.protocol import PlantInfo
@@ -97,13 +97,6 @@ class Episode:
         """Steps k that have a message on topic `key`."""
         return np.flatnonzero(np.isfinite(self.step_recv_ns[key]))
 
-    @property
-    def last_step(self) -> int:
-        """Last step with a measurement or field (-1 when none)."""
-        ks = [self.steps_with(k) for k in (T.MEASUREMENTS, T.FIELD) if k in self.step_recv_ns]
-        ks = [k[-1] for k in ks if k.size]
-        return int(max(ks)) if ks else -1
-
 
 # ------------------------------------------------------------------------- the step grid
 def infer_timing(msgs: Messages, name: str) -> tuple[float, int]:
@@ -118,12 +111,14 @@ def infer_timing(msgs: Messages, name: str) -> tuple[float, int]:
     return float(diffs.min()) * 1e-9, int(round(st[-1] / diffs.min()))
 
 
-def resolve_timing(msgs: Messages, scenario: Scenario | None, info: PlantInfo | None, name: str,
-                   notes: list[str]) -> tuple[Scenario | None, PlantInfo | None, str]:
+def resolve_timing(msgs: Messages, found: tuple[Scenario, PlantInfo] | None, scenario: Scenario | None,
+                   info: PlantInfo | None, name: str, notes: list[str]
+                   ) -> tuple[Scenario | None, PlantInfo | None, str]:
     """(scenario, plant description, source) of the episode, and its step grid set on `msgs`:
-    the bag's scenario topic ('bag'), else the given scenario ('argument'; `info` defaults to
-    `scenario.info`, which builds the plant), else dt and N inferred from stamps ('inferred')."""
-    found, source = read_scenario(msgs, notes), "bag"
+    `found`, the bag's scenario topic ('bag'), else the given scenario ('argument'; `info`
+    defaults to `scenario.info`, which builds the plant), else dt and N inferred from stamps
+    ('inferred')."""
+    source = "bag"
     if found is None and scenario is not None:
         if info is None:
             try:
@@ -237,7 +232,7 @@ def read_images(msgs: Messages) -> dict[str, PerStep]:
     return {key: read_per_step(msgs, key, image_pixels) for key in IMAGE_TOPICS if key in msgs.index}
 
 
-# ~63 lines: 32 of them the public function's numpydoc docstring
+# ~64 lines: 32 of them the public function's numpydoc docstring
 def read_episode(path: str | Path, scenario: Scenario | None = None, info: PlantInfo | None = None, *,
                  namespace: str | None = None, allow_truncated: bool = False) -> Episode:
     """Read a bag of one episode into arrays indexed by step k.
@@ -277,7 +272,8 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, info: Plant
         namespace = T.detect_namespace({c.topic for c in raw.connections.values()}) or T.NAMESPACE
     notes = list(raw.notes)
     msgs, ignored = index_messages(raw, namespace)
-    scen, info, source = resolve_timing(msgs, scenario, info, name, notes)
+    in_bag = read_scenario(msgs, notes)
+    scen, info, source = resolve_timing(msgs, in_bag[:2] if in_bag else None, scenario, info, name, notes)
     vec, vectors = read_vectors(msgs, info)
     clouds, fields = read_fields(msgs, info, notes)
     images = read_images(msgs)
@@ -300,4 +296,4 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, info: Plant
         missing=[T.topic_name(t.name, namespace) for t in T.TOPICS
                  if not counts[t.name] and t.name not in T.OPTIONAL],
         ignored_topics=ignored, recv_origin_ns=msgs.origin, complete=raw.complete, notes=notes,
-        scenario_source=source, perturbation=read_perturbation(msgs, notes))
+        scenario_source=source, perturbation=in_bag[2] if in_bag else {})

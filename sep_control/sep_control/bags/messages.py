@@ -119,15 +119,20 @@ def group_by_topic(raw: RawBag, namespace: str) -> tuple[dict[str, np.ndarray], 
     return index, sorted(ignored)
 
 
+def cdr_stamp_ns(data: bytes) -> int | None:
+    """Stamp [ns] of a serialized message that starts with a builtin_interfaces/Time (after the
+    4-byte CDR encapsulation: int32 sec, uint32 nanosec); None for one too short to hold it."""
+    if len(data) < 12:
+        return None
+    sec, nsec = _STAMP(data, 4)
+    return sec * 1_000_000_000 + nsec
+
+
 def header_stamps(raw: RawBag, idx: np.ndarray) -> np.ndarray:
-    """Stamps [ns] of messages that start with a builtin_interfaces/Time (after the 4-byte CDR
-    encapsulation: int32 sec, uint32 nanosec); 0 for a message too short to hold one."""
+    """Stamps [ns] (`cdr_stamp_ns`) of the messages `idx`; 0 for a message too short to hold one."""
     out = np.zeros(len(idx), dtype=np.int64)
     for j, i in enumerate(idx.tolist()):
-        d = raw.data[i]
-        if len(d) >= 12:
-            sec, nsec = _STAMP(d, 4)
-            out[j] = sec * 1_000_000_000 + nsec
+        out[j] = cdr_stamp_ns(raw.data[i]) or 0
     return out
 
 
@@ -139,32 +144,20 @@ def index_messages(raw: RawBag, namespace: str) -> tuple[Messages, list[str]]:
     return Messages(raw, Decoder(raw), index, stamps, origin=int(raw.log_times.min())), ignored
 
 
-def read_scenario(msgs: Messages, notes: list[str]) -> tuple[Scenario, PlantInfo] | None:
-    """The plant's scenario and description from the scenario topic (the last readable
-    message; sep 0.1's flat slab JSON too), or None."""
-    return _last_scenario_payload(msgs, parse_scenario_payload, (ScenarioError, ValueError), "message", notes)
-
-
-def read_perturbation(msgs: Messages, notes: list[str]) -> dict[str, list[float]]:
-    """The perturbation of the plant's actuators and sensors that its scenario message carries
-    (the last readable one; {} when none, as for every unperturbed plant)."""
-    found = _last_scenario_payload(msgs, payload_perturbation, (ScenarioError,), "perturbation", notes)
-    return {} if found is None else found
-
-
-def _last_scenario_payload(msgs: Messages, parse: Callable[[str], Any], errors: tuple[type[Exception], ...],
-                           what: str, notes: list[str]) -> Any:
-    """`parse` of the last scenario message it reads (None: none); a message it refuses with
-    one of `errors` is noted as '<topic> <what> unreadable (<reason>)'."""
+def read_scenario(msgs: Messages, notes: list[str]) -> tuple[Scenario, PlantInfo, dict[str, list[float]]] | None:
+    """(scenario, plant description, perturbation) of the plant from the last readable scenario
+    message (sep 0.1's flat slab JSON too; perturbation {} when the message carries none, as for
+    every unperturbed plant), or None. All three come from the same message; one that does not
+    parse is noted once as '<topic> message unreadable (<reason>)'."""
     found = None
     for i in msgs.of(T.SCENARIO).tolist():
         msg = msgs.decode(i, T.STRING)
         if msg is None:
             continue
         try:
-            found = parse(msg.data)
-        except errors as exc:
-            notes.append(f"{msgs.decode.topic(i)} {what} unreadable ({exc})")
+            found = (*parse_scenario_payload(msg.data), payload_perturbation(msg.data))
+        except (ScenarioError, ValueError) as exc:
+            notes.append(f"{msgs.decode.topic(i)} message unreadable ({exc})")
     return found
 
 

@@ -151,8 +151,9 @@ def write_report(rep: EpisodeReport | AggregateReport, out_dir: str | Path, figu
     out_dir : str or Path
         Report directory (created if needed; existing files of the same names are replaced).
     figures : bool, default True
-        Draw field.png, estimation.png, inputs.png (and field_image.png when the bags have the
-        image topic); False: the Markdown alone.
+        Draw field.png, estimation.png, inputs.png (and disturbance.png when the estimates have
+        disturbance states, field_image.png when the bags have the image topic); False: the
+        Markdown alone.
 
     Returns
     -------
@@ -172,7 +173,7 @@ def write_report(rep: EpisodeReport | AggregateReport, out_dir: str | Path, figu
     lines.append("Design file: " + ("given (nominal comparisons included)" if reps[0].design is not None else
                                     "none (no nominal comparisons; pass --design)"))
     lines.append("Controller: " + controller_line(reps))
-    mm = list(dict.fromkeys(d for r in reps for d in r.model_mismatch))
+    mm = rep.metrics["model_mismatch"]         # an aggregate's: the union over its episodes
     if mm:
         lines.append("Model mismatch (the design ran on another plant than its model): " + "; ".join(mm))
     dline = disturbance_line(reps[0])

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from sep_control.bags.messages import cdr_stamp_ns
 from sep_plant import topics as T
 
 _STOP = object()
@@ -95,8 +96,7 @@ class BagSink:
         self.qos_lookup = qos_lookup or (lambda topic: [])
         self.types: dict[str, str] = {}
         self.counts: dict[str, int] = {}
-        self.first_msg: float | None = None   # monotonic time of the first / last message
-        self.last_msg: float | None = None
+        self.last_msg: float | None = None    # monotonic time of the last message
         self.final_seen: float | None = None  # monotonic time the final step's measurement arrived
         self.n_steps: int | None = None
         self.last_meas_ns = -1                # latest measurement stamp seen
@@ -189,8 +189,6 @@ class BagSink:
         writer.write(conn, t_ns, data)
         now = time.monotonic()
         self.counts[topic] = self.counts.get(topic, 0) + 1
-        if self.first_msg is None:
-            self.first_msg = now
         self.last_msg = now
         self._observe(topic, data, now)
 
@@ -219,9 +217,8 @@ class BagSink:
         """Track N and dt (scenario topic) and the latest measurement stamp; set `final_seen`."""
         if topic == self.scenario_topic:
             self._note_scenario(data)
-        elif topic == self.final_topic and len(data) >= 12:
-            sec, nsec = struct.unpack_from("<iI", data, 4)
-            self.last_meas_ns = max(self.last_meas_ns, sec * 1_000_000_000 + nsec)
+        elif topic == self.final_topic and (stamp := cdr_stamp_ns(data)) is not None:
+            self.last_meas_ns = max(self.last_meas_ns, stamp)
         # the scenario may arrive after the final measurement (discovery order)
         if self.final_seen is None and self._final_step_recorded():
             self.final_seen = now

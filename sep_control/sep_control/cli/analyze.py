@@ -50,12 +50,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sep_control.bags.report import LATENCY_NOTE, write_report
+    from sep_control.bags.report import LATENCY_NOTE, metrics_rows, write_report
     from sep_control.evaluation import metrics as M
 
     t0 = time.perf_counter()
-    rep, rows, default_out = analysed(args)
+    rep, default_out = analysed(args)
     t_analysis = time.perf_counter() - t0
+    rows = metrics_rows(rep)
     out = Path(args.out) if args.out else default_out
     try:
         path = write_report(rep, out, figures=not args.no_figures)
@@ -74,8 +75,32 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+class ProgressBar:
+    """`aggregate`'s ``on_progress(steps_done, steps_total)`` drawn as a `RunSteps` bar, opened
+    once the total is known (from the design, else after the first bag); drawn when `enabled`."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self.bar: RunSteps | None = None
+
+    def __call__(self, done: int, total: int | None) -> None:
+        if total is None:
+            return
+        if self.bar is None:
+            self.bar = RunSteps(total, "analyze (run-steps)", self.enabled)
+        self.bar.add(done - self.bar.done)
+
+    def __enter__(self) -> "ProgressBar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def analysed(args: argparse.Namespace):
-    """(report, metric rows, default report directory) of the bags; exit 2 on a bad bag or design."""
+    """(report, default report directory) of the bags: one bag's `analyze`, or `aggregate` over
+    several (with a bar in run-steps); exit 2 on a bad bag or design."""
     from sep_control.bags.analysis import AnalysisError, aggregate, analyze
     from sep_control.bags.storage import BagError
     from sep_estimator.design_file import DesignFileError, load_design
@@ -83,20 +108,12 @@ def analysed(args: argparse.Namespace):
     try:
         design = load_design(args.design) if args.design else None
         kw = dict(allow_mismatch=args.allow_mismatch, allow_truncated=args.allow_truncated, namespace=args.namespace)
-        # counted in run-steps (N per episode) when the design gives N, else in bags
-        steps = design.n_steps if design is not None else 1
-        with RunSteps(len(args.bags) * steps, "analyze (run-steps)" if design is not None else "analyze (bags)",
-                      bars_wanted(args.quiet) and len(args.bags) > 1) as bar:
-            reports = []
-            for bag in args.bags:
-                reports.append(analyze(bag, design, **kw))
-                bar.add(1, steps)
-        if len(reports) == 1:
-            rep = reports[0]
-            default = Path(str(Path(args.bags[0]).resolve()).removesuffix(".mcap").removesuffix(".db3") + "_report")
-            return rep, {rep.name: rep.metrics}, default
-        rep = aggregate(reports, design, **kw)
-        return rep, {**rep.rows, "all episodes": rep.metrics}, Path(args.bags[0]).resolve().parent / "aggregate_report"
+        if len(args.bags) == 1:
+            rep = analyze(args.bags[0], design, **kw)
+            return rep, Path(str(Path(args.bags[0]).resolve()).removesuffix(".mcap").removesuffix(".db3") + "_report")
+        with ProgressBar(bars_wanted(args.quiet)) as bar:
+            rep = aggregate(args.bags, design, on_progress=bar, **kw)
+        return rep, Path(args.bags[0]).resolve().parent / "aggregate_report"
     except (BagError, AnalysisError, DesignFileError) as exc:
         fail(str(exc))
 
