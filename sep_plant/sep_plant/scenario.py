@@ -352,14 +352,28 @@ def scenario_payload(scenario: Scenario, info: PlantInfo, perturbation: Mapping[
     return json.dumps(data, sort_keys=True, default=json_default)
 
 
-def payload_perturbation(text: str) -> dict[str, list[float]]:
-    """The perturbation a scenario-topic message carries ({} for an unperturbed plant, and for
-    messages of plants that publish none); ScenarioError when it is not a mapping of numbers or
-    lists of numbers."""
+def parse_scenario_message(text: str) -> tuple[Scenario, PlantInfo, dict[str, list[float]]]:
+    """(scenario, plant description, perturbation) of one scenario-topic message, parsed once:
+    `parse_scenario_payload` and the perturbation the plant node publishes ({} for an
+    unperturbed plant and for messages that carry none); ScenarioError naming what is wrong."""
+    data = _message_json(text)
+    return (*_scenario_of(data), _perturbation_of(data))
+
+
+def parse_scenario_payload(text: str) -> tuple[Scenario, PlantInfo]:
+    """(scenario, plant description) of a scenario-topic message. sep 0.1 published the flat slab
+    scenario alone: its description comes from the built-in slab."""
+    return _scenario_of(_message_json(text))
+
+
+def _message_json(text: str) -> Any:
     try:
-        data = json.loads(text)
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise ScenarioError(f"scenario message: {exc}") from None
+
+
+def _perturbation_of(data: Any) -> dict[str, list[float]]:
     pert = data.get("perturbation", {}) if isinstance(data, Mapping) else {}
     if not isinstance(pert, Mapping):
         raise ScenarioError(f"scenario message: perturbation must be a mapping, got {pert!r}")
@@ -376,13 +390,7 @@ def payload_perturbation(text: str) -> dict[str, list[float]]:
     return out
 
 
-def parse_scenario_payload(text: str) -> tuple[Scenario, PlantInfo]:
-    """(scenario, plant description) of a scenario-topic message. sep 0.1 published the flat slab
-    scenario alone: its description comes from the built-in slab."""
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ScenarioError(f"scenario message: {exc}") from None
+def _scenario_of(data: Any) -> tuple[Scenario, PlantInfo]:
     if isinstance(data, Mapping) and "scenario" in data and "plant_info" in data:
         scen = Scenario.from_dict(data["scenario"], "scenario message", canonical=False)
         try:

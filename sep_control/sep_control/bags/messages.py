@@ -19,7 +19,7 @@ import numpy as np
 from sep_control.bags.storage import BagError, RawBag, read_raw
 from sep_plant import topics as T
 from sep_plant.protocol import PlantInfo
-from sep_plant.scenario import Scenario, ScenarioError, parse_scenario_payload, payload_perturbation
+from sep_plant.scenario import Scenario, ScenarioError, parse_scenario_message
 
 #: JointState topics and the array that carries their values
 VECTOR_TOPICS = {T.MEASUREMENTS: "position", T.COMMAND: "effort", T.APPLIED_INPUT: "effort",
@@ -155,7 +155,7 @@ def read_scenario(msgs: Messages, notes: list[str]) -> tuple[Scenario, PlantInfo
         if msg is None:
             continue
         try:
-            found = (*parse_scenario_payload(msg.data), payload_perturbation(msg.data))
+            found = parse_scenario_message(msg.data)
         except (ScenarioError, ValueError) as exc:
             notes.append(f"{msgs.decode.topic(i)} message unreadable ({exc})")
     return found

@@ -101,11 +101,10 @@ class DesignedNode(NodeBase):
     def _on_scenario(self, msg) -> None:
         from sep_estimator.design_file import DesignFileError
         from sep_estimator.model_mismatch import model_mismatch
-        from sep_plant.scenario import parse_scenario_payload, payload_perturbation
+        from sep_plant.scenario import parse_scenario_message
 
         try:
-            plant, info = parse_scenario_payload(msg.data)
-            perturbation = payload_perturbation(msg.data)
+            plant, info, perturbation = parse_scenario_message(msg.data)
         except ValueError as exc:
             self.fatal = StartError(f'unreadable plant scenario on {self.sub_scenario.topic_name}: {exc}')
             return
