@@ -485,3 +485,35 @@ def test_opaque_states_are_compared_by_their_outputs():
     assert any("not deterministic" in p for p in conformance_problems(plain, np.full(2, 0.1)))
     with pytest.raises(Exception, match="stepped one by one"):
         check_plant(OpaqueToy(interact=True), np.full(2, 0.1), name="OpaqueToy")
+
+
+# ------------------------------------------------------------------ failed FMI calls (review of 0.8.0)
+def _spy(b, calls: list, fail: str | None, names=("deserialize", "set_state", "free_state", "set_reals",
+                                                  "do_step", "get_reals", "get_state", "state_size",
+                                                  "serialize")):
+    """Wrap the Co-Simulation calls of binding `b` to record their order; `fail` returns 3 (error)."""
+    for name in names:
+        real = getattr(b, name)
+
+        def call(*args, _name=name, _real=real):
+            calls.append(_name)
+            return 3 if _name == fail else _real(*args)
+        setattr(b, name, call)
+
+
+@pytest.mark.parametrize("fail,named", [("deserialize", "deserialize FMU state"), ("get_state", "get FMU state"),
+                                        ("do_step", "do step")])
+def test_a_failed_fmi_call_stops_the_step_and_is_named_alone(fmus, fail, named):
+    """0.8.0 chained the calls with `|`: after a failed deserialize it still set the state with a bad
+    handle and stepped, and a failed get-state surfaced as 'state grew' or a five-call message."""
+    from sep_plant.plants.fmu.binding import FMICallError
+    plant = fmu(fmus["rod"], **CS)
+    X = plant.initial_state(2)
+    calls: list[str] = []
+    _spy(plant._stepper.b, calls, fail)
+    with pytest.raises(FMICallError) as err:
+        plant.step(X, np.full(3, 0.2))
+    msg = str(err.value)
+    assert f"{named} (run 0) failed (status 3, error)" in msg, msg
+    assert calls[-1] == fail and calls.count(fail) == 1          # nothing called after the failure
+    assert " / " not in msg and "grew" not in msg

@@ -19,6 +19,7 @@ them, never does arithmetic on them)::
 
 One plant step, for each run m: deserialize its bytes, set the FMU state, set the inputs,
 do one step of dt, read outputs and field into its row, get and serialize the new state.
+Each call is checked as it returns: the first failure stops the step and is named alone.
 The serialized bytes of all runs are encoded into rows in one vectorized pass.
 Pure numpy/ctypes: no ROS import.
 """
@@ -53,6 +54,14 @@ def decode(values: np.ndarray) -> np.ndarray:
     M, width = values.shape
     u = values.astype("<u8")
     return np.ascontiguousarray(u.view(np.uint8).reshape(M, width, 8)[:, :, :BYTES_PER_VALUE]).reshape(M, -1)
+
+
+def _check(b: Binding, run: int | None, call: str, status: int) -> None:
+    """Raise FMICallError naming `call` (of run `run`; None: the initial state) when `status` is
+    worse than a warning. Each FMI call is checked right after it returns, so the first failure
+    stops the step and is the one named."""
+    if status > WARNING:
+        raise b.fail(f"{call} ({'initial state' if run is None else f'run {run}'})", status)
 
 
 class Workspace:
@@ -127,20 +136,17 @@ class CoSimStepper:
         """The row of the state right after initialization (fixes the row length)."""
         b = self.b
         row_vals = np.empty((1, self.n_read))
-        st = b.get_reals(*b.values_args(self._read_refs, self._n_read_refs, self.n_read,
-                                        c_void_p(row_vals.ctypes.data)))
-        st2 = b.get_state(b.c, byref(self._out_state))
-        st3 = b.state_size(b.c, self._out_state, byref(self._size))
-        if max(st, st2, st3) > WARNING:
-            raise b.fail("reading the initial state (get reals / get FMU state / state size)", max(st, st2, st3))
+        _check(b, None, "get outputs", b.get_reals(*b.values_args(self._read_refs, self._n_read_refs,
+                                                                  self.n_read, c_void_p(row_vals.ctypes.data))))
+        _check(b, None, "get FMU state", b.get_state(b.c, byref(self._out_state)))
+        _check(b, None, "get the serialized state size", b.state_size(b.c, self._out_state, byref(self._size)))
         n = int(self._size.value)
         if n < 1:
             raise FMICallError(f"FMU {b.label}: its serialized FMU state is empty")
         self.width = -(-n // BYTES_PER_VALUE)
         raw = np.zeros((1, self.width * BYTES_PER_VALUE), np.uint8)
-        st = b.serialize(b.c, self._out_state, c_void_p(raw.ctypes.data), self._size)
-        if st > WARNING:
-            raise b.fail("serializing the initial FMU state", st)
+        _check(b, None, "serialize FMU state", b.serialize(b.c, self._out_state, c_void_p(raw.ctypes.data),
+                                                           self._size))
         out = np.empty((1, self.n_x))
         out[0, 0], out[0, 2] = n, start_time
         out[:, HEADER:HEADER + self.n_read] = row_vals
@@ -182,22 +188,25 @@ class CoSimStepper:
         n_bytes, crcs = [0] * M, [0] * M
         for m, (n, t) in enumerate(zip(sizes.tolist(), X[:, 2].tolist())):
             ws.sizes[m].value, ws.times[m].value = n, t
-            st = (deser(*ws.load[m]) | set_state(b.c, h_in) | free(*ws.free_in) | set_v(*ws.inputs[m])
-                  | do_step(*ws.steps[m]))
-            if st > WARNING:
-                raise b.fail(f"stepping run {m} (deserialize / set / free FMU state / set inputs / do step)", st)
+            # one call at a time: a failed call stops the step there and is named alone (a failed
+            # deserialize must never reach set-state with a bad handle, nor do-step the wrong state)
+            _check(b, m, "deserialize FMU state", deser(*ws.load[m]))
+            _check(b, m, "set FMU state", set_state(b.c, h_in))
+            _check(b, m, "free FMU state", free(*ws.free_in))
+            _check(b, m, "set inputs", set_v(*ws.inputs[m]))
+            _check(b, m, "do step", do_step(*ws.steps[m]))
             why = status() if status is not None else None
             if why:
                 raise FMICallError(f"FMU {b.label}: do step of run {m}: {why}")
-            st = get_r(*ws.outs[m]) | get_state(*ws.get_state) | size_of(*ws.size_of)
+            _check(b, m, "get outputs", get_r(*ws.outs[m]))
+            _check(b, m, "get FMU state", get_state(*ws.get_state))
+            _check(b, m, "get the serialized state size", size_of(*ws.size_of))
             n = size.value
             if n > cap:
                 raise FMICallError(f"FMU {b.label}: its serialized state grew to {n} bytes; sep fixed the row "
                                    f"length from the initial state ({cap} bytes): states of changing size are "
                                    "not supported")
-            st |= ser(*ws.save[m])
-            if st > WARNING:
-                raise b.fail(f"saving the state of run {m} (get reals / get FMU state / serialize)", st)
+            _check(b, m, "serialize FMU state", ser(*ws.save[m]))
             n_bytes[m], crcs[m] = n, zlib.crc32(memoryview(ws.new[m, :n]))
         out = np.empty((M, self.n_x))
         out[:, 0], out[:, 1] = n_bytes, crcs
