@@ -239,6 +239,7 @@ class NodeBase:
         self.done = False
         self.fatal: StartError | None = None
         self.finished = False
+        self.health_errors = 0              # failed health() calls (logged, see publish_diagnostics)
         self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
         self.pub_diag = node.create_publisher(DiagnosticArray, c.DIAGNOSTICS, c.DIAGNOSTICS_QOS)
         self.diag_timer = node.create_timer(self.diag_period, self.publish_diagnostics,
@@ -252,11 +253,32 @@ class NodeBase:
         return c.Health(name=self.node.get_fully_qualified_name())
 
     def publish_diagnostics(self) -> None:
+        """Publish this node's `health()` on /diagnostics. A failing `health()` is a bug: it is
+        logged (with its traceback the first time, then at most once a minute) and published as an
+        ERROR status naming the exception, so /diagnostics goes on and says so. Only the publish
+        itself may fail silently (the context is gone during shutdown)."""
         try:
-            self.pub_diag.publish(c.diagnostics(c.stamp(max(self.last_k, 0), self.dt),
-                                                [self.health()], self.frame_id))
+            health = self.health()
+        except Exception as exc:  # noqa: BLE001 - reported, never silent
+            health = self._health_failed(exc)
+        try:
+            self.pub_diag.publish(c.diagnostics(c.stamp(max(self.last_k, 0), self.dt), [health], self.frame_id))
         except Exception:  # noqa: BLE001 - context gone during shutdown
             pass
+
+    def _health_failed(self, exc: Exception) -> c.Health:
+        """Log a failed `health()` and the ERROR status published instead."""
+        import traceback
+
+        what = f'{type(exc).__name__}: {exc}'
+        self.health_errors += 1
+        if self.health_errors == 1:
+            self.log.error(f'/diagnostics: health() failed: {what}\n{traceback.format_exc()}')
+        else:
+            self.log.error(f'/diagnostics: health() failed: {what} ({self.health_errors} times)',
+                           throttle_duration_sec=60.0)
+        return c.Health(name=self.node.get_fully_qualified_name(), level=c.ERROR,
+                        message=f'health() failed: {what}')
 
     def reject(self, what: str, rej, rejections, k: int | None = None) -> None:
         """Count a rejected message in `rejections` (a gate.RejectionLog) and report it."""

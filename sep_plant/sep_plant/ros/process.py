@@ -148,9 +148,28 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
         else:
             get_logger(logger_name).warning('interrupted')
         rc = EXIT_INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - any other error mid-episode: summary, then exit 1
+        rc = _failed(proc, exc, logger_name)
     finally:
         _teardown(proc, rc, logger_name)
     return rc
+
+
+def _failed(proc: Any, exc: Exception, logger_name: str) -> int:
+    """An unexpected error (an FMU error in a step, a filter error): log it with its traceback,
+    write the summary with status 'error' naming it (when the process was built), EXIT_FAILURE."""
+    import traceback
+
+    from rclpy.logging import get_logger
+
+    what = f'{type(exc).__name__}: {exc}'
+    get_logger(logger_name).error(f'unexpected error, stopping: {what}\n{traceback.format_exc()}')
+    if proc is not None:
+        try:
+            proc.finish(status='error', error=what)
+        except Exception as again:  # noqa: BLE001 - the first error is the one reported
+            get_logger(logger_name).error(f'the summary could not be written: {type(again).__name__}: {again}')
+    return EXIT_FAILURE
 
 
 def _teardown(proc: Any, rc: int, logger_name: str) -> None:
