@@ -4,16 +4,18 @@ An FMU is a zip archive (modelDescription.xml, binaries/<platform>/<id>.so|.dll|
 sep identifies an FMU by the SHA-256 of its bytes, never by its path: two scenarios that name
 the same file from different folders mean the same plant, and a design refuses another FMU
 under the same name. The archive is unpacked once per content into a cache folder
-(``$SEP_FMU_CACHE``, default ``<tmp>/sep-fmu-<user>``), ``<cache>/<sha256>/``, so that every
-plant object, process and worker of a machine shares one copy and a changed file never reuses a
-stale one. A worker whose disk lacks the FMU gets its bytes (`cached_copy`) and writes them to
+(``$SEP_FMU_CACHE``, default ``$XDG_CACHE_HOME/sep/fmu``, i.e. ``~/.cache/sep/fmu``),
+``<cache>/<sha256>/``, so that every plant object, process and worker of a user shares one copy
+and a changed file never reuses a stale one. Shared libraries are loaded from that folder, so it
+must be private: it is created with mode 0700, and a folder that is a symbolic link, is owned by
+another user or is writable by group or others is refused (`CacheNotPrivate`), never used. A worker whose disk lacks the FMU gets its bytes (`cached_copy`) and writes them to
 ``<cache>/<sha256>.fmu``. Pure Python: no ROS import.
 """
 from __future__ import annotations
 
-import getpass
 import hashlib
 import os
+import stat
 import tempfile
 import zipfile
 from pathlib import Path
@@ -35,18 +37,40 @@ def sha256_file(path: str | Path) -> str:
     return h.hexdigest()
 
 
+class CacheNotPrivate(PermissionError):
+    """The FMU cache folder could be changed by another user (it holds shared libraries sep loads)."""
+
+
+def default_cache_root() -> Path:
+    """``$XDG_CACHE_HOME/sep/fmu``, else ``~/.cache/sep/fmu``: a per-user folder, never a
+    predictable name in the shared temporary folder."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "sep" / "fmu"
+
+
+def check_private(root: Path) -> None:
+    """Raise CacheNotPrivate unless `root` is a real folder (no symbolic link) owned by this user
+    and not writable by group or others."""
+    st = os.lstat(root)
+    hint = f"set {CACHE_ENV} to a folder only you can write"
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise CacheNotPrivate(f"FMU cache {root} is not a folder (a symbolic link or a file): {hint}")
+    if hasattr(os, "getuid") and st.st_uid != os.getuid():
+        raise CacheNotPrivate(f"FMU cache {root} is owned by uid {st.st_uid}, not by you (uid {os.getuid()}): "
+                              f"sep loads shared libraries from it; {hint}")
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise CacheNotPrivate(f"FMU cache {root} is writable by group or others (mode "
+                              f"{stat.S_IMODE(st.st_mode):o}): sep loads shared libraries from it; "
+                              f"chmod 700 it or {hint}")
+
+
 def cache_dir() -> Path:
-    """The folder of unpacked FMUs ($SEP_FMU_CACHE, else <tmp>/sep-fmu-<user>), created."""
+    """The folder of unpacked FMUs ($SEP_FMU_CACHE, else `default_cache_root()`), created with
+    mode 0700 and checked to be private (`check_private`)."""
     env = os.environ.get(CACHE_ENV)
-    if env:
-        root = Path(env).expanduser()
-    else:
-        try:
-            user = getpass.getuser()
-        except Exception:  # noqa: BLE001 - no user name (containers): the uid will do
-            user = str(os.getuid()) if hasattr(os, "getuid") else "user"
-        root = Path(tempfile.gettempdir()) / f"sep-fmu-{user}"
+    root = Path(env).expanduser() if env else default_cache_root()
     root.mkdir(mode=0o700, parents=True, exist_ok=True)
+    check_private(root)
     return root
 
 
@@ -124,5 +148,5 @@ def cached_copy(data: bytes, sha256: str | None = None) -> Path:
     return path
 
 
-__all__ = ["CACHE_ENV", "archive_problems", "cache_dir", "cached_copy", "sha256_bytes", "sha256_file",
-           "unpacked"]
+__all__ = ["CACHE_ENV", "CacheNotPrivate", "archive_problems", "cache_dir", "cached_copy", "check_private",
+           "default_cache_root", "sha256_bytes", "sha256_file", "unpacked"]
