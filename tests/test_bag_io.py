@@ -334,6 +334,70 @@ def test_bag_sink_flushes_while_open(tmp_path, ep):
     assert read_raw(tmp_path / "bag").complete
 
 
+def test_bag_sink_close_reports_a_writer_that_did_not_finish(tmp_path, ep):
+    """0.8.0's close() joined with a timeout and never looked: a stuck writer went unnoticed and the
+    recorder reported a clean stop with a bag that had no summary."""
+    import threading
+
+    release = threading.Event()
+    sink = _sink(tmp_path / "bag")
+    real = sink._write
+    sink._write = lambda *a: (release.wait(30), real(*a))   # the writer thread stalls on a message
+    sink.start()
+    topic, t, data = episode_messages(ep)[0]
+    sink.put(topic, t, data)
+    assert sink.close(timeout=0.2) is False
+    assert isinstance(sink.error, TimeoutError) and "did not finish" in str(sink.error)
+    release.set()
+    assert sink.close(timeout=30) is True and read_raw(tmp_path / "bag").complete
+
+
+def test_bag_sink_counts_under_its_lock(tmp_path, ep):
+    """The writer thread updates `counts` under `sink.lock`, which the recorder's readers (`total`,
+    `counted()`) take too: 0.8.0 read them from another thread with no lock."""
+    import time
+
+    msgs = episode_messages(ep)[:3]
+    sink = _sink(tmp_path / "bag")
+    sink.start()
+    with sink.lock:
+        for topic, t, data in msgs:
+            sink.put(topic, t, data)
+        time.sleep(0.3)                      # the writer thread has the messages, waits for the lock
+        assert sum(sink.counts.values()) <= 1
+    assert sink.close() is True
+    assert sink.total == 3 and sum(sink.counted().values()) == 3
+
+
+def test_recorder_closes_its_bag_before_its_node_goes(tmp_path, monkeypatch):
+    """0.8.0 destroyed the node first: the writer thread, still draining, asked the dead node for the
+    QoS of a topic's first message and lost it silently."""
+    pytest.importorskip("rclpy")
+    from sep_control.bags import writer
+    from sep_control.ros import record_node
+
+    events = []
+
+    class FakeNode:
+        def __init__(self, sink, topics, namespace):
+            self.sink = sink
+
+        def qos_lookup(self, topic):
+            return []
+
+        def destroy_node(self):
+            events.append("node destroyed")
+
+    real_close = writer.BagSink.close
+    monkeypatch.setattr(writer.BagSink, "close", lambda self, *a, **k: (events.append("sink closed"),
+                                                                        real_close(self, *a, **k))[1])
+    monkeypatch.setattr(record_node, "Recorder", FakeNode)
+    monkeypatch.setattr(record_node, "_record", lambda node, sink, args, stop: "test stop")
+    monkeypatch.setattr(record_node.signal, "signal", lambda *a: None)   # keep pytest's handlers
+    assert record_node.main(["--out", str(tmp_path / "bag")]) == 0
+    assert events == ["sink closed", "node destroyed"]
+
+
 def test_bag_sink_refuses_an_existing_directory(tmp_path):
     (tmp_path / "bag").mkdir()
     sink = _sink(tmp_path / "bag")

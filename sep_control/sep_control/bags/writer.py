@@ -104,6 +104,8 @@ class BagSink:
         self.final_topic = T.topic_name(T.MEASUREMENTS, namespace)
         self.scenario_topic = T.topic_name(T.SCENARIO, namespace)
         self.error: BaseException | None = None
+        #: guards `counts` (written by the writer thread, read by the recorder's thread)
+        self.lock = threading.Lock()
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._opened = threading.Event()
         self._conns: dict[str, object] = {}
@@ -122,14 +124,30 @@ class BagSink:
         if self.error is not None:
             raise self.error
 
-    def close(self, timeout: float = 30.0) -> None:
-        """Write what is queued, close the bag (summary, metadata.yaml) and end the thread."""
+    def close(self, timeout: float = 30.0) -> bool:
+        """Write what is queued, close the bag (summary, metadata.yaml) and end the thread.
+        False, with `error` set, when the thread has not ended within `timeout` seconds (the bag
+        may then lack its summary: `sep_control.bags.repair.repair_bag` completes it)."""
         self._q.put(_STOP)
+        if self._thread.ident is None:
+            return True                      # never started
         self._thread.join(timeout)
+        if self._thread.is_alive():
+            if self.error is None:
+                self.error = TimeoutError(f"the bag writer did not finish {self.out} within {timeout:g} s "
+                                          f"({self._q.qsize()} messages still queued): the bag may be incomplete")
+            return False
+        return True
+
+    def counted(self) -> dict[str, int]:
+        """A copy of the messages written per topic (taken under `lock`)."""
+        with self.lock:
+            return dict(self.counts)
 
     @property
     def total(self) -> int:
-        return sum(self.counts.values())
+        with self.lock:
+            return sum(self.counts.values())
 
     # ------------------------------------------------------------------ writer thread
     def _run(self) -> None:
@@ -188,7 +206,8 @@ class BagSink:
                 offered_qos_profiles=self._offered(topic))
         writer.write(conn, t_ns, data)
         now = time.monotonic()
-        self.counts[topic] = self.counts.get(topic, 0) + 1
+        with self.lock:
+            self.counts[topic] = self.counts.get(topic, 0) + 1
         self.last_msg = now
         self._observe(topic, data, now)
 
@@ -204,7 +223,8 @@ class BagSink:
             topic, t_ns, data = item
             if topic in self._conns:
                 writer.write(self._conns[topic], t_ns, data)
-                self.counts[topic] = self.counts.get(topic, 0) + 1
+                with self.lock:
+                    self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def _offered(self, topic: str) -> list:
         try:

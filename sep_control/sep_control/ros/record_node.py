@@ -291,9 +291,11 @@ def main(argv: list[str] | None = None) -> int:
         sink.qos_lookup = node.qos_lookup
         reason = _record(node, sink, args, stop)
     finally:
+        # the sink first: its writer thread still asks the node for QoS profiles (`qos_lookup`)
+        # while it drains the queue; close() reports a writer that did not finish (sink.error)
+        sink.close()
         if node is not None:
             node.destroy_node()
-        sink.close()
         if rclpy.ok():
             rclpy.shutdown()
     return _report(reason or (signalled[0] if signalled else "stopped"), sink, out)
@@ -301,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _report(reason: str, sink: BagSink, out: Path) -> int:
     """Print what was written (stdout) and a writer error (stderr); the exit code."""
-    counts = ", ".join(f"{t}: {n}" for t, n in sorted(sink.counts.items())) or "no messages"
+    counts = ", ".join(f"{t}: {n}" for t, n in sorted(sink.counted().items())) or "no messages"
     print(f"{PROG}: {reason}; wrote {sink.total} messages to {out} ({counts})", flush=True)
     if sink.error is not None:
         print(f"{PROG}: error: {sink.error}", file=sys.stderr)
