@@ -302,6 +302,27 @@ def test_design_command_refuses_bad_disturbance_settings(tmp_path, capsys, args,
     assert not (tmp_path / "d.npz").exists()
 
 
+def test_design_command_exits_2_on_a_disturbance_error_inside_the_design(tmp_path, capsys, monkeypatch):
+    """A DisturbanceError raised by the design itself (e.g. no input direction detectable once the ROM
+    is known) gave a traceback and exit 1 in 0.8.0."""
+    from sep_control.cli import design as design_cli
+    from sep_control.cli.main import main
+
+    def refuse(*args, **kwargs):
+        raise DisturbanceError("the ROM's step gain is zero over the band window: no input disturbance is "
+                               "detectable; use disturbance: output or none")
+
+    monkeypatch.setattr(design_cli, "run_design", refuse)
+    scen = tmp_path / "tiny.yaml"
+    scen.write_text(TINY_YAML)
+    with pytest.raises(SystemExit) as exc:
+        main(["design", "--scenario", str(scen), "--out", str(tmp_path / "d.npz"), "--quiet", "--disturbance", "input"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "sep design: error: the disturbance model does not fit this plant: the ROM's step gain is zero" in err
+    assert "Traceback" not in err and not (tmp_path / "d.npz").exists()
+
+
 def test_scenario_design_section_refuses_an_unknown_kind(tmp_path, capsys):
     from sep_control.cli.main import main
 

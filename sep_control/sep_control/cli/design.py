@@ -9,7 +9,7 @@ from dataclasses import asdict
 from typing import Any
 
 from sep_estimator.design_file import save_design
-from sep_estimator.disturbance import STD0_BANDS
+from sep_estimator.disturbance import STD0_BANDS, DisturbanceError
 from sep_estimator.disturbance import summary as disturbance_summary
 
 from sep_control.cli.common import (add_compute_options, add_deprecated, blas_threads, engine_or_exit, fail, groups,
@@ -181,9 +181,13 @@ def recorded_settings(settings: DesignSettings, plant, n_steps: int) -> dict[str
 
 
 def make_design(plant, scenario, settings: DesignSettings, args: argparse.Namespace, log, show_progress: bool):
-    """`run_design` with the compute options of `args` (--threads, --dask)."""
+    """`run_design` with the compute options of `args` (--threads, --dask); a disturbance model
+    that does not fit the identified ROM (DisturbanceError) exits 2 with its message."""
     with blas_threads(args.threads), engine_or_exit(args.dask, log=stderr_log()) as engine:
-        return run_design(plant, scenario.problem, settings, show_progress=show_progress, log=log, engine=engine)
+        try:
+            return run_design(plant, scenario.problem, settings, show_progress=show_progress, log=log, engine=engine)
+        except DisturbanceError as exc:
+            fail(f"the disturbance model does not fit this plant: {exc}")
 
 
 def run(args: argparse.Namespace) -> int:
