@@ -163,7 +163,8 @@ def test_evaluate_garbage_design_file(tmp_path, capsys):
 
 def test_evaluate_missing_design_file(tmp_path, capsys):
     code, err = exit_code_and_stderr(capsys, evaluate_cli_main, ["--design", str(tmp_path / "none.npz")])
-    assert code not in (0, None) and "not found" in err and "design --out" in err
+    assert code not in (0, None) and "not found" in err
+    assert f"`sep design --scenario SCENARIO --out {tmp_path / 'none.npz'}`" in err     # 0.8.0: `design --out`
 
 
 def test_evaluate_bad_runs(tiny, capsys):

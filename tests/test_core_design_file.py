@@ -485,7 +485,7 @@ def test_version_1_file_of_sep01_is_read(tmp_path):
 
 def test_newer_version_refused_with_how_to_regenerate(design_path, tmp_path):
     msg = refused(rewrite_design_file(design_path, tmp_path / "v9.npz", edit_meta=lambda m: {**m, "version": 9}))
-    assert "version 9" in msg and "re-run `design" in msg.lower()
+    assert "version 9, written by a newer sep" in msg and "Upgrade sep, or re-run `sep design --scenario" in msg
 
 
 def test_noise_input_map_round_trip(tmp_path):

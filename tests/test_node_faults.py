@@ -310,6 +310,8 @@ def test_corrupt_or_missing_design_refused(launcher, other_files, tmp_path, case
     assert rc == 2, out
     assert {'corrupt': 'not a design file', 'missing': 'design file not found',
             'absent': 'design_file is required'}[case] in out
+    if case != 'corrupt':                       # 0.8.0 pointed to the old `design --out` entry point
+        assert '`sep design --scenario SCENARIO --out' in out, out
 
 
 @pytest.mark.parametrize('exe,params,expect', [

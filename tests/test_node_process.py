@@ -93,3 +93,62 @@ def test_a_failing_health_is_logged_and_published_as_an_error(tmp_path):
     assert p.stderr.count("Traceback") == 1                 # the traceback once, not per period
     line = next(ln for ln in p.stdout.splitlines() if ln.startswith("STATUS"))
     assert "health() failed: KeyError" in line and "b'\\x02'" in line, line
+
+
+STOPS_MID_EPISODE = textwrap.dedent("""
+    import sys
+    from sep_plant.ros.base import NodeBase, StopError
+    from sep_plant.ros.process import NodeProcess, run_node
+
+    class Node(NodeBase):
+        role = 'lqg'
+        def summary(self, status):
+            return {'node': self.role, 'status': status}
+
+    def episode(executor):
+        raise StopError('the plant scenario changed mid-episode (after step 7) and no longer fits the design')
+
+    sys.exit(run_node(lambda a: NodeProcess([Node('probe')], 'single', episode=episode),
+                      ['probe', '--ros-args', '-p', 'summary_file:=' + sys.argv[1]], 'probe'))
+""")
+
+
+def _designed(last_k: int):
+    """A stand-in for a DesignedNode (only what `_on_scenario` reads) after `last_k` steps."""
+    from types import SimpleNamespace
+
+    from sep_estimator.ros.designed_node import DesignedNode
+
+    node = SimpleNamespace(design=None, allow_model_mismatch=False, design_file="d.npz", last_k=last_k,
+                           fatal=None, sub_scenario=SimpleNamespace(topic_name="/sep/scenario"))
+    node._scenario_refused = lambda why: DesignedNode._scenario_refused(node, why)
+    return node, DesignedNode._on_scenario
+
+
+def test_a_scenario_that_changes_mid_episode_says_the_node_stops_and_why(monkeypatch):
+    """0.8.0 logged 'refusing to start' for a scenario that changed after the node had run steps."""
+    from sep_estimator import design_file, model_mismatch
+    from sep_plant import scenario
+
+    def mismatch(*args, **kwargs):
+        raise design_file.DesignFileError("design file d.npz: plant n_u 3 != 2")
+
+    monkeypatch.setattr(scenario, "parse_scenario_message", lambda data: (None, None, None))
+    monkeypatch.setattr(model_mismatch, "model_mismatch", mismatch)
+    before, on_scenario = _designed(-1)
+    on_scenario(before, type("Msg", (), {"data": "{}"})())
+    assert before.fatal.lead == "refusing to start"                 # at start: a refusal, as before
+    after, _ = _designed(7)
+    on_scenario(after, type("Msg", (), {"data": "{}"})())
+    msg = str(after.fatal)
+    assert after.fatal.lead == "stopping" and after.fatal.exit_code == 2
+    assert "changed mid-episode (after step 7)" in msg and "stops commanding" in msg and "n_u 3 != 2" in msg
+
+
+def test_a_node_that_stops_mid_episode_logs_stopping_and_writes_its_summary(tmp_path):
+    summary = tmp_path / "summary.json"
+    p = child(STOPS_MID_EPISODE, str(summary))
+    assert p.returncode == 2, p.stderr
+    assert "stopping: the plant scenario changed mid-episode" in p.stderr and "refusing to start" not in p.stderr
+    summ = json.loads(summary.read_text())
+    assert summ["status"] == "error" and "changed mid-episode" in summ["error"]

@@ -266,7 +266,8 @@ def load_design(path: str | Path, expect_scenario: Scenario | None = None) -> De
     """
     path = Path(path)
     if not path.is_file():
-        raise DesignFileError(f"design file not found: {path} (create one with `design --out {path}`)")
+        raise DesignFileError(f"design file not found: {path} (create one with "
+                              f"`sep design --scenario SCENARIO --out {path}`)")
     raw = _read_archive(path)
     meta = _read_meta(path, raw)
     version = meta["version"]
@@ -316,9 +317,11 @@ def _read_meta(path: Path, raw: dict[str, np.ndarray]) -> dict[str, Any]:
         raise DesignFileError(f"{path}: not a sep design file (format {meta.get('format') if isinstance(meta, dict) else None!r})")
     version = meta.get("version")
     if version not in READS:
-        raise DesignFileError(f"{path}: design file version {version!r}; this sep reads versions "
-                              f"{', '.join(map(str, READS))}. Re-run `design --scenario SCENARIO --out {path}` "
-                              "with this version to regenerate it")
+        newer = isinstance(version, int) and version > max(READS)
+        raise DesignFileError(f"{path}: design file version {version!r}"
+                              + (", written by a newer sep" if newer else "") + "; this sep reads versions "
+                              f"{', '.join(map(str, READS))}. " + ("Upgrade sep, or re-run " if newer else "Re-run ")
+                              + f"`sep design --scenario SCENARIO --out {path}` with this sep to regenerate it")
     return meta
 
 

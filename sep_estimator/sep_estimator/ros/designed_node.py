@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import NodeBase, StartError, declare, steady
+from sep_plant.ros.base import NodeBase, StartError, StopError, declare, steady
 from sep_plant.ros.process import spin_once
 
 _DESIGN_CACHE: dict[str, object] = {}
@@ -28,7 +28,7 @@ def load_design_checked(path: str):
 
     if not path:
         raise StartError('parameter design_file is required (create one with '
-                         '`design --out FILE`, then -p design_file:=FILE)')
+                         '`sep design --scenario SCENARIO --out FILE`, then -p design_file:=FILE)')
     try:
         design = _DESIGN_CACHE.get(path) or load_design(path)
     except DesignFileError as exc:
@@ -103,16 +103,17 @@ class DesignedNode(NodeBase):
         from sep_estimator.model_mismatch import model_mismatch
         from sep_plant.scenario import parse_scenario_message
 
+        topic = self.sub_scenario.topic_name
         try:
             plant, info, perturbation = parse_scenario_message(msg.data)
         except ValueError as exc:
-            self.fatal = StartError(f'unreadable plant scenario on {self.sub_scenario.topic_name}: {exc}')
+            self.fatal = self._scenario_refused(f'unreadable plant scenario on {topic}: {exc}')
             return
         try:
             diffs = model_mismatch(self.design, plant, info, perturbation, self.allow_model_mismatch,
                                    f'design file {self.design_file}')
         except DesignFileError as exc:
-            self.fatal = StartError(f'{exc} (plant scenario from {self.sub_scenario.topic_name})')
+            self.fatal = self._scenario_refused(f'{exc} (plant scenario from {topic})')
             return
         changed = diffs != self.model_mismatch
         self.model_mismatch = diffs
@@ -121,6 +122,14 @@ class DesignedNode(NodeBase):
         if not self.plant_scenario_checked and not diffs:
             self.log.info(f'plant scenario on {self.sub_scenario.topic_name} matches the design')
         self.plant_scenario_checked = True
+
+    def _scenario_refused(self, why: str) -> StartError:
+        """Before the first step: a refusal to start. After steps were run (the plant's scenario
+        changed mid-episode): a StopError that says so, at which step, and why."""
+        if self.last_k < 0:
+            return StartError(why)
+        return StopError(f'the plant scenario changed mid-episode (after step {self.last_k}) and no longer '
+                         f'fits the design, so this node stops commanding: {why}')
 
     @staticmethod
     def mismatch_note(summary: dict) -> str:

@@ -39,6 +39,16 @@ class StartError(Exception):
     """A node cannot start (bad parameter, bad file, mismatch): logged, exit code EXIT_CONFIG."""
 
     exit_code = EXIT_CONFIG
+    #: how the node's log line about it starts (`sep_plant.ros.process.run_node`)
+    lead = 'refusing to start'
+
+
+class StopError(StartError):
+    """A check that passed at start fails after the node has run steps (the plant's scenario changed
+    mid-episode): the node says that it stops and why, writes its summary with status 'error' and
+    exits EXIT_CONFIG."""
+
+    lead = 'stopping'
 
 
 EXECUTORS = ('events', 'single')

@@ -11,8 +11,8 @@ import threading
 from typing import Any, Callable, Sequence
 
 from sep_plant.episode import EXIT_TIMEOUT, EpisodeError
-from sep_plant.ros.base import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, NodeBase, StartError, limit_blas_threads,
-                                make_executor, parse_front, sim_time_default)
+from sep_plant.ros.base import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, NodeBase, StartError, StopError,
+                                limit_blas_threads, make_executor, parse_front, sim_time_default)
 
 
 #: seconds the start (rclpy.init and building the node: its DDS entities, the plant, the design
@@ -135,7 +135,9 @@ def run_node(make: Callable[[list[str]], Any], args: list[str], logger_name: str
             start.disarm()
         rc = proc.run()
     except StartError as exc:
-        get_logger(logger_name).error(f'refusing to start: {exc}')
+        get_logger(logger_name).error(f'{exc.lead}: {exc}')
+        if isinstance(exc, StopError) and proc is not None:
+            proc.finish(status='error', error=f'{exc.lead}: {exc}')
         rc = exc.exit_code
     except EpisodeError as exc:
         get_logger(logger_name).error(str(exc))
