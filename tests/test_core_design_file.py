@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import sep_plant
+
 from core_helpers import flat, rewrite_design_file
 from sep_estimator.design import Design, Nominal
 from sep_estimator.design_file import (ARRAYS, SINGLE, VERSION, DesignFileError, arrays_of, check_matches,
@@ -601,8 +603,9 @@ def test_saved_design_records_its_sources_and_their_digest(design_path):
 
     meta = load_design(design_path).meta
     src = meta["source"]
-    assert set(src) == {"format_version", "plant", "plant_files", "problem", "settings"}
+    assert set(src) == {"format_version", "sep_version", "plant", "plant_code", "plant_files", "problem", "settings"}
     assert src["format_version"] == VERSION and src["plant_files"] == {}
+    assert src["sep_version"] == sep_plant.__version__ and src["plant_code"] == {"builtin": True}
     assert src["plant"] == {"type": "slab", **json.loads(json.dumps(SCENARIO.plant_config))}
     assert src["problem"] == SCENARIO.problem.resolved().to_dict()
     assert src["settings"] == {"n_r": N_R, "method": "gn"}
@@ -634,6 +637,62 @@ def test_source_record_missing_or_edited(design_path, tmp_path):
     edited = rewrite_design_file(design_path, tmp_path / "edited.npz",
                      edit_meta=lambda m: {**m, "source": {**m["source"], "settings": {"n_r": 99}}})
     assert "does not match its digest" in source_differences(load_design(edited), SCENARIO, same)[0]
+
+
+def test_the_digest_covers_the_sep_version(design_path, monkeypatch):
+    """0.8.0's digest did not cover the code: `sep demo` reused a design made by an older sep."""
+    from sep_estimator.design_source import source_differences
+
+    d = load_design(design_path)
+    same = {"n_r": N_R, "method": "gn"}
+    assert source_differences(d, SCENARIO, same) == []
+    monkeypatch.setattr(sep_plant, "__version__", "99.0.0")
+    recorded = d.meta["source"]["sep_version"]
+    assert source_differences(d, SCENARIO, same) == [f"sep version: {recorded!r} != '99.0.0'"]
+
+
+def test_the_digest_covers_the_plant_module_given_by_import_path(tmp_path, monkeypatch):
+    """A plant given as 'module:Class' is identified by the SHA-256 of its module's source: an edited
+    plant module is a different design (0.8.0 reused the design made by the old code)."""
+    import hashlib
+
+    from sep_estimator.design_source import plant_code, source_differences
+
+    monkeypatch.syspath_prepend(str(tmp_path))
+    module = tmp_path / "my_toy_plant.py"
+    module.write_text("from broken_plants import ToyPlant\n\n\nclass Toy(ToyPlant):\n    pass\n")
+    s = Scenario.from_dict({"plant": {"type": "my_toy_plant:Toy"}, "n_steps": 5, "band_window": [3, 5],
+                            "target": 1.0})
+    d = load_design(save_design(tmp_path / "t.npz", synthetic_design(s)))
+    code = d.meta["source"]["plant_code"]
+    assert code == {"module": "my_toy_plant", "package": "my_toy_plant", "package_version": None,
+                    "module_sha256": hashlib.sha256(module.read_bytes()).hexdigest()}
+    assert source_differences(d, s, {"n_r": N_R, "method": "gn"}) == []
+    old = code["module_sha256"]
+    module.write_text(module.read_text() + "# the physics changed\n")
+    new = plant_code("my_toy_plant:Toy")["module_sha256"]
+    assert source_differences(d, s, {"n_r": N_R, "method": "gn"}) == \
+        [f"plant module source sha256: {old[:12]} != {new[:12]}"]
+
+
+def test_the_digest_covers_a_plant_packages_version():
+    """A plant from an installed distribution is identified by that distribution's version too."""
+    from importlib.metadata import version
+
+    from sep_estimator.design_source import plant_code
+
+    code = plant_code("numpy.polynomial:Polynomial")       # any class of an installed distribution
+    assert code["package"] == "numpy" and code["package_version"] == version("numpy")
+    assert len(code["module_sha256"]) == 64
+
+
+def test_the_digest_does_not_change_the_design_arrays(design_path, tmp_path, monkeypatch):
+    """The record is metadata: a design saved by another sep has the same arrays, another digest."""
+    d = load_design(design_path)
+    monkeypatch.setattr(sep_plant, "__version__", "99.0.0")
+    again = load_design(save_design(tmp_path / "again.npz", d))
+    assert again.meta["source_digest"] != load_design(design_path).meta["source_digest"]
+    assert_same(again, load_design(design_path))
 
 
 def test_plant_files_are_recorded_by_content(tmp_path):
