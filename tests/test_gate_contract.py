@@ -64,6 +64,23 @@ def test_check_step_order():
     assert gate.check_horizon(10, 10) is None
 
 
+def test_check_message_is_the_chain_stamp_horizon_order_vector():
+    """The one gate chain every node uses (plant commands, LQR estimates, estimator inputs)."""
+    dt = 250_000_000
+    k, v, rej = gate.check_message(3 * dt, dt, 10, ['sensor_2', 'sensor_0', 'sensor_1'], [3.0, 1.0, 2.0], NAMES,
+                                   'measurement', order=(3, 2, False))
+    assert (k, rej) == (3, None) and v.tolist() == [1.0, 2.0, 3.0]
+    assert gate.check_message(3 * dt + dt // 2, dt, 10, NAMES, [1, 2, 3], NAMES, 'm')[2].category == gate.BAD_STAMP
+    assert gate.check_message(11 * dt, dt, 10, NAMES, [1, 2, 3], NAMES, 'm')[2].category == gate.BEYOND_HORIZON
+    k, v, rej = gate.check_message(3 * dt, dt, 10, NAMES, [1, 2, 3], NAMES, 'm', order=(4, 3, True))
+    assert (k, v, rej.category) == (3, None, gate.DUPLICATE)                   # order before the vector
+    k, v, rej = gate.check_message(5 * dt, dt, 10, NAMES, [1, math.nan, 3], NAMES, 'm', order=(4, 3, False))
+    assert (k, rej.category) == (5, gate.AHEAD)
+    k, v, rej = gate.check_message(5 * dt, dt, 10, NAMES, [1, math.nan, 3], NAMES, 'm', order=(4, 3, True))
+    assert (k, v, rej.category) == (5, None, gate.NON_FINITE) and 'm:' in rej.detail
+    assert gate.check_stamp(4 * dt, dt, 3) == (None, gate.check_horizon(4, 3))
+
+
 def test_rejection_log_and_chi2():
     log = gate.RejectionLog()
     log.add(gate.Rejection(gate.STALE, 'a'))

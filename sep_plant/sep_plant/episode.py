@@ -148,14 +148,8 @@ class PlantEpisode:
         Returns None when it is the command of the current step (kept for it), else the
         `gate.Rejection` (counted in `rejections`)."""
         t = self.clock() if t is None else t
-        k, rej = gate.step_of_stamp(stamp_ns, self.dt_ns)
-        if rej is None:
-            rej = gate.check_horizon(k, self.N - 1)
-        if rej is None:
-            rej = gate.check_step(k, expected=self.k, last=self.last_cmd_step, allow_ahead=False)
-        u = None
-        if rej is None:
-            u, rej = gate.check_vector(names, values, self.input_names, 'command effort')
+        k, u, rej = gate.check_message(stamp_ns, self.dt_ns, self.N - 1, names, values, self.input_names,
+                                       'command effort', order=(self.k, self.last_cmd_step, False))
         if rej is not None:
             self.rejections.add(rej)
             return rej

@@ -1,7 +1,9 @@
 """Checks of incoming contract messages, without ROS: lengths, names, finiteness, stamps, order.
 
 Every node gates what it receives through these functions before using it (the estimator
-its measurements and inputs, the plant its heat commands, the LQR its state estimates).
+its measurements and inputs, the plant its commands, the LQR its state estimates). The chain of
+checks of one message, stamp -> horizon -> order -> vector, is written once: `check_message`
+(`check_stamp` for its first two links, when a node checks the vector apart).
 A failed check gives a `Rejection` (a short category for counters and a sentence for logs);
 nodes count rejections per category and report them on /diagnostics.
 
@@ -107,6 +109,33 @@ def check_horizon(k: int, last_step: int) -> Rejection | None:
     if not 0 <= k <= last_step:
         return Rejection(BEYOND_HORIZON, f'step {k} is outside 0..{last_step}')
     return None
+
+
+def check_stamp(ns: int, dt_ns: int, last_step: int) -> tuple[int | None, Rejection | None]:
+    """(k, None) for a stamp of `ns` nanoseconds on the grid k * dt_ns with 0 <= k <= last_step,
+    else (None, Rejection) (`step_of_stamp`, then `check_horizon`)."""
+    k, rej = step_of_stamp(ns, dt_ns)
+    if rej is None:
+        rej = check_horizon(k, last_step)
+    return (None, rej) if rej is not None else (k, None)
+
+
+def check_message(ns: int, dt_ns: int, last_step: int, names: Sequence[str], values: Sequence[float],
+                  expected: Sequence[str], what: str, *, order: tuple[int, int, bool] | None = None
+                  ) -> tuple[int | None, np.ndarray | None, Rejection | None]:
+    """The whole gate of one message: stamp on the grid -> step within 0..last_step -> order
+    (when `order` = (expected step, last accepted step, allow_ahead) is given, `check_step`) ->
+    named vector (`check_vector`, labelled `what`).
+
+    Returns (k, values in the order of `expected`, None) when it passes; else (k or None, None,
+    the first Rejection): k is known once the stamp passed."""
+    k, rej = check_stamp(ns, dt_ns, last_step)
+    if rej is None and order is not None:
+        rej = check_step(k, expected=order[0], last=order[1], allow_ahead=order[2])
+    if rej is not None:
+        return k, None, rej
+    v, rej = check_vector(names, values, expected, what)
+    return k, v, rej
 
 
 class RejectionLog:

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sep_plant.protocol import clip_inputs
+
 from sep_control.control.controllers import Controller
 
 
@@ -95,7 +97,7 @@ class ControlLoopCore:
             return Decision(k, end=True)
         self.n_fallbacks += 1
         self.fallback_steps.append(k)
-        return Decision(k, np.clip(self.u_nom[k], self.lo, self.hi), fallback=True)
+        return Decision(k, np.array(clip_inputs(self.u_nom[k], self.lo, self.hi)), fallback=True)
 
     def counters(self) -> dict:
         """Counts for the summary and /diagnostics."""

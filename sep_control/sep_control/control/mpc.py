@@ -47,6 +47,7 @@ import scipy.sparse as sp
 
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Problem
+from sep_plant.protocol import clip_inputs
 
 from sep_control.design.gains import lqr_gains
 
@@ -246,4 +247,4 @@ class RomMPC:
         return np.clip(res.x, lo, hi), "ok"
 
     def _clip(self, u: np.ndarray) -> np.ndarray:
-        return np.clip(u, self.lo, self.hi)
+        return clip_inputs(u, self.lo, self.hi)

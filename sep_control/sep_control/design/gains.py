@@ -34,6 +34,7 @@ from sep_estimator.disturbance import Disturbance, augment, cross_input, noise_c
 from sep_estimator.ltv import LQG, KalmanSchedule, LTVModel
 from sep_estimator.tvkf import kalman_gains, schedule_from_posteriors
 from sep_plant.problem import Problem
+from sep_plant.protocol import clip_inputs
 
 
 def tv_lqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,10 +105,7 @@ def output_weights(C: np.ndarray, q_y: np.ndarray) -> np.ndarray:
 def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min, u_max) -> np.ndarray:
     """u_k = clip(ubar_k + K_k zhat_k); a_hat (M, n) or (n,) the filter's state (with the
     disturbance estimates, if any); limits scalars or (n_u,)."""
-    u = u_nom_k + a_hat @ K_k.T
-    if np.any(np.isfinite(u_min)) or np.any(np.isfinite(u_max)):
-        u = np.clip(u, u_min, u_max)
-    return u
+    return clip_inputs(u_nom_k + a_hat @ K_k.T, u_min, u_max)
 
 
 @dataclass(frozen=True)

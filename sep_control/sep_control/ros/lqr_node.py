@@ -152,15 +152,9 @@ class LqrNode(DesignedNode):
     # ---------------------------------------------------- standalone inputs
     def _on_estimate_msg(self, msg) -> None:
         t = steady()
-        k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
-        if rej is None:
-            rej = gate.check_horizon(k, self.N)
-        if rej is None:
-            rej = gate.check_step(k, expected=max(self.last_est + 1, 0), last=self.last_est,
-                                  allow_ahead=True)
-        a = None
-        if rej is None:
-            a, rej = gate.check_vector(msg.name, msg.position, self.labels, 'state_estimate position')
+        k, a, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N, msg.name, msg.position,
+                                       self.labels, 'state_estimate position',
+                                       order=(max(self.last_est + 1, 0), self.last_est, True))
         if rej is not None:
             self.reject('state_estimate', rej, self.rej)
             return

@@ -37,6 +37,7 @@ import sys
 import numpy as np
 
 from sep_plant import gate
+from sep_plant.protocol import clip_inputs
 from sep_plant.ros import contract as c
 from sep_plant.ros.base import SampleWindow, StartError, declare, fmt_s, steady
 from sep_plant.ros.process import NodeProcess, node_main
@@ -125,7 +126,7 @@ class EstimatorNode(DesignedNode):
                              field_precision=self.field_precision)
         a, _ = core.measurement(0, d.nominal.y[0])
         lo, hi = d.problem.limits(self.info.n_u)
-        np.clip(d.nominal.u[0] + a @ d.lqg.K[0].T, lo, hi)   # the LQR law's ops
+        clip_inputs(d.nominal.u[0] + a @ d.lqg.K[0].T, lo, hi)   # the LQR law's ops
         f, std = core.field_estimate()
         core.applied(0, d.nominal.u[0])
         core.measurement(2, None)                            # gap + skip: the off-schedule paths
@@ -138,9 +139,7 @@ class EstimatorNode(DesignedNode):
 
     # -------------------------------------------------------------- helpers
     def _step_of(self, msg, what: str, last_step: int) -> int | None:
-        k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
-        if rej is None:
-            rej = gate.check_horizon(k, last_step)
+        k, rej = gate.check_stamp(c.time_ns(msg.header.stamp), self.dt_ns, last_step)
         if rej is not None:
             self.reject(what, rej, self.rej)
             return None
@@ -187,10 +186,8 @@ class EstimatorNode(DesignedNode):
             self.done = True
 
     def _on_applied(self, msg) -> None:
-        j = self._step_of(msg, 'applied_input', self.N - 1)
-        if j is None:
-            return
-        u, rej = gate.check_vector(msg.name, msg.effort, self.input_names, 'applied_input effort')
+        j, u, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N - 1, msg.name, msg.effort,
+                                       self.input_names, 'applied_input effort')
         if rej is None:
             rej = self.core.applied(j, u)
         if rej is not None:
