@@ -218,9 +218,21 @@ class Objective:
         J : ndarray, shape (...)
             The cost of every run (a 0-d array without a run axis).
         """
-        q = self.q[1:]
-        field = np.einsum("k,...k->...", q, np.mean((F[..., 1:, :] - self.target) ** 2, axis=-1))
+        field = np.einsum("k,...k->...", self.q[1:], self.squared_error(F[..., 1:, :]))
         return field + self.r_u * np.sum(U**2, axis=(-2, -1))
+
+    # the same J one step at a time (a streaming sum: `sep_control.evaluation.metrics.MetricsAccumulator`)
+    def squared_error(self, f: np.ndarray) -> np.ndarray:
+        """e = mean_i (f_i - f*_i)^2 of fields f (..., n_field): the field term of J before q_k."""
+        return np.mean((f - self.target) ** 2, axis=-1)
+
+    def field_cost(self, k: int, e_k: np.ndarray) -> np.ndarray:
+        """Step k's field term of J, q_k e_k (0 for k = 0: f_0 does not enter)."""
+        return self.q[k] * e_k if k >= 1 else np.zeros_like(e_k)
+
+    def input_cost(self, u_k: np.ndarray) -> np.ndarray:
+        """Step k's input term of J, r_u |u_k|^2, of inputs u_k (..., n_u)."""
+        return self.r_u * np.sum(u_k**2, axis=-1)
 
 
 # ------------------------------------------------------------ expressions

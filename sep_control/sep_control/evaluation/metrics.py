@@ -23,7 +23,8 @@ JSON_KEYS = ("cost_mean", "cost_std", "in_band", "rms", "mean_dev_start", "mean_
 
 
 def nominal_cost(F: np.ndarray, U: np.ndarray, obj: Objective) -> np.ndarray:
-    """J = sum_{k=1..N} q_k mean_i (f_{k,i} - f*_i)^2 + r_u sum_{k=0..N-1} |u_k|^2 (`Objective.cost`)."""
+    """J = sum_{k=1..N} q_k mean_i (f_{k,i} - f*_i)^2 + r_u sum_{k=0..N-1} |u_k|^2: `Objective.cost`, the
+    one place J is written (its step-by-step form, for `MetricsAccumulator`, is beside it)."""
     return obj.cost(F, U)
 
 
@@ -89,18 +90,17 @@ class MetricsAccumulator:
     def add_field(self, k: int, f_k: np.ndarray, rows: slice = slice(None)) -> None:
         """The field of step k of the runs `rows` (all by default; a chunk of them otherwise)."""
         obj = self.obj
-        err = f_k - obj.target
-        sq = np.mean(err**2, axis=-1)
+        sq = obj.squared_error(f_k)
         if k >= 1:
-            self.cost[rows] += obj.q[k] * sq
+            self.cost[rows] += obj.field_cost(k, sq)
         k0, k1 = obj.window
         if k0 <= k <= k1:
-            self.band_ok[rows] &= np.all(np.abs(err) <= obj.band, axis=-1)
+            self.band_ok[rows] &= np.all(np.abs(f_k - obj.target) <= obj.band, axis=-1)
             self.sq_sum[rows] += sq
         self.sum_traj[k] += np.sum(f_k, axis=0)
 
     def add_input(self, k: int, u_k: np.ndarray, rows: slice = slice(None)) -> None:
-        self.cost[rows] += self.obj.r_u * np.sum(u_k**2, axis=-1)
+        self.cost[rows] += self.obj.input_cost(u_k)
 
     def state(self) -> dict[str, np.ndarray]:
         """The per-run sums and the summed field (to merge a chunk's accumulator into another)."""
