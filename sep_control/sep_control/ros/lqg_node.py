@@ -19,15 +19,12 @@ from sep_plant.ros.process import NodeProcess, node_main
 from sep_estimator.ros.estimator_node import PARAMETERS as EST_PARAMETERS
 from sep_estimator.ros.estimator_node import EstimatorNode
 
-from sep_control.ros.lqr_node import LqrNode
+from sep_control.ros.lqr_node import CONTROLLER_PARAMETERS, LqrNode
 
-PARAMETERS = EST_PARAMETERS.replace('sep_estimator)/share/sep_estimator/config/estimator.yaml',
-                                    'sep_control)/share/sep_control/config/lqg.yaml') + """
-  controller (str, rom_lqg)        rom_lqg | rom_mpc (box-constrained MPC on the ROM: input limits
-                                   planned for); lqr, mpc: deprecated spellings of the two
-  mpc_horizon (int, 20)            rom_mpc: horizon H in steps
-  mpc_time_budget_s (float, 0.02)  rom_mpc: a QP slower than this falls back to the clipped LQR command
-  (the LQR's estimate_timeout_s does not apply: the estimate is computed in-process)"""
+#: the estimator's parameters, then the control law's (the lqr's estimate_timeout_s does not apply)
+PARAMETERS = (EST_PARAMETERS.replace('sep_estimator)/share/sep_estimator/config/estimator.yaml',
+                                     'sep_control)/share/sep_control/config/lqg.yaml') + CONTROLLER_PARAMETERS
+              + "\n  (the LQR's estimate_timeout_s does not apply: the estimate is computed in-process)")
 
 
 class LqgProcess(NodeProcess):

@@ -40,16 +40,19 @@ from sep_control.control.controllers import (CONTROLLER_ALIASES, NODE_CONTROLLER
 from sep_control.control.loop import ControlLoopCore
 from sep_control.control.mpc import DEFAULT_BUDGET_S, DEFAULT_HORIZON
 
-PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_control)/share/sep_control/config/lqr.yaml):
-  design_file (str, required)      design file written by `design`
-  scenario_file (str, '')          refuse to start unless the design matches this scenario
-  wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
-  allow_model_mismatch (bool, false)  run on a plant whose keys or actuator/sensor perturbation
-                                   differ from the design's (logged, reported as model_mismatch)
+#: the control-law parameters (help text), shared by the lqr and lqg executables
+CONTROLLER_PARAMETERS = """
   controller (str, rom_lqg)        rom_lqg | rom_mpc (box-constrained MPC on the ROM, input limits
                                    planned for); lqr, mpc: deprecated spellings of the two
   mpc_horizon (int, 20)            rom_mpc: horizon H in steps
-  mpc_time_budget_s (float, 0.02)  rom_mpc: a QP slower than this falls back to the clipped LQR command
+  mpc_time_budget_s (float, 0.02)  rom_mpc: a QP slower than this falls back to the clipped LQR command"""
+
+PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_control)/share/sep_control/config/lqr.yaml):
+  design_file (str, required)      design file written by `sep design`
+  scenario_file (str, '')          refuse to start unless the design matches this scenario
+  wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
+  allow_model_mismatch (bool, false)  run on a plant whose keys or actuator/sensor perturbation
+                                   differ from the design's (logged, reported as model_mismatch)""" + CONTROLLER_PARAMETERS + """
   estimate_timeout_s (float, 0.5)  send the nominal input if no estimate of step k arrives
                                    this long (steady clock) after measurement k  (0 = never)
   exit_at_end (bool, true)         exit 0 after the last step (k = N)

@@ -48,7 +48,7 @@ from sep_estimator.ltv import FIELD_PRECISIONS
 from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
 
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_estimator)/share/sep_estimator/config/estimator.yaml):
-  design_file (str, required)      design file written by `design`
+  design_file (str, required)      design file written by `sep design`
   scenario_file (str, '')          refuse to start unless the design matches this scenario
   wait_for_scenario_s (float, 0)   wait for the plant's scenario and check it first
   allow_model_mismatch (bool, false)  run on a plant whose keys or actuator/sensor perturbation

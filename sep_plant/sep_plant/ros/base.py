@@ -1,8 +1,10 @@
-"""What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front,
-parameters with descriptors, exit codes, executors, BLAS thread limits, timing stats, the
-middleware watchdogs, `run_node`; `NodeBase` (an rclpy node with /diagnostics, rejection
-reporting and the end-of-episode summary) and `NodeProcess` (nodes on one executor in one
-process, spun until their episodes are done).
+"""What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front
+(`parse_front`), parameters with descriptors (`declare`), exit codes and start/stop errors
+(`StartError`, `StopError`), executors, BLAS thread limits, timing stats (`SampleWindow`,
+`percentiles`), the summary file (`write_json`), publisher flushing, and `NodeBase` (an rclpy
+node with /diagnostics, rejection reporting and the end-of-episode summary).
+How a node process starts, spins and stops (`run_node`, `NodeProcess`, the middleware
+watchdogs) is in `sep_plant.ros.process`.
 ROS-side module (imports rclpy); the pure algorithm modules never import it.
 """
 from __future__ import annotations
