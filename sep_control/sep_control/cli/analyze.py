@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         path = write_report(rep, out, figures=not args.no_figures)
         if args.json:
-            M.write_json(args.json, rows)
+            M.write_metrics_json(args.json, rows)
     except OSError as exc:
         fail(f"cannot write the report: {exc}")
     keys = [k for k in M.JSON_KEYS if any(r.get(k) is not None for r in rows.values())]

@@ -22,7 +22,7 @@ from sep_control.cli import truth as truth_cli
 from sep_control.compute.progress import RunSteps, bars_wanted
 from sep_control.evaluation import figures
 from sep_control.control.controllers import CONTROLLER_NAMES as CONTROLLERS
-from sep_control.evaluation.metrics import format_table, write_json
+from sep_control.evaluation.metrics import format_table, write_metrics_json
 from sep_control.evaluation.mismatch import plants_record
 from sep_control.evaluation.montecarlo import simulate
 from sep_control.evaluation.sweep import rom_sweep, sweep_run_steps
@@ -147,7 +147,7 @@ def write_outputs(args: argparse.Namespace, design, truth, rows: dict, results: 
         print_sweep(sweep_rows, args.sweep_runs, design)
     if args.json:
         plants = plants_record(design, truth) if truth is not None else {}
-        write_json(args.json, {name: {**row, **plants} for name, row in rows.items()})
+        write_metrics_json(args.json, {name: {**row, **plants} for name, row in rows.items()})
         print(f"metrics written to {args.json}")
     if args.figures:
         written = write_figures(Path(args.figures), design, results, sweep_rows)

@@ -145,8 +145,9 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], keys: Iterable[str] | No
     return "\n".join([line(head), line(["-" * w for w in widths])] + [line(b) for b in body])
 
 
-def write_json(path: str | Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
-    """One object per controller/episode: {"name": ..., <the keys of docs/method.md#metrics>}."""
+def write_metrics_json(path: str | Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
+    """The metrics table as JSON (``--json`` of sep evaluate / analyze): a list of one object per
+    controller/episode, {"name": ..., <the keys of docs/method.md#metrics>}."""
     data = [{"name": name, **{k: v for k, v in r.items()}} for name, r in rows.items()]
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(data, indent=2, default=json_default) + "\n")

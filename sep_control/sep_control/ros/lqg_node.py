@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 
-from sep_plant.ros.base import write_json
+from sep_plant.ros.base import write_summary_json
 from sep_plant.ros.process import NodeProcess, node_main
 from sep_estimator.ros.estimator_node import PARAMETERS as EST_PARAMETERS
 from sep_estimator.ros.estimator_node import EstimatorNode
@@ -53,7 +53,7 @@ class LqgProcess(NodeProcess):
         if error:
             summ['error'] = error
         if self.summary_file:
-            write_json(self.summary_file, summ)
+            write_summary_json(self.summary_file, summ)
 
 
 def main(argv: list[str] | None = None) -> int:

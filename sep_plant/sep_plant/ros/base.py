@@ -1,7 +1,7 @@
 """What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front
 (`parse_front`), parameters with descriptors (`declare`), exit codes and start/stop errors
 (`StartError`, `StopError`), executors, BLAS thread limits, timing stats (`SampleWindow`,
-`percentiles`), the summary file (`write_json`), publisher flushing, and `NodeBase` (an rclpy
+`percentiles`), the summary file (`write_summary_json`), publisher flushing, and `NodeBase` (an rclpy
 node with /diagnostics, rejection reporting and the end-of-episode summary).
 How a node process starts, spins and stops (`run_node`, `NodeProcess`, the middleware
 watchdogs) is in `sep_plant.ros.process`.
@@ -142,7 +142,8 @@ def fmt_s(v: float | None) -> str:
     return f'{v * 1e3:.3f} ms' if v >= 1e-3 else f'{v * 1e6:.0f} us'
 
 
-def write_json(path: str | os.PathLike, obj: Any) -> Path:
+def write_summary_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write a node's summary `obj` as JSON to `path` atomically (a temporary file renamed)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(p.name + '.tmp')
@@ -328,7 +329,7 @@ class NodeBase:
         self.publish_diagnostics()
         self.log.info(f'{self.finish_label()} {status}: ' + self.summary_line(summ))
         if self.summary_file:
-            write_json(self.summary_file, summ)
+            write_summary_json(self.summary_file, summ)
         self.on_finish(summ)
         self.flush()
         return summ
