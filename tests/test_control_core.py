@@ -14,7 +14,7 @@ from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.montecarlo import simulate
 from sep_estimator.estimator_core import EstimatorCore
 from sep_plant import topics
-from sep_plant.episode import PlantEpisode
+from sep_plant.plant_episode import PlantEpisode
 
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
 FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1)

@@ -1,4 +1,4 @@
-"""The plant node's episode without ROS (sep_plant.episode.PlantEpisode), on a simulated clock:
+"""The plant node's episode without ROS (sep_plant.plant_episode.PlantEpisode), on a simulated clock:
 lockstep order and numbers, the command gate (every rejection reason, counted), real-time
 ticks with deadline misses and the held input, the lockstep timeout."""
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 
 from core_helpers import flat
 from sep_plant import gate, topics
-from sep_plant.episode import CommandTimeout, PlantEpisode
+from sep_plant.plant_episode import CommandTimeout, PlantEpisode
 from sep_plant.noise import DEFAULT_SEED, noise_sequences
 from sep_plant.protocol import fields, rollout
 

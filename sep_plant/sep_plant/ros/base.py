@@ -27,7 +27,7 @@ from sep_plant.scenario import json_default
 EXIT_OK = 0
 EXIT_FAILURE = 1          # unexpected error (traceback logged)
 EXIT_CONFIG = 2           # bad parameter, missing/corrupt/mismatched design or scenario file
-# EXIT_TIMEOUT = 3        lockstep: no command / no peer in time (sep_plant.episode)
+# EXIT_TIMEOUT = 3        lockstep: no command / no peer in time (sep_plant.plant_episode)
 EXIT_INTERRUPTED = 130    # Ctrl-C / SIGTERM before the episode ended
 
 ROS_ARGS_HELP = ("ROS arguments follow --ros-args, e.g. --ros-args --params-file FILE "

@@ -7,7 +7,7 @@ field_image (32FC1; the middle slice of a 3-D grid), scenario (its scenario and 
 description as JSON, latched) and /diagnostics; subscribes command.  One episode of N
 steps per process, then exit 0.  The plant is checked against the protocol before step 0.
 
-A thin node around `sep_plant.episode.PlantEpisode` (the episode: lockstep or real-time
+A thin node around `sep_plant.plant_episode.PlantEpisode` (the episode: lockstep or real-time
 stepping, command gating, limits, the noise of (seed, run), latencies); here: parameters,
 topics, waiting for the peers, logs, diagnostics, the summary and trajectory files.
 
@@ -37,7 +37,7 @@ from typing import Callable
 
 import numpy as np
 
-from sep_plant.episode import MODES, CommandTimeout, EpisodeError, PlantEpisode
+from sep_plant.plant_episode import MODES, CommandTimeout, EpisodeError, PlantEpisode
 from sep_plant.noise import DEFAULT_SEED
 from sep_plant.ros import contract as c
 from sep_plant.ros.base import EXIT_OK, NodeBase, StartError, declare, fmt_s, percentiles, steady

@@ -10,7 +10,7 @@ import sys
 import threading
 from typing import Any, Callable, Sequence
 
-from sep_plant.episode import EXIT_TIMEOUT, EpisodeError
+from sep_plant.plant_episode import EXIT_TIMEOUT, EpisodeError
 from sep_plant.ros.base import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, NodeBase, StartError, StopError,
                                 limit_blas_threads, make_executor, parse_front, sim_time_default)
 
