@@ -13,7 +13,7 @@ import pytest
 
 from bag_synth import (LAT_CMD_NS, NAMINGS, T0_NS, TYPES, episode_messages, grid_episode, legacy_episode,
                        small_scenario, synthetic_episode, topic_namer, write_bag, write_messages)
-from sep_control.bags.episode import read_episode
+from sep_control.bags.reader import read_episode
 from sep_control.bags.repair import repair_bag
 from sep_control.bags.storage import BagError, read_raw
 from sep_plant import topics as T

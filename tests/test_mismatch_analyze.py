@@ -68,7 +68,7 @@ def test_scenario_and_perturbation_come_from_one_message(rehearsal, tmp_path):
     not parse is noted once and skipped whole, so scenario and perturbation stay the earlier
     message's (never one message's scenario with another's perturbation)."""
     from bag_synth import string
-    from sep_control.bags.episode import read_episode
+    from sep_control.bags.reader import read_episode
 
     d, dpath, ep, bag, _ = rehearsal
     data = json.loads(ep.payload)

@@ -224,7 +224,7 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
     assert raw.complete
     for topic in sent:
         assert [deserialize_message(d, JointState) for d in got[topic]] == sent[topic]
-    from sep_control.bags.episode import read_episode
+    from sep_control.bags.reader import read_episode
 
     e = read_episode(bag)
     assert e.scenario == s and e.info == info
@@ -233,7 +233,7 @@ def test_record_real_messages_and_stop_at_end(tmp_path, ros, procs):
 
 
 def test_record_sigkill_leaves_readable_bag(tmp_path, ros, procs):
-    from sep_control.bags.episode import read_episode
+    from sep_control.bags.reader import read_episode
     from sep_control.bags.storage import BagError
 
     ep = synthetic_episode(small_scenario(n_steps=30, band_window=(20, 30), lqr_k_switch=10))

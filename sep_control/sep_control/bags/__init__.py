@@ -2,7 +2,7 @@
 
 storage     raw rosbag2 reading (MCAP, sqlite3), truncated-bag recovery: `read_raw`, `BagError`
 messages    decoding the contract messages (topic keys, stamps, payload parsers)
-episode     a bag of one episode as arrays: `read_episode` -> `Episode`
+reader      a bag of one episode as arrays: `read_episode` -> `Episode`
 repair      rewriting a truncated bag as a complete one: `repair_bag`
 writer      the recorder's ROS-free bag writer thread: `BagSink`
 bag_metrics the metrics of one episode from its arrays, and pooled over many: `episode_metrics`, `pooled_metrics`

@@ -35,7 +35,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from sep_control.bags.bag_metrics import episode_metrics, pooled_metrics
-from sep_control.bags.episode import Episode, read_episode
+from sep_control.bags.reader import Episode, read_episode
 from sep_control.bags.storage import BagError
 from sep_plant.problem import Objective, ProblemError
 from sep_plant.protocol import PlantInfo
@@ -236,7 +236,7 @@ def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, 
     Raises
     ------
     BagError
-        The bag cannot be read (see `sep_control.bags.episode.read_episode`).
+        The bag cannot be read (see `sep_control.bags.reader.read_episode`).
     AnalysisError
         The bag's plant differs from the design's and `allow_mismatch` is False.
     """

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from sep_control.bags.episode import Episode
+from sep_control.bags.reader import Episode
 from sep_control.evaluation import metrics as M
 from sep_plant import topics as T
 from sep_plant.problem import Objective

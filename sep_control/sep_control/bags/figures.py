@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from sep_control.bags.analysis import AggregateReport, EpisodeReport, reports_of
-from sep_control.bags.episode import Episode, read_episode
+from sep_control.bags.reader import Episode, read_episode
 from sep_control.bags.storage import BagError
 from sep_control.plotting import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot,
                                   save_figure, save_keeping_layout, spread_nodes, unit_suffix)

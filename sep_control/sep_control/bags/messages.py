@@ -4,7 +4,7 @@ parsing and the payload parsers of the contract types (docs/reference/topics.md)
 Topic keys are the contract names of `sep_plant.topics` ('measurements', '/clock', ...); sep
 0.1's names are mapped through the one table `sep_plant.topics.LEGACY_TOPICS` (`topics.key_of`).
 Messages are deserialized with rosbags' Jazzy typestore; an undecodable or malformed message is
-collected by the `Decoder` (one note in the episode), never raised. `sep_control.bags.episode`
+collected by the `Decoder` (one note in the episode), never raised. `sep_control.bags.reader`
 assembles the arrays.
 """
 from __future__ import annotations

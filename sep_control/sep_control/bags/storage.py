@@ -12,7 +12,7 @@ crash), or a lone ``.mcap`` / ``.db3`` file. The storage file is parsed directly
   a database without its ``metadata`` row was not closed and is reported as truncated.
 
 Structural corruption raises `BagError` naming the file and how many messages were readable.
-Decoding the contract topics into arrays is `sep_control.bags.episode`.
+Decoding the contract topics into arrays is `sep_control.bags.reader`.
 """
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ typestore `Stores.ROS2_JAZZY`), serialization ``cdr`` and the QoS profiles the p
 
 Crash safety: whenever the queue runs dry and `flush_interval` has passed, the open MCAP chunk
 is closed and flushed (sqlite3: the transaction committed), so a bag cut off by SIGKILL keeps
-everything up to about the last flush (`sep_control.bags.episode.read_episode(...,
+everything up to about the last flush (`sep_control.bags.reader.read_episode(...,
 allow_truncated=True)` reads it, `sep_control.bags.repair.repair_bag` completes it).
 
 End of episode: the sink watches the scenario topic (N and dt of the plant) and the

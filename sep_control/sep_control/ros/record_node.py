@@ -19,7 +19,7 @@ Robustness:
 * The writer flushes the open MCAP chunk (or commits the sqlite3 transaction) whenever the
   queue runs dry and `--flush-interval` (default 0.1 s) has passed, so a bag cut off by a
   crash (SIGKILL) keeps everything up to about the last flush: `sep analyze --allow-truncated`
-  (or `sep_control.bags.episode.read_episode(..., allow_truncated=True)`) reads it, and
+  (or `sep_control.bags.reader.read_episode(..., allow_truncated=True)`) reads it, and
   `sep_control.bags.repair.repair_bag` rewrites it as a complete bag for other tools.
 * Stops by itself when the episode ends: `--final-grace` seconds after the plant's final
   measurement (step N = n_steps of the scenario topic's payload, stamp N dt with the plant's
