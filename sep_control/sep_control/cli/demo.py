@@ -26,7 +26,7 @@ from sep_control.cli.common import (EXIT_FAILED, EXIT_OK, add_compute_options, a
                                     groups, legacy_main, plant_or_exit, scenario_or_exit)
 from sep_control.cli.design import (add_design_options, make_design, recorded_settings, settings_fit_or_exit,
                                    settings_from_args)
-from sep_control.cli.episode import episode_metrics, print_metrics, run_analysis
+from sep_control.cli.demo_report import episode_metrics, print_metrics, run_analysis
 from sep_control.cli.processes import Children, executable
 from sep_control.compute.progress import bars_wanted
 from sep_control.control.controllers import NODE_CONTROLLERS
