@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.metrics import format_table
-from sep_control.evaluation.mismatch import oracle_on
+from sep_control.evaluation.robustness import oracle_on
 from sep_control.evaluation.montecarlo import simulate
 from sep_plant.perturb import PerturbedPlant
 from sep_plant.protocol import fields, nominal_states

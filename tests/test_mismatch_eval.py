@@ -9,7 +9,7 @@ import pytest
 from core_helpers import TINY_YAML, one_blas_thread  # noqa: F401
 from sep_control.cli.main import main as sep
 from sep_control.design.gains import design_lqg, output_weights, tv_lqr
-from sep_control.evaluation.mismatch import make_truth, oracle_on, parse_sweep, sweep_truths
+from sep_control.evaluation.robustness import make_truth, oracle_on, parse_sweep, sweep_truths
 from sep_control.evaluation.montecarlo import simulate
 from sep_control.evaluation.oracle import (Oracle, OracleUnavailable, affine_feedforward, full_order_model, oracle_lqg,
                                            truth_oracle)

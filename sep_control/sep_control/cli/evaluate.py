@@ -23,7 +23,7 @@ from sep_control.compute.progress import RunSteps, bars_wanted
 from sep_control.evaluation import figures
 from sep_control.control.controllers import CONTROLLER_NAMES as CONTROLLERS
 from sep_control.evaluation.metrics import format_table, write_metrics_json
-from sep_control.evaluation.mismatch import plants_record
+from sep_control.evaluation.robustness import plants_record
 from sep_control.evaluation.montecarlo import simulate
 from sep_control.evaluation.sweep import rom_sweep, sweep_run_steps
 

@@ -1,5 +1,5 @@
 """The model-mismatch options of `sep evaluate`: --truth, --truth-scenario, --perturb and the
---robustness sweep (the logic: `sep_control.evaluation.mismatch`; docs/robustness.md).
+--robustness sweep (the logic: `sep_control.evaluation.robustness`; docs/robustness.md).
 
 Bad values exit 2 naming them (`TruthError`'s message): an item that is not KEY=VALUE, an
 unknown truth or perturbation key, a value that does not fit, a truth plant with another
@@ -17,7 +17,7 @@ from sep_plant.truth import Truth, TruthError
 
 from sep_control.cli.common import fail, plant_or_exit, scenario_or_exit
 from sep_control.evaluation.metrics import format_table
-from sep_control.evaluation.mismatch import (OracleUnavailable, Sweep, evaluate_truth, make_truth, oracle_on,
+from sep_control.evaluation.robustness import (OracleUnavailable, Sweep, evaluate_truth, make_truth, oracle_on,
                                              parse_sweep, plants_record, sweep_truths)
 
 SWEEP_KEYS = ["in_band", "cost_mean", "mean_dev_end", "cost/oracle"]
