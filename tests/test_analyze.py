@@ -274,7 +274,7 @@ def test_grid_plant_bag_analysed_with_heat_maps(grid, tmp_path):
     k1 = eps[0].scenario.problem.window[1]
     assert f"field_image at k = {k1}" in md and "grid 6 x 5" in md and "target field" in md
     # the field figure is the 2 x 3 map panel (closed loop, nominal, difference), not lines
-    from sep_control.plotting import pyplot
+    from sep_control.evaluation.drawing import pyplot
 
     assert pyplot().imread(out / "field.png").shape[1] > 1.2 * pyplot().imread(out / "inputs.png").shape[1]
     agg = aggregate(bags, dpath)
@@ -293,7 +293,7 @@ def test_grid_3d_report(tmp_path):
 
 def test_render_image_frame_is_the_published_image(grid, tmp_path):
     """The frame as a viewer shows the 32FC1 image: row 0 on top, grey from min to max."""
-    from sep_control.plotting import pyplot
+    from sep_control.evaluation.drawing import pyplot
 
     d, eps, bags, _ = grid
     rep = analyze(bags[1])

@@ -17,7 +17,7 @@ render_image_frame         one frame of an image topic (field_image) as a viewer
                            sensor_msgs/Image
 
 For many episodes every run is drawn thin and their mean thick. Drawing primitives:
-`sep_control.plotting`; the Monte Carlo evaluation's figures: `sep_control.evaluation.figures`.
+`sep_control.evaluation.drawing`; the Monte Carlo evaluation's figures: `sep_control.evaluation.figures`.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ import numpy as np
 from sep_control.bags.analysis import AggregateReport, EpisodeReport, reports_of
 from sep_control.bags.reader import Episode, read_episode
 from sep_control.bags.storage import BagError
-from sep_control.plotting import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot,
+from sep_control.evaluation.drawing import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot,
                                   save_figure, save_keeping_layout, spread_nodes, unit_suffix)
 from sep_estimator.ltv import sensed_nodes
 from sep_plant import topics as T

@@ -2,7 +2,7 @@
 
 Fields are drawn as lines over x for 1-D plants and as heat maps for grid plants (2-D; the
 middle slice along the last axis for 3-D), so every figure works for every plant (drawing
-primitives: `sep_control.plotting`; the recorded-bag report's figures: `sep_control.bags.figures`):
+primitives: `sep_control.evaluation.drawing`; the recorded-bag report's figures: `sep_control.bags.figures`):
 
 nominal_belief_figure       nominal belief (mean +- 2 sigma, or maps; the nominal field where the design
                             has no belief) and optimal control (paper Fig. 2a-b)
@@ -22,7 +22,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from sep_control.plotting import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot,
+from sep_control.evaluation.drawing import (band_limits, draw_field, is_map, line_coordinate, node_label, pyplot,
                                   save_keeping_layout, save_figure, spread_nodes, unit_suffix)
 from sep_plant.protocol import PlantInfo
 
