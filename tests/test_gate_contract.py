@@ -243,4 +243,12 @@ def test_scenario_roundtrip_and_topic_names(c):
                for t in (c.MEASUREMENTS, c.COMMAND, c.APPLIED_INPUT, c.STATE_ESTIMATE))
 
 
-CONTRACT_TESTS = ('test_stamps_are_integer_nanoseconds_without_drift', 'test_joint_state_builder', 'test_point_cloud_layout_fixed_and_decodable_without_ros', 'test_diagnostics_builder', 'test_field_image_32fc1', 'test_scenario_roundtrip_and_topic_names')
+#: the tests below the contract fixture (they skip without ROS)
+CONTRACT_TESTS = (
+    'test_stamps_are_integer_nanoseconds_without_drift',
+    'test_joint_state_builder',
+    'test_point_cloud_layout_fixed_and_decodable_without_ros',
+    'test_diagnostics_builder',
+    'test_field_image_32fc1',
+    'test_scenario_roundtrip_and_topic_names',
+)

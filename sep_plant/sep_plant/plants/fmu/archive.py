@@ -8,7 +8,8 @@ under the same name. The archive is unpacked once per content into a cache folde
 ``<cache>/<sha256>/``, so that every plant object, process and worker of a user shares one copy
 and a changed file never reuses a stale one. Shared libraries are loaded from that folder, so it
 must be private: it is created with mode 0700, and a folder that is a symbolic link, is owned by
-another user or is writable by group or others is refused (`CacheNotPrivate`), never used. A worker whose disk lacks the FMU gets its bytes (`cached_copy`) and writes them to
+another user or is writable by group or others is refused (`CacheNotPrivate`), never used. A
+worker whose disk lacks the FMU gets its bytes (`cached_copy`) and writes them to
 ``<cache>/<sha256>.fmu``. Pure Python: no ROS import.
 """
 from __future__ import annotations
