@@ -66,6 +66,26 @@ HEALTH_FAILS = textwrap.dedent("""
 """)
 
 
+IN_A_CALLBACK = textwrap.dedent("""
+    import sys
+    from sep_plant.ros.base import NodeBase
+    from sep_plant.ros.process import NodeProcess, run_node
+
+    class Node(NodeBase):
+        role = 'estimator'
+        def __init__(self):
+            super().__init__('probe')
+            self.node.create_timer(0.05, self.boom)
+        def boom(self):
+            raise FloatingPointError('filter: covariance not positive definite at step 4')
+        def summary(self, status):
+            return {'node': self.role, 'status': status}
+
+    sys.exit(run_node(lambda a: NodeProcess([Node()], sys.argv[2]),
+                      ['probe', '--ros-args', '-p', 'summary_file:=' + sys.argv[1]], 'probe'))
+""")
+
+
 def child(script: str, *args: str) -> subprocess.CompletedProcess:
     env = clean_env(PYTHONPATH=PATH, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     return subprocess.run([sys.executable, "-c", script, *args], env=env, capture_output=True, text=True,
@@ -152,3 +172,15 @@ def test_a_node_that_stops_mid_episode_logs_stopping_and_writes_its_summary(tmp_
     assert "stopping: the plant scenario changed mid-episode" in p.stderr and "refusing to start" not in p.stderr
     summ = json.loads(summary.read_text())
     assert summ["status"] == "error" and "changed mid-episode" in summ["error"]
+
+
+@pytest.mark.parametrize("executor", ["events", "single"])
+def test_an_error_in_a_callback_writes_an_error_summary(tmp_path, executor):
+    """A controller's error is raised in a subscription or timer callback (a filter error): it
+    leaves the executor's spin and ends the process the same way, summary first."""
+    summary = tmp_path / "summary.json"
+    p = child(IN_A_CALLBACK, str(summary), executor)
+    assert p.returncode == 1, p.stderr
+    summ = json.loads(summary.read_text())
+    assert summ == {"node": "estimator", "status": "error",
+                    "error": "FloatingPointError: filter: covariance not positive definite at step 4"}
