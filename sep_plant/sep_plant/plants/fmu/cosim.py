@@ -56,12 +56,18 @@ def decode(values: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(u.view(np.uint8).reshape(M, width, 8)[:, :, :BYTES_PER_VALUE]).reshape(M, -1)
 
 
+def _failed(b: Binding, run: int | None, call: str, status: int) -> FMICallError:
+    """The error of FMI call `call` of run `run` (None: the initial state) that returned `status`.
+    Each FMI call is checked right after it returns, so the first failure stops the step and is
+    the one named."""
+    return b.fail(f"{call} ({'initial state' if run is None else f'run {run}'})", status)
+
+
 def _check(b: Binding, run: int | None, call: str, status: int) -> None:
-    """Raise FMICallError naming `call` (of run `run`; None: the initial state) when `status` is
-    worse than a warning. Each FMI call is checked right after it returns, so the first failure
-    stops the step and is the one named."""
+    """Raise `_failed` when `status` is worse than a warning (the initial state's calls; the step
+    inlines the same test, it runs for every run and step)."""
     if status > WARNING:
-        raise b.fail(f"{call} ({'initial state' if run is None else f'run {run}'})", status)
+        raise _failed(b, run, call, status)
 
 
 class Workspace:
@@ -190,23 +196,32 @@ class CoSimStepper:
             ws.sizes[m].value, ws.times[m].value = n, t
             # one call at a time: a failed call stops the step there and is named alone (a failed
             # deserialize must never reach set-state with a bad handle, nor do-step the wrong state)
-            _check(b, m, "deserialize FMU state", deser(*ws.load[m]))
-            _check(b, m, "set FMU state", set_state(b.c, h_in))
-            _check(b, m, "free FMU state", free(*ws.free_in))
-            _check(b, m, "set inputs", set_v(*ws.inputs[m]))
-            _check(b, m, "do step", do_step(*ws.steps[m]))
+            if (st := deser(*ws.load[m])) > WARNING:
+                raise _failed(b, m, "deserialize FMU state", st)
+            if (st := set_state(b.c, h_in)) > WARNING:
+                raise _failed(b, m, "set FMU state", st)
+            if (st := free(*ws.free_in)) > WARNING:
+                raise _failed(b, m, "free FMU state", st)
+            if (st := set_v(*ws.inputs[m])) > WARNING:
+                raise _failed(b, m, "set inputs", st)
+            if (st := do_step(*ws.steps[m])) > WARNING:
+                raise _failed(b, m, "do step", st)
             why = status() if status is not None else None
             if why:
                 raise FMICallError(f"FMU {b.label}: do step of run {m}: {why}")
-            _check(b, m, "get outputs", get_r(*ws.outs[m]))
-            _check(b, m, "get FMU state", get_state(*ws.get_state))
-            _check(b, m, "get the serialized state size", size_of(*ws.size_of))
+            if (st := get_r(*ws.outs[m])) > WARNING:
+                raise _failed(b, m, "get outputs", st)
+            if (st := get_state(*ws.get_state)) > WARNING:
+                raise _failed(b, m, "get FMU state", st)
+            if (st := size_of(*ws.size_of)) > WARNING:
+                raise _failed(b, m, "get the serialized state size", st)
             n = size.value
             if n > cap:
                 raise FMICallError(f"FMU {b.label}: its serialized state grew to {n} bytes; sep fixed the row "
                                    f"length from the initial state ({cap} bytes): states of changing size are "
                                    "not supported")
-            _check(b, m, "serialize FMU state", ser(*ws.save[m]))
+            if (st := ser(*ws.save[m])) > WARNING:
+                raise _failed(b, m, "serialize FMU state", st)
             n_bytes[m], crcs[m] = n, zlib.crc32(memoryview(ws.new[m, :n]))
         out = np.empty((M, self.n_x))
         out[:, 0], out[:, 1] = n_bytes, crcs
