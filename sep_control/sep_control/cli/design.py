@@ -16,6 +16,7 @@ from sep_control.cli.common import (add_compute_options, add_deprecated, blas_th
                                     legacy_main, memory_budget_or_exit, plant_or_exit, scenario_or_exit, stderr_log)
 from sep_control.compute.progress import bars_wanted
 from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.design.plan import format_run_steps
 
 HELP = "design a data-driven LQG for a plant (scenario in, design file out)"
 DESCRIPTION = """\
@@ -219,6 +220,8 @@ def design_summary(design) -> dict:
         "max_dev_in_band_window": m["validation"]["max_dev_in_band_window"],
         "markov_rel_error": m["validation"]["markov_rel_error"],
         "timings": m["timings"],
+        "run_steps": m.get("run_steps"),              # plant run-steps per stage (None: files before 0.9)
+        "experiment_plan": m.get("settings", {}).get("experiment_plan", "0.8"),
         "source_digest": m.get("source_digest"),     # set by save_design
     }
 
@@ -235,6 +238,9 @@ def format_summary(sm: dict, path: str) -> str:
         f"  time                     optimize {t['optimize_s']:.2f} s, identify {t['identify_s']:.2f} s, "
         f"gains {t['gains_s']:.2f} s, total {t['total_s']:.2f} s",
     ]
+    if sm.get("run_steps"):
+        lines.append(f"  plant run-steps          {format_run_steps(sm['run_steps'])} "
+                     f"(experiment plan {sm['experiment_plan']})")
     return "\n".join(lines)
 
 

@@ -28,6 +28,7 @@ from sep_plant.protocol import Plant, noise_channels, nominal_states
 from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
 from sep_control.compute.progress import progress
 from sep_control.design.basis import IncrementalBasis
+from sep_control.design.runsteps import meter_of, unmetered
 
 #: relative tolerance of the field responses' basis (against the largest response) and of its
 #: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
@@ -127,17 +128,30 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     in_process = engine.local
     groups = _channel_groups(plant, n_ch, lags, scheme, memory_budget, engine)
     plan = experiment_chunks(N, chunks)
-    shared = dict(plant=engine.ship(plant), U_ext=U_ext, lags=lags,
+    # a metered plant counts its own steps in this process; a worker steps its own copy, so its
+    # experiments are counted here (every run is stepped `lags` times, `experiment_run_steps`)
+    meter = None if in_process else meter_of(plant)
+    shared = dict(plant=engine.ship(plant if in_process else unmetered(plant)), U_ext=U_ext, lags=lags,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
                   n_chunks=len(plan))
     tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
-    labels = [f"plant {type(base_plant(plant)).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
+    labels = [f"plant {type(base_plant(unmetered(plant))).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
               f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
     parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
                        show_progress=show_progress and not in_process)
+    if meter is not None:
+        meter.add(experiment_run_steps(N, n_ch, lags, scheme, len(groups)))
     Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
     return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * N * n_ch, n_u)
+
+
+def experiment_run_steps(N: int, n_ch: int, lags: int, scheme: str = "central", groups: int = 1) -> int:
+    """Run-steps of the impulse experiments of N start steps and n_ch channels (the nominal
+    rollout not included): every run is stepped `lags` times; central 2 N n_ch runs, forward
+    N n_ch plus one unperturbed copy per start step and channel group."""
+    runs = N * (SCHEMES[scheme] * n_ch + (groups if scheme == "forward" else 0))
+    return int(runs * lags)
 
 
 def _channel_groups(plant: Plant, n_ch: int, lags: int, scheme: str, memory_budget: int | None,

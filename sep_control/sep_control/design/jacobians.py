@@ -99,13 +99,17 @@ class RomJacobian:
         Keep the first identification for every iteration (a chord method).
     start : Identification, optional
         An identification handed over by an earlier stage, kept as if made here.
+    settled_rtol : float
+        `relinearize` offers no new model when the kept one has the full settings and was made
+        within this of the input (0: only when made at the input itself).
     """
 
     def __init__(self, rom: RomSettings, proposal: RomSettings | None = None,
                  relinearize_rtol: float = SAME_INPUT_RTOL, chord: bool = False,
-                 start: Identification | None = None):
+                 start: Identification | None = None, settled_rtol: float = 0.0):
         self.rom, self.proposal = rom, proposal
         self.relinearize_rtol, self.chord = relinearize_rtol, chord
+        self.settled_rtol = settled_rtol
         self.kept = start          # the newest identification (each holds the nominal states and a basis)
         self.settled = False       # the last accepted step was in the optimum's neighbourhood
 
@@ -123,8 +127,12 @@ class RomJacobian:
                     gram: bool = True) -> Linearized | None:
         """A model kept from an earlier input whose trials all failed: once more on one made at
         `at`, with the full settings (None for a chord, or when `lin` was made at `at`)."""
-        if lin.identification is None or self.chord or same_input(lin.identification.U, at.U):
+        ident = lin.identification
+        if ident is None or self.chord or same_input(ident.U, at.U):
             return None
+        if self.settled_rtol > 0 and same_input(ident.U, at.U, self.settled_rtol) and \
+                ident.made_with(self.rom.scheme, self.rom.field_tol, self.rom.p, self.rom.q):
+            return None     # a model with the full settings made within settled_rtol: at the optimum
         self.settled = True
         return self.linearize(plant, obj, at, gram, SAME_INPUT_RTOL)
 
