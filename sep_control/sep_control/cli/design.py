@@ -81,6 +81,10 @@ SETTINGS_OPTIONS = (
      "impulse against an unperturbed copy in the same batch (about half the plant steps, a bias "
      "of O(amplitude): 4e-6 relative in the reference's Markov parameters at --impulse 0.01; a "
      "smaller amplitude trades the bias for round-off in the field map, see docs/method.md)", False),
+    ("--experiment-plan", "experiment_plan", dict(choices=["0.8", "0.9"]),
+     "which experiments the design runs: 0.8 = sep 0.8.0's plan (its designs bit for bit; the default); 0.9 = "
+     "a coarse first model kept while its steps pay, forward impulses, 50 EnKF members (fewer plant run-steps "
+     "on the reference and the rod, not on Burgers; docs/benchmarks.md)", False),
     ("--chunks", "chunks", dict(type=int),
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
      "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "

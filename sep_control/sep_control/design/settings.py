@@ -134,6 +134,12 @@ class DesignSettings:
     disturbance_dims: int | None = None
     disturbance_walk_std: float | list[float] = WALK_STD
 
+    def __post_init__(self) -> None:
+        """The keys left at None take the experiment plan's values (`PLANS`)."""
+        for key, value in PLANS.get(self.experiment_plan, {}).items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
+
     def check(self) -> None:
         """Raise ValueError naming the first setting out of range."""
         if self.experiment_plan not in PLANS:
