@@ -91,7 +91,8 @@ def experiment_chunks(N: int, chunks: int) -> list[tuple[int, int]]:
 def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
                         Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
-                        scheme: str = "central", chunks: int = 1, engine=None) -> MarkovData:
+                        scheme: str = "central", chunks: int = 1, engine=None,
+                        U_ext: np.ndarray | None = None) -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
@@ -104,7 +105,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     2 n_ch lags runs ((n_ch + 1) lags forward): a ring of `lags` slots, start j in slot j mod
     lags, stepped in place (no copy of the batch per step). When that batch exceeds
     `memory_budget` (`sep_control.compute.budget`), the channels are split into groups, one pass each.
-    `Xbar_ext` is the nominal over N + lags steps (computed if None).
+    `Xbar_ext` is the nominal over N + lags steps (computed if None), `U_ext` its input (None: U,
+    its last input held).
     Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
     relative to the chunk's largest response); only their coefficients are kept. The chunks'
     bases are then merged in chunk order into one basis Phi: each chunk's responses phi_c C_c
@@ -119,7 +121,9 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
         raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
     engine = engine or InProcess()
     N, n_u = U.shape
-    U_ext = extend_nominal(U, lags)
+    # `U_ext`: the nominal input over N + lags steps when it goes on past U (a block of start
+    # steps inside a longer horizon); None: U with its last input held
+    U_ext = extend_nominal(U, lags) if U_ext is None else U_ext[:N + lags]
     if Xbar_ext is None:
         Xbar_ext = nominal_states(plant, U_ext)
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)

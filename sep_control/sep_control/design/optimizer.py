@@ -194,7 +194,7 @@ class Optimizer:
             if it == last and lin.identification is None:
                 result.stop = f"max_iter = {o.iterations}"
                 break
-            fresh = self.strategy.relinearize(self.plant, self.obj, at, lin, self._gram) if poor else None
+            fresh = self.strategy.refresh(self.plant, self.obj, at, lin, self._gram) if poor else None
             lin = self._linearize(fresh or self.strategy.linearize(self.plant, self.obj, at, self._gram), result)
             if it == last:
                 result.stop = f"max_iter = {o.iterations}"

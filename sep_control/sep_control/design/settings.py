@@ -32,7 +32,7 @@ ROM_FROM = 5
 #: the mean-only optimizer a coarse first model kept while its steps are accepted (`PLAN_ROM`)
 PLANS: dict[str, dict[str, Any]] = {
     "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2},
-    "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 2},
+    "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0},
 }
 DEFAULT_PLAN = "0.8"
 

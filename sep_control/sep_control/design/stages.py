@@ -24,11 +24,13 @@ from sep_plant.protocol import Plant, nominal_states
 from sep_control.design.belief import run_belief
 from sep_control.design.field_map import compressed_lqg
 from sep_control.design.gains import GainsResult, design_lqg
-from sep_control.design.jacobians import AutoJacobian, Jacobian, RomJacobian, SensitivityJacobian
+from sep_control.design.jacobians import (AutoJacobian, Jacobian, KeptRomJacobian, RomJacobian,
+                                          SensitivityJacobian)
 from sep_control.design.linearization import SAME_INPUT_RTOL, same_input
 from sep_control.design.optimizer import OptimizationResult, Optimizer, OptimizerOptions
 from sep_control.design.runsteps import RunStepMeter
 from sep_control.design.settings import DesignSettings
+from sep_control.design.spotcheck import SPOT_BLOCKS, SPOT_STARTS, SPOT_TOL, spot_error
 from sep_control.design.tvera import Identification, extend_nominal, markov_relative_error
 
 #: Levenberg-Marquardt trials per belief-space iteration. Each is an EnKF run, and the Gauss-Newton
@@ -128,8 +130,8 @@ def mean_only_jacobian(st: DesignSettings, kind: str, engine=None) -> Jacobian:
         rom_jacobian = RomJacobian(rom, proposal, relinearize_rtol=st.relinearize_rtol)
     else:
         proposal = replace(rom, **PROPOSAL_ROM, p=min(rom.p, PLAN_PQ), q=min(rom.q, PLAN_PQ)) \
-            if st.coarse_proposals else None
-        rom_jacobian = RomJacobian(rom, proposal, relinearize_rtol=float("inf"), settled_rtol=st.relinearize_rtol)
+            if st.coarse_proposals else rom
+        rom_jacobian = KeptRomJacobian(rom, proposal)
     if kind == "rom":
         return rom_jacobian
     if kind != "sensitivity":
@@ -145,6 +147,9 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
     t0 = time.perf_counter()
     kind = st.resolved_jacobian_for(plant, problem.n_steps)
     planned = st.experiment_plan != "0.8" and st.method == "gn"
+    if planned and st.jacobian == "auto":
+        kind = "rom"            # plan 0.9: the coarse kept models take fewer run-steps than sensitivities
+    planned = planned and kind == "rom"
     max_iter = PLAN_MAX_ITER if planned and st.max_iter is None else st.max_iter
     options = OptimizerOptions(method=st.method, max_iter=max_iter, tol=st.tol, step_size=st.step_size,
                                bounds=bounds, show_progress=ctx.show_progress, refresh_on_stall=planned)
@@ -193,6 +198,14 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     rtol = SAME_INPUT_RTOL if st.experiment_plan == "0.8" else st.relinearize_rtol
     reused = ident is not None and same_input(ident.U, U, rtol) and ident.made_with(st.impulse_scheme, p=st.p,
                                                                                    q=st.q)
+    if not reused and st.experiment_plan != "0.8" and ident is not None and \
+            ident.made_with(st.impulse_scheme, p=st.p, q=st.q):
+        with ctx.meter.stage("validation"):
+            spot = spot_error(plant, ident, U)
+        reused = spot <= SPOT_TOL
+        ctx.log(f"TV-ERA: the optimizer's last model, checked at the final input by impulses at "
+                f"{SPOT_BLOCKS} x {SPOT_STARTS} start steps: Markov relative error {spot:.2e} "
+                f"({'<=' if reused else '>'} {SPOT_TOL:g}: {'reused' if reused else 'identified again'})")
     if not reused:
         ident = st.rom(ctx.engine).identify(plant, U, ctx.show_progress)
     elif not np.array_equal(ident.U, U):
