@@ -68,3 +68,30 @@ def test_experiment_plans_resolve_their_keys():
     assert (new.impulse_scheme, new.ensemble) == ("forward", 50)
     assert DesignSettings(experiment_plan="0.9", ensemble=100).ensemble == 100
     assert DesignSettings.from_meta({"settings": {}}).experiment_plan == "0.8"
+
+
+def test_spot_check_of_a_model_at_its_own_input_is_its_markov_error():
+    from sep_control.design.spotcheck import spot_error
+    from sep_control.design.tvera import identify
+
+    plant = reference().with_plant(n_x=20).plant
+    U = np.full((30, plant.n_u), 0.2)
+    from sep_control.design.tvera import markov_relative_error
+
+    ident = identify(plant, U, 4, 4, 8, impulse=0.01, scheme="forward")
+    own = markov_relative_error(ident.model, ident.data.Y)
+    at_own = spot_error(plant, ident, U)           # the same experiments: the model's own error there
+    assert 0.5 * own < at_own < 2 * own
+    assert spot_error(plant, ident, 3.0 * U) > at_own       # another nominal: the model is further off
+
+
+def test_plan_09_design_counts_fewer_run_steps_and_records_its_plan():
+    scen = reference().with_plant(n_x=20)
+    kw = dict(p=6, q=6, n_r=8, max_iter=4)
+    old = run_design(scen.plant, scen.problem, DesignSettings(**kw), show_progress=False, log=lambda m: None)
+    lines: list[str] = []
+    new = run_design(scen.plant, scen.problem, DesignSettings(experiment_plan="0.9", **kw), show_progress=False,
+                     log=lines.append)
+    assert new.meta["run_steps"]["total"] < old.meta["run_steps"]["total"]
+    assert new.meta["settings"]["experiment_plan"] == "0.9" and new.meta["settings"]["ensemble"] == 50
+    assert any("rom (proposal)" in line for line in lines)

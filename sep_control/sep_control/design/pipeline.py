@@ -160,6 +160,7 @@ def _meta(st: DesignSettings, timings: dict[str, float], final: DesignPass, obj:
                       "identification_reused": ident.reused, "nominal_cost": float(obj.cost(F_nom, nom.U)),
                       "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
         "validation": {"markov_rel_error": ident.markov_rel_error, "impulse_amplitude": ident.identification.delta,
+                       **({} if ident.spot_rel_error is None else {"spot_markov_rel_error": ident.spot_rel_error}),
                        "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
         "disturbance": disturbance_meta(final.lqg.disturbance),
     }

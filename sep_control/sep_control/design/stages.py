@@ -110,6 +110,7 @@ class IdentificationStage:
     identification: Identification
     reused: bool                  # the optimizer's last identification (made at this input), not a new one
     markov_rel_error: float       # `markov_relative_error` of the model on its own experiments
+    spot_rel_error: float | None = None   # plan 0.9: its error at the final input (`spotcheck`), when reused from elsewhere
 
 
 @dataclass
@@ -198,6 +199,7 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     rtol = SAME_INPUT_RTOL if st.experiment_plan == "0.8" else st.relinearize_rtol
     reused = ident is not None and same_input(ident.U, U, rtol) and ident.made_with(st.impulse_scheme, p=st.p,
                                                                                    q=st.q)
+    spot = None
     if not reused and st.experiment_plan != "0.8" and ident is not None and \
             ident.made_with(st.impulse_scheme, p=st.p, q=st.q):
         with ctx.meter.stage("validation"):
@@ -216,7 +218,7 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     ctx.log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
             f"experiments{_reuse_note(ident.U, U) if reused else ''}, Markov relative "
             f"error {err:.2e}")
-    return IdentificationStage(ident, reused, err)
+    return IdentificationStage(ident, reused, err, spot if reused else None)
 
 
 def _reuse_note(U_ident: np.ndarray, U: np.ndarray) -> str:
