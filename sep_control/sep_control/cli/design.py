@@ -83,8 +83,9 @@ SETTINGS_OPTIONS = (
      "smaller amplitude trades the bias for round-off in the field map, see docs/method.md)", False),
     ("--experiment-plan", "experiment_plan", dict(choices=["0.8", "0.9"]),
      "which experiments the design runs: 0.8 = sep 0.8.0's plan (its designs bit for bit; the default); 0.9 = "
-     "a coarse first model kept while its steps pay, forward impulses, 50 EnKF members (fewer plant run-steps "
-     "on the reference and the rod, not on Burgers; docs/benchmarks.md)", False),
+     "a coarse first model kept while its steps pay, forward impulses, a spot check before the optimizer's "
+     "last model is reused, no belief refinement, 50 EnKF members (0.2-0.3x the plant run-steps on the "
+     "reference, plate and rod, 0.57x on Burgers; docs/benchmarks.md)", False),
     ("--chunks", "chunks", dict(type=int),
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
      "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "

@@ -27,9 +27,10 @@ from sep_control.design.tvera import FIELD_TOL, SCHEMES, RomSettings
 ROM_FROM = 5
 
 #: the experiment plans (`experiment_plan`) and the settings each gives the keys left at None:
-#: "0.8" is sep 0.8.0's plan (its designs bit for bit); "0.9" spends about a third of its run-steps
-#: (docs/benchmarks.md): forward impulses (one run per impulse), a smaller belief ensemble, and in
-#: the mean-only optimizer a coarse first model kept while its steps are accepted (`PLAN_ROM`)
+#: "0.8" is sep 0.8.0's plan (its designs bit for bit); "0.9" spends 0.2-0.57x its run-steps
+#: (docs/benchmarks.md): forward impulses (one run per impulse), no belief refinement (it moved J_b
+#: by 1e-6 relative) and 50 members for the belief statistics, and in the mean-only optimizer kept
+#: models (`sep_control.design.jacobians.KeptRomJacobian`, `sep_control.design.stages`)
 PLANS: dict[str, dict[str, Any]] = {
     "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2},
     "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0},
@@ -72,9 +73,9 @@ class DesignSettings:
         Impulse amplitude relative to the RMS nominal input.
     impulse_scheme : {"central", "forward"}, optional
         TV-ERA impulses: +- pairs, or one run each against an unperturbed copy (None: the plan's).
-    experiment_plan : {"0.9", "0.8"}
-        Which experiments the design runs (`PLANS`): "0.8" reproduces sep 0.8.0's designs bit for
-        bit; "0.9" (default) spends about a third of its plant run-steps.
+    experiment_plan : {"0.8", "0.9"}
+        Which experiments the design runs (`PLANS`): "0.8" (default) reproduces sep 0.8.0's designs
+        bit for bit; "0.9" spends fewer plant run-steps (docs/benchmarks.md).
     field_map_tol : float
         Field map: drop directions moving the field by less than this times its spread.
     enkf_seed : int

@@ -49,11 +49,11 @@ PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6}
 
 #: experiment plan "0.9" (`DesignSettings.experiment_plan`): the mean-only optimizer's first model
 #: is a coarse one (forward impulses, Hankel blocks p = q = PLAN_PQ, experiments of 2 PLAN_PQ steps,
-#: field basis to 1e-6), kept while its steps are accepted (each trial costs one rollout, not an
-#: identification); when its steps stall or fail, a model with the design's settings is made
-#: there and kept the same way, so the optimizer ends on a model made at (or within
-#: relinearize_rtol of) its optimum, which the belief refinement and the design reuse.
-#: Iterations are cheap then (rollouts), so the plan allows PLAN_MAX_ITER of them
+#: field basis to 1e-6), kept while its accepted steps lower the cost by at least half of what it
+#: predicts (each trial costs one rollout, not an identification); then models with the design's
+#: settings (`KeptRomJacobian`). The last one is spot-checked at the final input before the design
+#: reuses it (`sep_control.design.spotcheck`). Iterations are cheap then (rollouts), so the plan
+#: allows PLAN_MAX_ITER of them
 PLAN_PQ = 8
 PLAN_MAX_ITER = 30
 
