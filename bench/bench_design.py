@@ -111,6 +111,10 @@ def main() -> None:
             "rom/oracle_cost": (mc["rom_lqg"][0]["cost_mean"] / mc["oracle_lqg"][0]["cost_mean"]
                                 if "oracle_lqg" in mc else None),
             "J_mean_only": design.meta["optimizer"]["mean_only_cost"],
+            "run_steps_k": design.meta["run_steps"]["total"] / 1e3,
+            "nominal_k": design.meta["run_steps"]["nominal"] / 1e3,
+            "belief_k": design.meta["run_steps"]["belief"] / 1e3,
+            "ident_k": design.meta["run_steps"]["identification"] / 1e3,
             "J_nominal": design.meta["optimizer"]["nominal_cost"],
             "Jb_before": design.meta["optimizer"]["belief_history"][0],
             "Jb_after": design.meta["optimizer"]["belief_history"][-1],
@@ -119,6 +123,8 @@ def main() -> None:
         print(f"n_x = {n_x}: design {t_design:.2f} s, MC rom {t_mc:.2f} s ({runs} runs)", flush=True)
 
     print(f"\nTimes in seconds, BLAS threads = {args.threads}; ratios measured in this run")
+    print("\nPlant run-steps of the default design per stage [thousands] (the machine-independent cost)")
+    print(format_table(rows, ["run_steps_k", "nominal_k", "belief_k", "ident_k"]))
     print(format_table(rows, ["rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "design_sens_s",
                               "sens/auto", "runs", "mc_open_s", "mc_rom_s", "mc_oracle_s", "design/rollout",
                               "mc_rom/rollout", "mc_per_run/rollout"]))

@@ -62,7 +62,7 @@ ROWS = {                       # name -> (scenario file or None for the referenc
 DEFAULT_ROWS = [r for r in ROWS if r not in ("plate:1000", "block:100")]
 QUICK = ("slab:100", "slab:1600", "plate:64")
 COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "plant_step_s",
-           "design/plant_steps", "run_steps_k", "ns/node-step", "n_r", "r_f", "peak_rss_mb", "file_mb",
+           "design/plant_steps", "run_steps_k", "nominal_k", "belief_k", "ident_k", "ns/node-step", "n_r", "r_f", "peak_rss_mb", "file_mb",
            "mc_s_per_100", "in_band", "design/rollout", "mc100/rollout"]
 AGAINST = ("design_s", "plant_step_s", "run_steps_k", "peak_rss_mb", "mc_s_per_100")
 
@@ -123,7 +123,10 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
         t_mc = (time.perf_counter() - t0) * 100.0 / runs
     tm = design.meta["timings"]
     G = design.rom.G
-    return {"n_x": plant.n_x, "rollout_s": rollout, "design_s": t_design, "optimize_s": tm["optimize_s"],
+    stages = design.meta.get("run_steps", {})      # per stage (sep >= 0.9; absent: a checkout before)
+    per_stage = {f"{k[:5] if k == 'identification' else k}_k": stages[k] / 1e3 if k in stages else None
+                 for k in ("nominal", "belief", "identification")}
+    return {**per_stage,"n_x": plant.n_x, "rollout_s": rollout, "design_s": t_design, "optimize_s": tm["optimize_s"],
             "identify_s": tm["identify_s"], "gains_s": tm["gains_s"], "plant_step_s": plant_s,
             "design/plant_steps": t_design / plant_s, "run_steps_k": run_steps / 1e3,
             "ns/node-step": 1e9 * plant_s / (run_steps * plant.n_x), "n_r": int(design.rom.dims.max()),

@@ -16,6 +16,7 @@ from sep_control.cli.common import (add_compute_options, add_deprecated, blas_th
                                     legacy_main, memory_budget_or_exit, plant_or_exit, scenario_or_exit, stderr_log)
 from sep_control.compute.progress import bars_wanted
 from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.design.plan import format_run_steps
 
 HELP = "design a data-driven LQG for a plant (scenario in, design file out)"
 DESCRIPTION = """\
@@ -80,6 +81,11 @@ SETTINGS_OPTIONS = (
      "impulse against an unperturbed copy in the same batch (about half the plant steps, a bias "
      "of O(amplitude): 4e-6 relative in the reference's Markov parameters at --impulse 0.01; a "
      "smaller amplitude trades the bias for round-off in the field map, see docs/method.md)", False),
+    ("--experiment-plan", "experiment_plan", dict(choices=["0.8", "0.9"]),
+     "which experiments the design runs: 0.8 = sep 0.8.0's plan (its designs bit for bit; the default); 0.9 = "
+     "a coarse first model kept while its steps pay, forward impulses, a spot check before the optimizer's "
+     "last model is reused, no belief refinement, 50 EnKF members (0.2-0.3x the plant run-steps on the "
+     "reference, plate and rod, 0.57x on Burgers; docs/benchmarks.md)", False),
     ("--chunks", "chunks", dict(type=int),
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
      "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "
@@ -223,6 +229,8 @@ def design_summary(design) -> dict:
         "max_dev_in_band_window": m["validation"]["max_dev_in_band_window"],
         "markov_rel_error": m["validation"]["markov_rel_error"],
         "timings": m["timings"],
+        "run_steps": m.get("run_steps"),              # plant run-steps per stage (None: files before 0.9)
+        "experiment_plan": m.get("settings", {}).get("experiment_plan", "0.8"),
         "source_digest": m.get("source_digest"),     # set by save_design
     }
 
@@ -239,6 +247,9 @@ def format_summary(sm: dict, path: str) -> str:
         f"  time                     optimize {t['optimize_s']:.2f} s, identify {t['identify_s']:.2f} s, "
         f"gains {t['gains_s']:.2f} s, total {t['total_s']:.2f} s",
     ]
+    if sm.get("run_steps"):
+        lines.append(f"  plant run-steps          {format_run_steps(sm['run_steps'])} "
+                     f"(experiment plan {sm['experiment_plan']})")
     return "\n".join(lines)
 
 

@@ -120,13 +120,14 @@ def run(args: argparse.Namespace) -> int:
                            keep_trajectories=1, memory_budget=budget, engine=engine,
                            mpc=truth_cli.mpc_options(args))
             bar.add(args.runs, N)
-            rows[name] = {**res.metrics(), "seconds": time.perf_counter() - t0}
+            rows[name] = {**res.metrics(), "seconds": time.perf_counter() - t0, "run_steps": args.runs * N}
             if name in ("rom_lqg", "rom_mpc"):
                 rows[name]["disturbance"] = disturbance_summary(design.disturbance)
             results[name] = res
         print(f"{args.runs} runs per controller, seed {args.seed}, plant {design.scenario.plant_type}, "
               f"n_x = {design.info.n_x}, n_r = {design.n_r}, disturbance states "
-              f"{disturbance_summary(design.disturbance)} (rom_lqg, rom_mpc)")
+              f"{disturbance_summary(design.disturbance)} (rom_lqg, rom_mpc); plant run-steps {args.runs * N:,} per "
+              f"controller, {len(controllers) * args.runs * N:,} in all")
         if truth is not None:
             print(truth_cli.describe(design, truth))
         print(format_table(rows, TABLE_KEYS))

@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     with blas_threads(args.threads), engine_or_exit(args.dask, log=print) as engine, \
             RunSteps(total, "validate (run-steps)", bars_wanted(args.quiet)) as bar:
         out = validate(plant, design, args.lags, args.amplitude, args.seed, engine, progress=bar)
+    out["run_steps"] = total            # plant run-steps spent (`validation_run_steps`)
     for key, val in out.items():
         print(f"{key:28s} {val:.3e}" if isinstance(val, float) else f"{key:28s} {val}")
     if args.json:

@@ -28,6 +28,7 @@ from sep_plant.protocol import Plant, noise_channels, nominal_states
 from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
 from sep_control.compute.progress import progress
 from sep_control.design.basis import IncrementalBasis
+from sep_control.design.runsteps import meter_of, unmetered
 
 #: relative tolerance of the field responses' basis (against the largest response) and of its
 #: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
@@ -90,7 +91,8 @@ def experiment_chunks(N: int, chunks: int) -> list[tuple[int, int]]:
 def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int, delta: float,
                         Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
-                        scheme: str = "central", chunks: int = 1, engine=None) -> MarkovData:
+                        scheme: str = "central", chunks: int = 1, engine=None,
+                        U_ext: np.ndarray | None = None) -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
@@ -103,7 +105,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     2 n_ch lags runs ((n_ch + 1) lags forward): a ring of `lags` slots, start j in slot j mod
     lags, stepped in place (no copy of the batch per step). When that batch exceeds
     `memory_budget` (`sep_control.compute.budget`), the channels are split into groups, one pass each.
-    `Xbar_ext` is the nominal over N + lags steps (computed if None).
+    `Xbar_ext` is the nominal over N + lags steps (computed if None), `U_ext` its input (None: U,
+    its last input held).
     Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
     relative to the chunk's largest response); only their coefficients are kept. The chunks'
     bases are then merged in chunk order into one basis Phi: each chunk's responses phi_c C_c
@@ -118,7 +121,9 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
         raise ValueError(f"impulse scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
     engine = engine or InProcess()
     N, n_u = U.shape
-    U_ext = extend_nominal(U, lags)
+    # `U_ext`: the nominal input over N + lags steps when it goes on past U (a block of start
+    # steps inside a longer horizon); None: U with its last input held
+    U_ext = extend_nominal(U, lags) if U_ext is None else U_ext[:N + lags]
     if Xbar_ext is None:
         Xbar_ext = nominal_states(plant, U_ext)
     n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
@@ -127,17 +132,30 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     in_process = engine.local
     groups = _channel_groups(plant, n_ch, lags, scheme, memory_budget, engine)
     plan = experiment_chunks(N, chunks)
-    shared = dict(plant=engine.ship(plant), U_ext=U_ext, lags=lags,
+    # a metered plant counts its own steps in this process; a worker steps its own copy, so its
+    # experiments are counted here (every run is stepped `lags` times, `experiment_run_steps`)
+    meter = None if in_process else meter_of(plant)
+    shared = dict(plant=engine.ship(plant if in_process else unmetered(plant)), U_ext=U_ext, lags=lags,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
                   n_chunks=len(plan))
     tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
-    labels = [f"plant {type(base_plant(plant)).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
+    labels = [f"plant {type(base_plant(unmetered(plant))).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
               f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
     parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
                        show_progress=show_progress and not in_process)
+    if meter is not None:
+        meter.add(experiment_run_steps(N, n_ch, lags, scheme, len(groups)))
     Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
     return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * N * n_ch, n_u)
+
+
+def experiment_run_steps(N: int, n_ch: int, lags: int, scheme: str = "central", groups: int = 1) -> int:
+    """Run-steps of the impulse experiments of N start steps and n_ch channels (the nominal
+    rollout not included): every run is stepped `lags` times; central 2 N n_ch runs, forward
+    N n_ch plus one unperturbed copy per start step and channel group."""
+    runs = N * (SCHEMES[scheme] * n_ch + (groups if scheme == "forward" else 0))
+    return int(runs * lags)
 
 
 def _channel_groups(plant: Plant, n_ch: int, lags: int, scheme: str, memory_budget: int | None,

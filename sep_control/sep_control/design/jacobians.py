@@ -99,13 +99,17 @@ class RomJacobian:
         Keep the first identification for every iteration (a chord method).
     start : Identification, optional
         An identification handed over by an earlier stage, kept as if made here.
+    settled_rtol : float
+        `relinearize` offers no new model when the kept one has the full settings and was made
+        within this of the input (0: only when made at the input itself).
     """
 
     def __init__(self, rom: RomSettings, proposal: RomSettings | None = None,
                  relinearize_rtol: float = SAME_INPUT_RTOL, chord: bool = False,
-                 start: Identification | None = None):
+                 start: Identification | None = None, settled_rtol: float = 0.0):
         self.rom, self.proposal = rom, proposal
         self.relinearize_rtol, self.chord = relinearize_rtol, chord
+        self.settled_rtol = settled_rtol
         self.kept = start          # the newest identification (each holds the nominal states and a basis)
         self.settled = False       # the last accepted step was in the optimum's neighbourhood
 
@@ -123,8 +127,12 @@ class RomJacobian:
                     gram: bool = True) -> Linearized | None:
         """A model kept from an earlier input whose trials all failed: once more on one made at
         `at`, with the full settings (None for a chord, or when `lin` was made at `at`)."""
-        if lin.identification is None or self.chord or same_input(lin.identification.U, at.U):
+        ident = lin.identification
+        if ident is None or self.chord or same_input(ident.U, at.U):
             return None
+        if self.settled_rtol > 0 and same_input(ident.U, at.U, self.settled_rtol) and \
+                ident.made_with(self.rom.scheme, self.rom.field_tol, self.rom.p, self.rom.q):
+            return None     # a model with the full settings made within settled_rtol: at the optimum
         self.settled = True
         return self.linearize(plant, obj, at, gram, SAME_INPUT_RTOL)
 
@@ -156,3 +164,46 @@ class AutoJacobian:
         self.rom.accepted(moved, decrease)
         if self.current is self.sensitivity and self.rom.settled:
             self.current = self.rom
+
+
+class KeptRomJacobian(RomJacobian):
+    """Experiment plan 0.9's ROM Jacobian: few identifications, each kept while it pays.
+
+    The first model is a coarse `proposal` one. A model is kept for every step while its
+    accepted steps lower the objective by at least half of what it predicts; when one does not
+    (`refresh`, a stale model) a new one is made there, with the design's settings
+    when the last step was in the optimum's neighbourhood (`near_optimum`); once a coarse model
+    stopped predicting, every later model has the design's settings. When the kept coarse
+    model's steps stall or fail (`relinearize`: its fixed point J_kept' r = 0 is not the optimum)
+    a model with the design's settings is made there; when such a model's steps stall or fail,
+    the optimizer stops.
+    """
+
+    def __init__(self, rom: RomSettings, proposal: RomSettings):
+        super().__init__(rom, proposal, relinearize_rtol=float("inf"))
+
+    def _full(self, ident: Identification) -> bool:
+        return ident.made_with(self.rom.scheme, self.rom.field_tol, self.rom.p, self.rom.q)
+
+    def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
+                    gram: bool = True) -> Linearized | None:
+        ident = lin.identification
+        if ident is None or self._full(ident) or same_input(ident.U, at.U):
+            return None
+        self.settled = True
+        return self.linearize(plant, obj, at, gram, SAME_INPUT_RTOL)
+
+    def refresh(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
+                gram: bool = True) -> Linearized | None:
+        """A kept model whose last step paid less than half its prediction: a new one at `at`,
+        with the design's settings (a coarse model that stopped predicting is not tried again:
+        on such a plant the coarse Hankel blocks miss the dynamics)."""
+        ident = lin.identification
+        if ident is None or same_input(ident.U, at.U):
+            return None
+        self.settled = True
+        self.coarse_failed = True
+        return self.linearize(plant, obj, at, gram, SAME_INPUT_RTOL)
+
+    def accepted(self, moved: float, decrease: float) -> None:
+        self.settled = getattr(self, "coarse_failed", False) or near_optimum(moved, decrease)

@@ -37,6 +37,10 @@ from sep_control.design.linearization import Linearization, Point
 from sep_control.design.tvera import Identification
 
 METHODS = ("gn", "gd")
+#: `refresh_on_stall`: an accepted step that lowers the objective by less than this share of what
+#: a kept model predicted makes the strategy offer a model made at the new input (trust-region
+#: ratio rho < 1/2: the kept model no longer describes the plant there)
+POOR_MODEL = 0.5
 OBJECTIVES = ("nominal", "belief")
 
 
@@ -56,6 +60,10 @@ class OptimizerOptions:
     # input box: (lo, hi), each broadcastable to (N, n_u); None: the problem's u_min/u_max
     bounds: tuple[np.ndarray, np.ndarray] | None = None
     show_progress: bool = True
+    # a step lowering the objective by less than tol on a model made elsewhere (a kept one): make
+    # one at this input (`Jacobian.relinearize`) and go on, instead of stopping there (a kept
+    # model's fixed point is not the optimum: J_kept' r = 0, not J' r = 0)
+    refresh_on_stall: bool = False
 
     def check(self) -> None:
         """Raise ValueError naming a bad method or objective."""
@@ -164,12 +172,18 @@ class Optimizer:
                 break
             new = attempt.point
             rel = (at.J - new.J) / max(at.J, 1e-300)
+            if rel < o.tol and o.refresh_on_stall:
+                fresh = self.strategy.relinearize(self.plant, self.obj, at, lin, self._gram)
+                if fresh is not None:
+                    lin = self._linearize(fresh, result)
+                    continue
             if rel < o.tol:
                 # a decrease below tol is no real improvement (for the belief an ensemble estimate's),
                 # and staying at U keeps the linearization made here (an identification the belief
                 # refinement and the design reuse) at the final input
                 result.stop = "the step lowered the objective by less than tol (not taken)"
                 break
+            poor = o.refresh_on_stall and self._poor_model(lin, at, new)
             self.strategy.accepted(float(np.max(np.abs(new.U - at.U))) / max(float(np.max(np.abs(at.U))), 1e-12),
                                    rel)
             at, lam, alpha = new, max(lam / 3.0, 1e-9), alpha * 1.2
@@ -180,7 +194,8 @@ class Optimizer:
             if it == last and lin.identification is None:
                 result.stop = f"max_iter = {o.iterations}"
                 break
-            lin = self._linearize(self.strategy.linearize(self.plant, self.obj, at, self._gram), result)
+            fresh = self.strategy.refresh(self.plant, self.obj, at, lin, self._gram) if poor else None
+            lin = self._linearize(fresh or self.strategy.linearize(self.plant, self.obj, at, self._gram), result)
             if it == last:
                 result.stop = f"max_iter = {o.iterations}"
         result.identification, result.belief = lin.identification, at.belief
@@ -188,6 +203,13 @@ class Optimizer:
         return result
 
     # ------------------------------------------------------------ internals
+    @staticmethod
+    def _poor_model(lin: Linearization, at: Point, new: Point) -> bool:
+        """Whether the accepted step from `at` to `new` lowered the objective by less than
+        POOR_MODEL times what the model `lin` predicted (a kept model gone stale)."""
+        predicted = -lin.predicted_change(new.U - at.U)
+        return not predicted > 0 or (at.J - new.J) < POOR_MODEL * predicted
+
     @property
     def _gram(self) -> bool:
         return self.options.method == "gn"         # gradient descent needs J'r only

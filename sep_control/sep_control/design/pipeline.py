@@ -39,6 +39,8 @@ from sep_control import __version__
 from sep_control.design.belief import objective_of
 from sep_control.design.gains import design_lqg, input_spread
 from sep_control.design.settings import DesignSettings
+from sep_control.design.plan import format_run_steps, log_plan
+from sep_control.design.runsteps import RunStepMeter, metered
 from sep_control.design.stages import DesignPass, StageContext, design_pass
 from sep_control.design.tvera import Identification
 
@@ -88,16 +90,21 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     given.check()
     given.check_plant_dims(int(plant.n_u), int(plant.n_y))
     check_plant(plant, problem.channels("u_init", int(plant.n_u)))
+    meter = RunStepMeter()
     st = given.for_plant(plant)
     if st.belief != given.belief:
         log("the plant's states are opaque (state_is_opaque): mean-only nominal, no EnKF belief "
             "(the belief refinement and the belief statistics need arithmetic on states)")
     scenario = scenario_of(plant, problem)
     problem = scenario.problem
-    ctx = StageContext(show_progress, log, engine)
+    ctx = StageContext(show_progress, log, engine, meter=meter)
+    log_plan(plant, problem, st, log)
     t_all = time.perf_counter()
-    final, margins, experiments = _with_limit_margin(plant, problem, st, ctx, design_pass(plant, problem, st, ctx))
+    counted = metered(plant, meter)
+    final, margins, experiments = _with_limit_margin(counted, problem, st, ctx,
+                                                     design_pass(counted, problem, st, ctx))
     ctx.timings["total_s"] = time.perf_counter() - t_all
+    log(f"run-steps: {format_run_steps(meter.as_dict())}")
 
     obj = objective_of(plant, problem)
     ident = final.identification.identification
@@ -105,7 +112,8 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     X_nom = ident.X_ext[: problem.n_steps + 1]
     F_nom = fields(plant, X_nom)
     nominal = Nominal(U, outputs(plant, X_nom), F_nom, *((belief.mean, belief.std) if belief is not None else ()))
-    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind}
+    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind,
+            "run_steps": meter.as_dict()}
     return Design(scenario, PlantInfo.of(plant), obj, np.asarray(plant.field_coordinates(), dtype=float), nominal,
                   final.lqg, ident.hankel_sv, meta)
 
@@ -152,6 +160,7 @@ def _meta(st: DesignSettings, timings: dict[str, float], final: DesignPass, obj:
                       "identification_reused": ident.reused, "nominal_cost": float(obj.cost(F_nom, nom.U)),
                       "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
         "validation": {"markov_rel_error": ident.markov_rel_error, "impulse_amplitude": ident.identification.delta,
+                       **({} if ident.spot_rel_error is None else {"spot_markov_rel_error": ident.spot_rel_error}),
                        "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
         "disturbance": disturbance_meta(final.lqg.disturbance),
     }

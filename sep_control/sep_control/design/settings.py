@@ -26,6 +26,17 @@ from sep_control.design.tvera import FIELD_TOL, SCHEMES, RomSettings
 #: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
 ROM_FROM = 5
 
+#: the experiment plans (`experiment_plan`) and the settings each gives the keys left at None:
+#: "0.8" is sep 0.8.0's plan (its designs bit for bit); "0.9" spends 0.2-0.57x its run-steps
+#: (docs/benchmarks.md): forward impulses (one run per impulse), no belief refinement (it moved J_b
+#: by 1e-6 relative) and 50 members for the belief statistics, and in the mean-only optimizer kept
+#: models (`sep_control.design.jacobians.KeptRomJacobian`, `sep_control.design.stages`)
+PLANS: dict[str, dict[str, Any]] = {
+    "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2},
+    "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0},
+}
+DEFAULT_PLAN = "0.8"
+
 #: keys of older design files and scenario `design:` sections, and what they are called now
 RENAMED = {"seed": "enkf_seed"}
 
@@ -46,22 +57,25 @@ class DesignSettings:
         Refine the mean-only optimum in belief space.
     max_iter : int, optional
         Optimizer iterations (None: 10 for gn, 60 for gd).
-    belief_iter : int
-        Belief-space Gauss-Newton iterations after the mean-only optimum.
+    belief_iter : int, optional
+        Belief-space Gauss-Newton iterations after the mean-only optimum (None: the plan's).
     fd_eps : float
         Sensitivity experiment amplitude.
     step_size : float
         Gradient-descent step alpha.
-    ensemble : int
-        EnKF members (even: antithetic pairs).
+    ensemble : int, optional
+        EnKF members (even: antithetic pairs; None: the plan's).
     n_r, p, q : int
         ROM order cap, Hankel block rows (future outputs) and columns (past inputs).
     sv_tol : float
         Relative Hankel singular-value cutoff.
     impulse : float
         Impulse amplitude relative to the RMS nominal input.
-    impulse_scheme : {"central", "forward"}
-        TV-ERA impulses: +- pairs, or one run each against an unperturbed copy.
+    impulse_scheme : {"central", "forward"}, optional
+        TV-ERA impulses: +- pairs, or one run each against an unperturbed copy (None: the plan's).
+    experiment_plan : {"0.8", "0.9"}
+        Which experiments the design runs (`PLANS`): "0.8" (default) reproduces sep 0.8.0's designs
+        bit for bit; "0.9" spends fewer plant run-steps (docs/benchmarks.md).
     field_map_tol : float
         Field map: drop directions moving the field by less than this times its spread.
     enkf_seed : int
@@ -96,16 +110,17 @@ class DesignSettings:
     jacobian: str = "auto"
     belief: bool = True
     max_iter: int | None = None
-    belief_iter: int = 2
+    belief_iter: int | None = None
     fd_eps: float = 1e-4
     step_size: float = 1e-3
-    ensemble: int = 200
+    ensemble: int | None = None
     n_r: int = 20
     p: int = 15
     q: int = 15
     sv_tol: float = 1e-10
     impulse: float = 0.01
-    impulse_scheme: str = "central"
+    impulse_scheme: str | None = None
+    experiment_plan: str = DEFAULT_PLAN
     field_map_tol: float = FIELD_MAP_TOL
     enkf_seed: int = 0
     tol: float = 1e-7
@@ -120,8 +135,17 @@ class DesignSettings:
     disturbance_dims: int | None = None
     disturbance_walk_std: float | list[float] = WALK_STD
 
+    def __post_init__(self) -> None:
+        """The keys left at None take the experiment plan's values (`PLANS`)."""
+        for key, value in PLANS.get(self.experiment_plan, {}).items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
+
     def check(self) -> None:
         """Raise ValueError naming the first setting out of range."""
+        if self.experiment_plan not in PLANS:
+            raise ValueError(f"experiment_plan must be one of {', '.join(PLANS)}, got {self.experiment_plan!r}")
+        self = self.resolved()
         if self.method not in ("gn", "gd"):
             raise ValueError(f"method must be 'gn' or 'gd', got {self.method!r}")
         if self.impulse_scheme not in SCHEMES:
@@ -196,8 +220,15 @@ class DesignSettings:
         return choose(rom, self.disturbance, float(problem.band), problem.window, dims=self.disturbance_dims,
                       std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K)
 
+    def resolved(self) -> "DesignSettings":
+        """These settings with the keys left at None set by the experiment plan (`PLANS`)."""
+        plan = PLANS[self.experiment_plan]
+        unset = {k: v for k, v in plan.items() if getattr(self, k) is None}
+        return replace(self, **unset) if unset else self
+
     def rom(self, engine=None) -> RomSettings:
         """The TV-ERA settings of the design's identifications (experiments on `engine`)."""
+        self = self.resolved()
         return RomSettings(p=self.p, q=self.q, n_r=self.n_r, sv_tol=self.sv_tol, impulse=self.impulse,
                            scheme=self.impulse_scheme, memory_budget=self.memory_budget, chunks=self.chunks,
                            engine=engine)
@@ -231,9 +262,10 @@ class DesignSettings:
         are opaque (`state_is_opaque`, e.g. a Co-Simulation FMU) gets no belief refinement, since
         the EnKF does arithmetic on states; its design has the mean-only nominal and no belief
         statistics."""
-        if self.belief and getattr(plant, "state_is_opaque", False):
-            return replace(self, belief=False)
-        return self
+        st = self.resolved()
+        if st.belief and getattr(plant, "state_is_opaque", False):
+            return replace(st, belief=False)
+        return st
 
     @classmethod
     def for_scenario(cls, scenario: Scenario, **overrides: Any) -> "DesignSettings":
@@ -261,10 +293,10 @@ class DesignSettings:
         than the chunked experiments ran them as one chunk, older than `relinearize_rtol`
         identified again after every step, older than `field_map_tol` truncated the field map
         at the field basis' tolerance, older than `coarse_proposals` identified every model
-        with the full settings, older than `disturbance` had no disturbance states, and older
-        ones record `enkf_seed` as `seed`)."""
+        with the full settings, older than `disturbance` had no disturbance states, older than
+        `experiment_plan` ran 0.8.0's plan, and older ones record `enkf_seed` as `seed`)."""
         recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, "field_map_tol": FIELD_TOL,
-                    "coarse_proposals": False, "disturbance": "none"}
+                    "coarse_proposals": False, "disturbance": "none", "experiment_plan": "0.8"}
         for key, value in meta.get("settings", {}).items():
             recorded[RENAMED.get(key, key)] = value
-        return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
+        return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__}).resolved()

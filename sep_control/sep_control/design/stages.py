@@ -24,10 +24,13 @@ from sep_plant.protocol import Plant, nominal_states
 from sep_control.design.belief import run_belief
 from sep_control.design.field_map import compressed_lqg
 from sep_control.design.gains import GainsResult, design_lqg
-from sep_control.design.jacobians import AutoJacobian, Jacobian, RomJacobian, SensitivityJacobian
-from sep_control.design.linearization import same_input
+from sep_control.design.jacobians import (AutoJacobian, Jacobian, KeptRomJacobian, RomJacobian,
+                                          SensitivityJacobian)
+from sep_control.design.linearization import SAME_INPUT_RTOL, same_input
 from sep_control.design.optimizer import OptimizationResult, Optimizer, OptimizerOptions
+from sep_control.design.runsteps import RunStepMeter
 from sep_control.design.settings import DesignSettings
+from sep_control.design.spotcheck import SPOT_BLOCKS, SPOT_STARTS, SPOT_TOL, spot_error
 from sep_control.design.tvera import Identification, extend_nominal, markov_relative_error
 
 #: Levenberg-Marquardt trials per belief-space iteration. Each is an EnKF run, and the Gauss-Newton
@@ -44,6 +47,16 @@ BELIEF_TRIALS = 1
 #: but on the Burgers example the proposals then stalled (J 0.369 after max_iter instead of 0.00156)
 PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6}
 
+#: experiment plan "0.9" (`DesignSettings.experiment_plan`): the mean-only optimizer's first model
+#: is a coarse one (forward impulses, Hankel blocks p = q = PLAN_PQ, experiments of 2 PLAN_PQ steps,
+#: field basis to 1e-6), kept while its accepted steps lower the cost by at least half of what it
+#: predicts (each trial costs one rollout, not an identification); then models with the design's
+#: settings (`KeptRomJacobian`). The last one is spot-checked at the final input before the design
+#: reuses it (`sep_control.design.spotcheck`). Iterations are cheap then (rollouts), so the plan
+#: allows PLAN_MAX_ITER of them
+PLAN_PQ = 8
+PLAN_MAX_ITER = 30
+
 
 @dataclass
 class StageContext:
@@ -53,6 +66,7 @@ class StageContext:
     log: Callable[[str], None] = print
     engine: object = None                  # `sep_control.compute.engine` (None: in-process)
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, summed over passes
+    meter: RunStepMeter = field(default_factory=RunStepMeter)  # run-steps per stage, summed over passes
 
     def took(self, key: str, t0: float) -> None:
         """Add the time since `t0` to timings[key]."""
@@ -96,6 +110,7 @@ class IdentificationStage:
     identification: Identification
     reused: bool                  # the optimizer's last identification (made at this input), not a new one
     markov_rel_error: float       # `markov_relative_error` of the model on its own experiments
+    spot_rel_error: float | None = None   # plan 0.9: its error at the final input (`spotcheck`), when reused from elsewhere
 
 
 @dataclass
@@ -111,8 +126,13 @@ def mean_only_jacobian(st: DesignSettings, kind: str, engine=None) -> Jacobian:
     """The mean-only optimizer's strategy for the resolved Jacobian `kind`: "rom", or
     "sensitivity" (switching to the ROM near the optimum when `st.jacobian` is "auto")."""
     rom = st.rom(engine)
-    proposal = replace(rom, **PROPOSAL_ROM) if st.coarse_proposals else None
-    rom_jacobian = RomJacobian(rom, proposal, relinearize_rtol=st.relinearize_rtol)
+    if st.experiment_plan == "0.8":
+        proposal = replace(rom, **PROPOSAL_ROM) if st.coarse_proposals else None
+        rom_jacobian = RomJacobian(rom, proposal, relinearize_rtol=st.relinearize_rtol)
+    else:
+        proposal = replace(rom, **PROPOSAL_ROM, p=min(rom.p, PLAN_PQ), q=min(rom.q, PLAN_PQ)) \
+            if st.coarse_proposals else rom
+        rom_jacobian = KeptRomJacobian(rom, proposal)
     if kind == "rom":
         return rom_jacobian
     if kind != "sensitivity":
@@ -127,9 +147,15 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
     from U0 (None: u_init) inside `bounds` (None: the problem's limits)."""
     t0 = time.perf_counter()
     kind = st.resolved_jacobian_for(plant, problem.n_steps)
-    options = OptimizerOptions(method=st.method, max_iter=st.max_iter, tol=st.tol, step_size=st.step_size,
-                               bounds=bounds, show_progress=ctx.show_progress)
-    opt = Optimizer(plant, problem, options, mean_only_jacobian(st, kind, ctx.engine)).run(U0)
+    planned = st.experiment_plan != "0.8" and st.method == "gn"
+    if planned and st.jacobian == "auto":
+        kind = "rom"            # plan 0.9: the coarse kept models take fewer run-steps than sensitivities
+    planned = planned and kind == "rom"
+    max_iter = PLAN_MAX_ITER if planned and st.max_iter is None else st.max_iter
+    options = OptimizerOptions(method=st.method, max_iter=max_iter, tol=st.tol, step_size=st.step_size,
+                               bounds=bounds, show_progress=ctx.show_progress, refresh_on_stall=planned)
+    with ctx.meter.stage("nominal"):
+        opt = Optimizer(plant, problem, options, mean_only_jacobian(st, kind, ctx.engine)).run(U0)
     ctx.log(f"mean-only {st.method} ({', '.join(opt.linearizations)} Jacobians): J = {opt.cost:.6g} after "
             f"{opt.iterations} iterations ({opt.experiments} experiments, {opt.seconds:.2f} s; stopped: {opt.stop})")
     refined = None
@@ -142,14 +168,16 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
                                    enkf_seed=st.enkf_seed, max_trials=BELIEF_TRIALS, bounds=bounds,
                                    memory_budget=st.memory_budget, show_progress=ctx.show_progress)
         chord = RomJacobian(st.rom(ctx.engine), chord=True, start=opt.identification)
-        refined = Optimizer(plant, problem, options, chord).run(opt.U)
+        with ctx.meter.stage("belief"):
+            refined = Optimizer(plant, problem, options, chord).run(opt.U)
         ctx.log(f"belief-space gn: J_b = {refined.history[0]:.8g} -> {refined.cost:.8g} "
                 f"({refined.iterations} iterations, {refined.seconds:.2f} s; stopped: {refined.stop})")
     ctx.took("optimize_s", t0)
     last = refined if refined is not None else opt
     belief = last.belief
     if belief is None and not getattr(plant, "state_is_opaque", False):   # the EnKF adds and scales states
-        belief = run_belief(plant, last.U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
+        with ctx.meter.stage("belief"):
+            belief = run_belief(plant, last.U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
     return NominalResult(last.U, opt, refined, belief, kind)
 
 
@@ -157,9 +185,29 @@ def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResul
                          ctx: StageContext) -> IdentificationStage:
     """Stage 2: TV-ERA around the nominal; the optimizer's last identification when it was made
     at this very input with the design's own settings (not a coarse proposal model)."""
+    with ctx.meter.stage("identification"):
+        return _identification_stage(plant, st, nominal, ctx)
+
+
+def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResult,
+                          ctx: StageContext) -> IdentificationStage:
     U, t0 = nominal.U, time.perf_counter()
     ident = nominal.last.identification
-    reused = ident is not None and same_input(ident.U, U) and ident.made_with(st.impulse_scheme, p=st.p, q=st.q)
+    # plan 0.9: the model made at the mean-only optimum also serves the belief-refined nominal,
+    # which moved by ~1e-4 relative (within relinearize_rtol): the Markov parameters move by that
+    # much, far below the forward impulses' own O(delta) error
+    rtol = SAME_INPUT_RTOL if st.experiment_plan == "0.8" else st.relinearize_rtol
+    reused = ident is not None and same_input(ident.U, U, rtol) and ident.made_with(st.impulse_scheme, p=st.p,
+                                                                                   q=st.q)
+    spot = None
+    if not reused and st.experiment_plan != "0.8" and ident is not None and \
+            ident.made_with(st.impulse_scheme, p=st.p, q=st.q):
+        with ctx.meter.stage("validation"):
+            spot = spot_error(plant, ident, U)
+        reused = spot <= SPOT_TOL
+        ctx.log(f"TV-ERA: the optimizer's last model, checked at the final input by impulses at "
+                f"{SPOT_BLOCKS} x {SPOT_STARTS} start steps: Markov relative error {spot:.2e} "
+                f"({'<=' if reused else '>'} {SPOT_TOL:g}: {'reused' if reused else 'identified again'})")
     if not reused:
         ident = st.rom(ctx.engine).identify(plant, U, ctx.show_progress)
     elif not np.array_equal(ident.U, U):
@@ -168,9 +216,16 @@ def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResul
     ctx.took("identify_s", t0)
     err = markov_relative_error(ident.model, ident.data.Y)
     ctx.log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
-            f"experiments{' (the optimizer’s last identification, reused)' if reused else ''}, Markov relative "
+            f"experiments{_reuse_note(ident.U, U) if reused else ''}, Markov relative "
             f"error {err:.2e}")
-    return IdentificationStage(ident, reused, err)
+    return IdentificationStage(ident, reused, err, spot if reused else None)
+
+
+def _reuse_note(U_ident: np.ndarray, U: np.ndarray) -> str:
+    """The log's note on a reused identification (how far the nominal moved since it was made)."""
+    moved = float(np.max(np.abs(U - U_ident))) / max(float(np.max(np.abs(U_ident))), 1e-12)
+    return (" (the optimizer’s last identification, reused" +
+            (f"; made where the nominal input was {moved:.1e} relative away" if moved > 0 else "") + ")")
 
 
 def gains_stage(identified: IdentificationStage, problem: Problem, st: DesignSettings,

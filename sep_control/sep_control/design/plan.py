@@ -1,0 +1,94 @@
+"""What a design will cost before it runs: plant run-steps and the largest matrices per stage.
+
+`design_plan` estimates, from the plant's dimensions and the settings only (nothing is run),
+the run-steps of each stage (`sep_control.design.runsteps`) and the largest matrix each forms;
+`plan_warnings` names the key that drives a cost far above a usual design's (the reference
+spends about 1.3e3 run-steps per horizon step with 0.8.0's plan); `log_plan` writes both to
+the design log. The counts a design really spent are in its meta's "run_steps".
+Pure Python/numpy: no ROS import.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from sep_plant.problem import Problem
+from sep_plant.protocol import Plant, noise_channels
+
+from sep_control.design.impulse import experiment_run_steps
+from sep_control.design.runsteps import STAGES
+
+#: run-steps per horizon step and per channel above which the plan warns (the reference with
+#: 0.8.0's plan: 315k run-steps over N = 250 steps and 5 channels, ~250 per step and channel)
+WARN_PER_STEP_CHANNEL = 2500
+#: Hankel columns q n_ch above which the plan warns (an SVD of (p n_y) x (q n_ch) per step)
+WARN_HANKEL_COLUMNS = 600
+#: identifications the mean-only ROM optimizer usually makes (coarse first model, one at the optimum)
+USUAL_IDENTIFICATIONS = 2
+
+
+def channels(plant: Plant) -> tuple[int, int]:
+    """(n_u, n_w): the inputs, and the noise channels identified beside them (0 when the
+    process noise enters through the inputs)."""
+    n_w = 0 if getattr(plant, "noise_on_inputs", True) else int(noise_channels(plant))
+    return int(plant.n_u), n_w
+
+
+def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
+    """Estimated run-steps per stage and the largest matrices of a design with settings `st`
+    (resolved: `DesignSettings.for_plant`)."""
+    N, lags = problem.n_steps, st.p + st.q
+    n_u, n_w = channels(plant)
+    n_ch = n_u + n_w
+    ident = experiment_run_steps(N, n_ch, lags, st.impulse_scheme) + N + lags
+    jac = st.resolved_jacobian_for(plant, N)
+    if jac == "rom":
+        nominal = USUAL_IDENTIFICATIONS * ident + 20 * N
+    else:
+        nominal = 3 * (N * (N + 1) * n_u // 2) + ident
+    belief = (st.belief_iter + 1) * st.ensemble * N if st.belief else 0
+    steps = {"nominal": nominal, "belief": belief, "identification": 0 if jac == "rom" else ident,
+             "validation": 0}
+    matrices = {"hankel": (st.p * int(plant.n_y), st.q * n_ch),
+                "field_basis": (int(plant.n_field), None),
+                "sensitivity_normal": (N * n_u, N * n_u) if jac == "sensitivity" else None,
+                "ensemble": (st.ensemble, int(plant.n_x)) if st.belief else None}
+    return {"run_steps": {**steps, "total": sum(steps.values())}, "matrices": matrices, "n_u": n_u, "n_w": n_w,
+            "jacobian": jac}
+
+
+def plan_warnings(plan: dict[str, Any], n_steps: int) -> list[str]:
+    """Lines naming the key behind a cost far above the usual (none when all is usual)."""
+    out = []
+    n_ch = plan["n_u"] + plan["n_w"]
+    rows, cols = plan["matrices"]["hankel"]
+    if cols > WARN_HANKEL_COLUMNS:
+        what = (f"{plan['n_w']} process-noise channels identified beside the {plan['n_u']} inputs (the plant's "
+                "noise_on_inputs is False, n_w = noise_channels)" if plan["n_w"] else f"q x n_u = {cols}")
+        out.append(f"warning: Hankel matrices of {rows} x {cols} per step (an SVD each): {what}; the keys q and "
+                   "the plant's noise channels drive it")
+    per = plan["run_steps"]["total"] / max(n_steps * max(n_ch, 1), 1)
+    if per > WARN_PER_STEP_CHANNEL:
+        stage = max(STAGES, key=lambda s: plan["run_steps"].get(s, 0))
+        key = {"nominal": "jacobian / max_iter", "belief": "ensemble / belief_iter",
+               "identification": "p, q / impulse_scheme"}.get(stage, stage)
+        out.append(f"warning: about {plan['run_steps']['total']:.3g} run-steps, {per:.0f} per horizon step and "
+                   f"channel (usual: under {WARN_PER_STEP_CHANNEL}); the {stage} stage drives it (keys {key})")
+    return out
+
+
+def format_run_steps(counts: dict[str, int]) -> str:
+    """'total T (nominal a, belief b, identification c, ...)' of a run-step count per stage."""
+    parts = ", ".join(f"{k} {v:,}" for k, v in counts.items() if k != "total" and v)
+    return f"{counts.get('total', 0):,} ({parts})"
+
+
+def log_plan(plant: Plant, problem: Problem, st, log: Callable[[str], None]) -> dict[str, Any]:
+    """Write the plan's estimate and its warnings to `log`; returns the plan."""
+    plan = design_plan(plant, problem, st)
+    m = plan["matrices"]
+    big = [f"{name} {r} x {c}" for name, v in m.items() if v is not None for r, c in [v] if c is not None]
+    log(f"plan ({st.experiment_plan}): about {format_run_steps(plan['run_steps'])} run-steps; largest matrices: "
+        f"{', '.join(big)}; field basis rows {m['field_basis'][0]}")
+    for line in plan_warnings(plan, problem.n_steps):
+        log(line)
+    return plan
