@@ -39,6 +39,8 @@ def main() -> int:
     ap.add_argument("--run-steps", type=int, default=3000, help="stop after this many plant run-steps")
     ap.add_argument("--stage", choices=["design", "sensitivity", "impulse", "belief"], default="design")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    ap.add_argument("--memory-budget", help="the design's memory budget (e.g. 8G: at plate 256^2 the "
+                    "sensitivity Jacobian, as on a large host; default: this machine's)")
     ap.add_argument("--top", type=int, default=18, help="cProfile rows to print")
     args = ap.parse_args()
 
@@ -58,6 +60,11 @@ def main() -> int:
     plant = on_device(scen.plant, args.device)
     problem = scen.problem
     st = DesignSettings.for_scenario(scen)
+    if args.memory_budget:
+        from dataclasses import replace
+
+        from sep_control.compute.budget import parse_budget
+        st = replace(st, memory_budget=parse_budget(args.memory_budget))
     spent = [0.0, 0]
     step = plant.step
 
@@ -92,14 +99,19 @@ def main() -> int:
         try:
             work()
             stopped = "finished"
-        except Enough:
+        except Exception as exc:               # an engine re-raises it as the cause of its own
+            cause = exc
+            while cause is not None and not isinstance(cause, Enough):
+                cause = cause.__cause__
+            if cause is None:
+                raise
             stopped = f"stopped at {args.run_steps} run-steps"
         prof.disable()
         total = time.perf_counter() - t0
     plant_s, run_steps = spent
     rest = total - plant_s
     print(f"{args.row}{' ' + str(args.nodes) if args.nodes else ''} {args.stage} on {args.device}: {stopped}; "
-          f"n_x = {plant.n_x}, run-steps = {run_steps}")
+          f"n_x = {plant.n_x}, run-steps = {run_steps}, Jacobian {st.resolved_jacobian_for(plant, problem.n_steps)}")
     print(f"time {total:.2f} s, plant steps {plant_s:.2f} s ({1e9 * plant_s / max(1, run_steps * plant.n_x):.1f} "
           f"ns/node-step), rest {rest:.2f} s = {1e9 * rest / max(1, run_steps * plant.n_x):.2f} ns/node-step")
     s = io.StringIO()
