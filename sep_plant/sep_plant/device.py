@@ -63,13 +63,15 @@ def array_module(device: str):
     return cupy
 
 
-#: share of the device's free memory the resident batches may use (the rest: the plant's
-#: constants, CuPy's memory pool slack, the design's field bases)
+#: share of the device's free memory the resident batches may use (the rest: CuPy's memory pool
+#: slack, the design's field bases and sums)
 DEVICE_MEMORY_SHARE = 0.6
-#: state-sized float64 arrays alive per run of a resident batch: the state and the step's
-#: temporaries (the ADI step by parallel cyclic reduction: about 20 per node at its peak,
-#: measured on the emulated device with the built-in plants), the field deviations
-DEVICE_RUN_COPIES = 24
+#: state-sized float64 rows alive per run of a resident batch: the state, the stepped state (a
+#: plant's step returns a new array), the field deviation and one spare. The step's own
+#: temporaries are a block's, not the batch's (the plant steps DEVICE_BLOCK_NODES at a time):
+#: DEVICE_BLOCK_BYTES_PER_NODE per node of one block, set aside once
+DEVICE_RUN_COPIES = 4
+DEVICE_BLOCK_BYTES_PER_NODE = 160
 
 
 @dataclass
@@ -118,11 +120,14 @@ EMULATED_DEVICE_MEMORY = 8 << 30
 
 
 def device_runs_per_batch(plant: Any, n_arrays: int = DEVICE_RUN_COPIES, share: float = DEVICE_MEMORY_SHARE) -> int:
-    """Runs of `plant` a resident batch may hold on its device: `share` of the free device
-    memory over `n_arrays` float64 state rows per run (the memory plan, docs/gpu.md)."""
+    """Runs of `plant` a resident batch may hold on its device, in float64: `share` of the free
+    device memory, less one block's step temporaries (DEVICE_BLOCK_BYTES_PER_NODE per node of
+    `block_nodes`), over `n_arrays` state rows per run (the memory plan, docs/gpu.md). An H200
+    (~140 GB free): about 2400 runs of 10^6 states."""
     xp = getattr(plant, "xp", np)
+    block = int(getattr(plant, "block_nodes", DEVICE_BLOCK_NODES)) * DEVICE_BLOCK_BYTES_PER_NODE
     per_run = 8 * n_arrays * int(plant.n_x)
-    return max(1, int(share * device_memory(xp)) // per_run)
+    return max(1, (int(share * device_memory(xp)) - block) // per_run)
 
 
 class DevicePlant:
@@ -217,7 +222,7 @@ class DevicePlant:
 
     def to_device(self, A):
         """A host array on the device (counted in `stats`)."""
-        A = np.asarray(A, dtype=float)
+        A = np.ascontiguousarray(A, dtype=float)
         self.stats.to_device += A.nbytes
         return self.xp.asarray(A)
 
@@ -265,7 +270,7 @@ def base_plant(plant: Any) -> Any:
     return plant.plant if isinstance(plant, DevicePlant) else plant
 
 
-__all__ = ["DEVICES", "DEVICE_BLOCK_NODES", "DEVICE_MEMORY_SHARE", "DEVICE_RUN_COPIES", "DeviceError",
+__all__ = ["DEVICES", "DEVICE_BLOCK_BYTES_PER_NODE", "DEVICE_BLOCK_NODES", "DEVICE_MEMORY_SHARE", "DEVICE_RUN_COPIES", "DeviceError",
            "DevicePlant", "TransferStats", "array_module", "array_module_of", "base_plant", "check_finite",
            "device_memory", "device_runs_per_batch", "on_device", "step_resident", "synchronize", "to_device",
            "to_host_of"]

@@ -97,7 +97,8 @@ class _ChunkedGram:
         if self.filled == self.chunk or last:
             used = self.rows[:m, :self.filled * n_f]
             self.JtJ[:m, :m] += used @ used.T
-            used[:] = 0.0
+            if self.chunk > 1:         # one step a chunk: the next step overwrites every used row
+                used[:] = 0.0
             self.filled = 0
 
 
@@ -140,7 +141,8 @@ def sensitivity_normal_equations(plant: Plant, U: np.ndarray, Xbar: np.ndarray, 
         Uk[-n_u:] += eye
         X[:m] = step(X[:m], to_device(plant, Uk))
         run_steps += m
-        D = (plant.field(X[:m]) - Fbar_d[k + 1]) / eps           # (n_u (k+1), n_f)
+        D = plant.field(X[:m]) - Fbar_d[k + 1]                   # (n_u (k+1), n_f)
+        D /= eps
         w = q[k + 1] / n_f
         Jtr[:m] += w * (D @ res_d[k + 1])
         if acc is not None:
