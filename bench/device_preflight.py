@@ -68,6 +68,25 @@ def main() -> int:
     check("float32 product to float64", lambda: str((d.astype(np.float32) @ d.T.astype(np.float32))
                                                     .astype(np.float64).dtype))
     check("float64 is the default dtype", lambda: str(xp.zeros(3).dtype))
+    check("products with an empty basis (n x 0)", lambda: (d.T @ xp.zeros((40, 0))).shape)
+
+    def basis(n_f: int = 1_000_000, b: int = 144, blocks: int = 3):
+        from sep_control.design.basis import IncrementalBasis
+        B = IncrementalBasis(n_f, 1e-8, xp=xp)
+        modes = xp.asarray(rng.standard_normal((300, n_f)) / np.sqrt(n_f))
+        times = []
+        for _ in range(blocks):
+            D = xp.asarray(rng.standard_normal((b, 300)) * np.logspace(0, -6, 300)) @ modes
+            synchronize(xp)
+            t0 = time.perf_counter()
+            C = B.add(D)
+            synchronize(xp)
+            times.append(time.perf_counter() - t0)
+            err = float(xp.abs(C @ B.phi.T - D).max() / xp.abs(D).max())
+        return (f"rank {B.rank}, add of {b} x {n_f:.0e} blocks {', '.join(f'{t:.2f}' for t in times)} s, "
+                f"rebuild error {err:.1e}")
+    check("field basis on the device (10^6-long blocks: SVD via QR, QR, projections)",
+          basis if not args.emulated else (lambda: basis(20_000, 36)))
 
     def gflops():
         B = xp.asarray(rng.standard_normal((2000, 20000)))

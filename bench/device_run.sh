@@ -10,7 +10,7 @@
 #   1. preflight (90): every CuPy call of the resident path, bandwidth, kernel compilation,
 #      plate 256^2 / block 100^3 steps, and a small design + Monte Carlo, GPU against CPU
 #   2. plate 256^2 (150): the design and a 100-run Monte Carlo on the GPU, per-stage table
-#   3. block 100^3 = 10^6 states (200): the same
+#   3. block 100^3 = 10^6 states (what is left of TOTAL = 470 s, at least 120): the same
 # A step that hits its timeout prints its sampled profile (where its time went) before it stops.
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -41,7 +41,8 @@ SMI=$!
 step preflight "${PREFLIGHT_TIMEOUT:-90}" python3 bench/device_preflight.py
 step plate256 "${PLATE_TIMEOUT:-150}" python3 bench/bench_scale.py --device cuda --rows plate:256 --runs 100 \
     --threads "${THREADS:-16}" --log --json "$out/device_plate256.json"
-step block100 "${BLOCK_TIMEOUT:-200}" python3 bench/bench_scale.py --device cuda --rows block:100 --runs 100 \
+left=$(( ${TOTAL:-470} - ($(date +%s) - T0) ))
+step block100 "${BLOCK_TIMEOUT:-$(( left > 120 ? left : 120 ))}" python3 bench/bench_scale.py --device cuda --rows block:100 --runs 100 \
     --threads "${THREADS:-16}" --log --json "$out/device_block100.json"
 kill "$SMI" 2>/dev/null || true
 stamp "done; exit codes:"; cat "$out/device_exit_codes.txt"

@@ -254,3 +254,29 @@ def test_a_non_finite_device_state_is_caught_without_a_check_per_line_solve(one_
     U[2] = np.nan
     with pytest.raises(FloatingPointError, match="non-finite"):
         run_belief(dev, U, s.problem, 8, 0, X=Xbar * 0 + s.plant.initial_state(1))
+
+
+def test_the_field_basis_on_the_device_equals_the_hosts():
+    """`IncrementalBasis` with its Phi on the device (SVD through a QR there): the same rank and
+    span, coefficients that rebuild the snapshots to round-off; `merge` too."""
+    from sep_control.design.basis import IncrementalBasis
+
+    rng = np.random.default_rng(3)
+    n = 500
+    modes = np.linalg.qr(rng.standard_normal((n, 12)))[0] * np.logspace(0, -6, 12)
+    blocks = [rng.standard_normal((9, 12)) @ modes.T for _ in range(5)]
+    host, dev = IncrementalBasis(n, 1e-8), IncrementalBasis(n, 1e-8, xp=guard)
+    for D in blocks:
+        ch = host.add(D)
+        cd = dev.add(guard.asarray(D))
+        assert isinstance(cd, GuardArray) and cd.shape == ch.shape
+        np.testing.assert_allclose(to_host(cd) @ to_host(dev.phi).T, D, rtol=0, atol=1e-10 * np.abs(D).max())
+    assert dev.rank == host.rank == 12
+    P_h, P_d = host.phi @ host.phi.T, to_host(dev.phi) @ to_host(dev.phi).T
+    np.testing.assert_allclose(P_d, P_h, rtol=0, atol=1e-9)
+    other = np.linalg.qr(rng.standard_normal((n, 4)))[0]
+    coef = rng.standard_normal((4, 20))
+    host.merge(other, coef)
+    dev.merge(guard.asarray(other), coef)
+    assert dev.rank == host.rank == 16
+    np.testing.assert_allclose(to_host(dev.phi).T @ to_host(dev.phi), np.eye(16), rtol=0, atol=1e-12)

@@ -62,16 +62,19 @@ class IncrementalBasis:
             scale = float(norms.max(initial=0.0)) if xp is np else (float(norms.max()) if D.shape[0] else 0.0)
         self.scale = max(self.scale, float(scale))
         phi = self.phi
-        C = D @ phi
-        E = D - C @ phi.T
-        C2 = E @ phi                     # re-orthogonalize (classical Gram-Schmidt, twice)
-        E -= C2 @ phi.T
-        C += C2
+        if xp is not np and self._cols == 0:     # no products with an empty basis on a device
+            C, E = xp.zeros((D.shape[0], 0)), D.copy()
+        else:
+            C = D @ phi
+            E = D - C @ phi.T
+            C2 = E @ phi                 # re-orthogonalize (classical Gram-Schmidt, twice)
+            E -= C2 @ phi.T
+            C += C2
         if self.scale == 0.0 or float(xp.linalg.norm(E)) <= self.tol * self.scale:
             # every singular value of E is at most its Frobenius norm: nothing to add, and no SVD
             # (most blocks once the basis holds the responses: 3/4 of them at the reference)
             return C
-        U, S, Vt = xp.linalg.svd(E, full_matrices=False)
+        U, S, Vt = np.linalg.svd(E, full_matrices=False) if xp is np else _svd_wide(xp, E)
         S_host = S if xp is np else S.get()
         # the kept directions are a leading run: S is sorted, and so are the caps on their number
         k = int(np.count_nonzero(S_host > self.tol * self.scale))
@@ -84,7 +87,8 @@ class IncrementalBasis:
         # a relative size of eps |D| / S: orthogonalize them once more and among themselves
         # (V_old = V R + round-off, so E's coefficients on V are U S R')
         V = Vt[:k].copy().T
-        V -= phi @ (phi.T @ V)
+        if xp is np or self._cols:
+            V -= phi @ (phi.T @ V)
         V, R = xp.linalg.qr(V)
         self._grow(V)
         return xp.hstack([C, (U[:, :k] * S[:k]) @ R.T])
@@ -105,8 +109,11 @@ class IncrementalBasis:
         xp = self.xp
         self.scale = max(self.scale, float(np.sqrt(np.einsum("ij,ij->j", coefficients, coefficients)).max()))
         own = self.phi
-        A = phi - own @ (own.T @ phi)
-        A -= own @ (own.T @ A)                      # re-orthogonalize
+        if xp is not np and self._cols == 0:         # no products with an empty basis on a device
+            A = phi.copy()
+        else:
+            A = phi - own @ (own.T @ phi)
+            A -= own @ (own.T @ A)                  # re-orthogonalize
         Q, R = xp.linalg.qr(A)
         Z = (R if xp is np else R.get()) @ coefficients     # (r_c, m): the residual snapshots on Q
         room = None if self.max_rank is None else max(0, self.max_rank - self._cols)
@@ -115,7 +122,8 @@ class IncrementalBasis:
             sub.add(Z[:, i:i + block].T, scale=self.scale)      # the tolerance against our scale
         if sub.rank:
             V = Q @ (sub.phi if xp is np else xp.asarray(sub.phi))
-            V -= own @ (own.T @ V)                 # orthogonal to the basis to round-off
+            if xp is np or self._cols:
+                V -= own @ (own.T @ V)             # orthogonal to the basis to round-off
             self._grow(xp.linalg.qr(V)[0])
 
     def _grow(self, V: np.ndarray) -> None:
@@ -127,6 +135,16 @@ class IncrementalBasis:
             self._phi = buf
         self._phi[:, self._cols:need] = V
         self._cols = need
+
+
+def _svd_wide(xp, E):
+    """The thin SVD U S V' of a wide device block E (b x n_f, b << n_f) through its QR: E' = Q R
+    on the device (cuSOLVER's geqrf/orgqr: n_f b^2 flops, streamed once), the b x b SVD of R' on
+    the host, V = Q V_r. The same factorization as an SVD of E to round-off (QR is backward
+    stable), without a bidiagonalization of the n_f-long block on the device."""
+    Q, R = xp.linalg.qr(E.T)
+    Ur, S, Vrt = np.linalg.svd(R.T.get())
+    return xp.asarray(Ur), xp.asarray(S), (Q @ xp.asarray(Vrt.T)).T
 
 
 def truncate(phi: np.ndarray, coefficients: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
