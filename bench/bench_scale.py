@@ -139,8 +139,6 @@ class StageClock:
         self.last = plant.stats.snapshot()
 
     def mark(self, label: str) -> None:
-        import numpy as np  # noqa: F401 (numpy first: CuPy's pool below)
-
         now, snap = time.perf_counter(), self.plant.stats.snapshot()
         d = {k: snap[k] - self.last[k] for k in snap}
         wall = now - self.t

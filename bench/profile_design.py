@@ -44,7 +44,6 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=18, help="cProfile rows to print")
     args = ap.parse_args()
 
-    import numpy as np
     from threadpoolctl import threadpool_limits
 
     from bench_scale import ROWS
