@@ -89,7 +89,7 @@ class IncrementalBasis:
         V = Vt[:k].copy().T
         if xp is np or self._cols:
             V -= phi @ (phi.T @ V)
-        V, R = xp.linalg.qr(V)
+        V, R = np.linalg.qr(V) if xp is np else _qr(xp, V)
         self._grow(V)
         return xp.hstack([C, (U[:, :k] * S[:k]) @ R.T])
 
@@ -114,7 +114,7 @@ class IncrementalBasis:
         else:
             A = phi - own @ (own.T @ phi)
             A -= own @ (own.T @ A)                  # re-orthogonalize
-        Q, R = xp.linalg.qr(A)
+        Q, R = np.linalg.qr(A) if xp is np else _qr(xp, A)
         Z = (R if xp is np else R.get()) @ coefficients     # (r_c, m): the residual snapshots on Q
         room = None if self.max_rank is None else max(0, self.max_rank - self._cols)
         sub = IncrementalBasis(phi.shape[1], self.tol, max_rank=room)
@@ -124,7 +124,7 @@ class IncrementalBasis:
             V = Q @ (sub.phi if xp is np else xp.asarray(sub.phi))
             if xp is np or self._cols:
                 V -= own @ (own.T @ V)             # orthogonal to the basis to round-off
-            self._grow(xp.linalg.qr(V)[0])
+            self._grow(np.linalg.qr(V)[0] if xp is np else _qr(xp, V)[0])
 
     def _grow(self, V: np.ndarray) -> None:
         need = self._cols + V.shape[1]
@@ -137,12 +137,31 @@ class IncrementalBasis:
         self._cols = need
 
 
+#: what the device's own QR failed with, once (then the host's QR serves: a slower, working design)
+QR_FALLBACK: list[str] = []
+
+
+def _qr(xp, A):
+    """The thin QR of a tall device array: the device's (cuSOLVER), or the host's if the device
+    module's fails to run (no cuSOLVER in the installation, say), said once on stderr."""
+    if not QR_FALLBACK:
+        try:
+            return xp.linalg.qr(A)
+        except (ImportError, RuntimeError, AttributeError) as exc:
+            import sys
+            QR_FALLBACK.append(f"{type(exc).__name__}: {exc}")
+            print(f"sep: the device's QR failed ({QR_FALLBACK[0]}); the field basis uses the host's QR",
+                  file=sys.stderr, flush=True)
+    Q, R = np.linalg.qr(A.get())
+    return xp.asarray(Q), xp.asarray(R)
+
+
 def _svd_wide(xp, E):
     """The thin SVD U S V' of a wide device block E (b x n_f, b << n_f) through its QR: E' = Q R
     on the device (cuSOLVER's geqrf/orgqr: n_f b^2 flops, streamed once), the b x b SVD of R' on
     the host, V = Q V_r. The same factorization as an SVD of E to round-off (QR is backward
     stable), without a bidiagonalization of the n_f-long block on the device."""
-    Q, R = xp.linalg.qr(E.T)
+    Q, R = _qr(xp, E.T)
     Ur, S, Vrt = np.linalg.svd(R.T.get())
     return xp.asarray(Ur), xp.asarray(S), (Q @ xp.asarray(Vrt.T)).T
 
