@@ -12,6 +12,8 @@
 #   2. plate 256^2 (150): the design and a 100-run Monte Carlo on the GPU, per-stage table
 #   3. block 100^3 = 10^6 states (what is left of TOTAL = 470 s, at least 120): the same
 # A step that hits its timeout prints its sampled profile (where its time went) before it stops.
+# A dry run without a GPU (the tests' emulator, small rows, short limits):
+#     DEVICE=emulated PLATE_ROW=plate:64 BLOCK_ROW=block:24 TOTAL=200 bash bench/device_run.sh
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 export PYTHONPATH=sep_plant:sep_estimator:sep_control PYTHONUNBUFFERED=1
@@ -38,11 +40,12 @@ step() {   # step NAME TIMEOUT CMD...: run with a timeout, output tee'd to $out/
 } 2>&1 | tee "$out/device_machine.txt"
 nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 2 > "$out/device_nvsmi.csv" 2>&1 &
 SMI=$!
-step preflight "${PREFLIGHT_TIMEOUT:-90}" python3 bench/device_preflight.py
-step plate256 "${PLATE_TIMEOUT:-150}" python3 bench/bench_scale.py --device cuda --rows plate:256 --runs 100 \
+DEVICE="${DEVICE:-cuda}"
+step preflight "${PREFLIGHT_TIMEOUT:-90}" python3 bench/device_preflight.py $([ "$DEVICE" = emulated ] && echo --emulated)
+step plate256 "${PLATE_TIMEOUT:-150}" python3 bench/bench_scale.py --device "$DEVICE" --rows "${PLATE_ROW:-plate:256}" --runs 100 \
     --threads "${THREADS:-16}" --log --json "$out/device_plate256.json"
 left=$(( ${TOTAL:-470} - ($(date +%s) - T0) ))
-step block100 "${BLOCK_TIMEOUT:-$(( left > 120 ? left : 120 ))}" python3 bench/bench_scale.py --device cuda --rows block:100 --runs 100 \
+step block100 "${BLOCK_TIMEOUT:-$(( left > 120 ? left : 120 ))}" python3 bench/bench_scale.py --device "$DEVICE" --rows "${BLOCK_ROW:-block:100}" --runs 100 \
     --threads "${THREADS:-16}" --log --json "$out/device_block100.json"
 kill "$SMI" 2>/dev/null || true
 stamp "done; exit codes:"; cat "$out/device_exit_codes.txt"
