@@ -220,3 +220,23 @@ def test_belief_members_stepped_in_memory_batches_equal_one_batch(small):
     assert max(calls) == 6 and 2 in calls          # 20 members as 6 + 6 + 6 + 2
     np.testing.assert_allclose(split.mean, whole.mean, rtol=0, atol=1e-12 * np.abs(whole.mean).max())
     np.testing.assert_allclose(split.std, whole.std, rtol=0, atol=1e-12 * np.abs(whole.std).max())
+
+
+def test_gram_matrix_one_step_per_chunk_equals_the_chunked_one(monkeypatch):
+    """At large n_field the Gram update runs one step per chunk (no zeroing of the rows between
+    steps: the next step overwrites every row it reads); it equals the chunked accumulation."""
+    import sep_control.design.linearization as lin
+
+    sim = TINY
+    U = tiny_U(2)
+    X = nominal_states(sim, U)
+    chunked = sensitivity_normal_equations(sim, U, X, OBJ, eps=1e-6)
+    init = lin._ChunkedGram.__init__
+
+    def one_step_chunks(self, n, n_f, N, xp=np):
+        init(self, n, n_f, N, xp)
+        self.chunk = 1
+    monkeypatch.setattr(lin._ChunkedGram, "__init__", one_step_chunks)
+    single = sensitivity_normal_equations(sim, U, X, OBJ, eps=1e-6)
+    np.testing.assert_allclose(single.JtJ, chunked.JtJ, rtol=1e-12, atol=1e-12 * np.abs(chunked.JtJ).max())
+    assert np.array_equal(single.Jtr, chunked.Jtr)

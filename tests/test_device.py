@@ -200,3 +200,83 @@ def test_device_cuda_without_cupy_or_gpu_exits_2_saying_what_to_install(tmp_path
     err = capsys.readouterr().err
     assert "--device cuda" in err and ("CuPy" in err or "cupy" in err)
     assert not (tmp_path / "d.npz").exists()
+
+
+# ------------------------------------------------------------------------------ resident experiments
+def test_the_design_keeps_its_experiments_on_the_device(one_blas_thread):
+    """The experiment batches stay on the device: what crosses is a small fraction of what a
+    round trip of every state would move, and every run-step is counted."""
+    from sep_control.design.pipeline import DesignSettings, run_design
+
+    s = coarse_scenario(300, 40)
+    dev = on_device(s.plant, "cuda", xp=guard)
+    run_design(dev, s.problem, DesignSettings(p=5, q=5, n_r=8, ensemble=20), show_progress=False, log=lambda m: None)
+    st = dev.stats
+    round_trip = 2 * 8 * st.run_steps * s.plant.n_x            # every state up and down, every step
+    assert st.run_steps > 10_000
+    # what does cross is O(N n_x) per experiment batch, not O(runs N n_x): the nominal rollouts'
+    # states (the design keeps them on the host), the nominal states a batch starts from, the
+    # EnKF's field mean and std per step, the field bases once per identification (8 % here)
+    assert st.to_device + st.to_host < 0.12 * round_trip
+
+
+def test_the_device_memory_plan_sizes_batches_from_device_memory():
+    from sep_plant.device import (DEVICE_BLOCK_BYTES_PER_NODE, DEVICE_MEMORY_SHARE, DEVICE_RUN_COPIES,
+                                  EMULATED_DEVICE_MEMORY, device_memory, device_runs_per_batch)
+
+    dev = on_device(make_plant("plate", {"nodes": [64, 64]}), "cuda", xp=guard)
+    assert device_memory(guard) == EMULATED_DEVICE_MEMORY
+    expect = (int(DEVICE_MEMORY_SHARE * EMULATED_DEVICE_MEMORY) - dev.block_nodes * DEVICE_BLOCK_BYTES_PER_NODE) \
+        // (8 * DEVICE_RUN_COPIES * dev.n_x)
+    assert device_runs_per_batch(dev) == expect > 1000
+
+
+def test_a_non_finite_device_state_is_caught_without_a_check_per_line_solve(one_blas_thread):
+    """A device line solve does not synchronize to check its result; the round trip step, the
+    sensitivity pass and the EnKF check what comes back instead."""
+    from sep_control.design.belief import objective_of, run_belief
+    from sep_control.design.linearization import sensitivity_normal_equations
+    from sep_plant.protocol import nominal_states
+
+    s = coarse_scenario(20, 12)
+    dev = on_device(s.plant, "cuda", xp=guard)
+    X = s.plant.initial_state(3)
+    X[1, 4] = np.nan
+    resident = dev.step_resident(dev.to_device(X), np.full(dev.n_u, 0.1))    # no check, no host sync
+    assert not np.isfinite(to_host(resident)).all()
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        dev.step(X, np.full(dev.n_u, 0.1))
+    U = s.problem.u_start(dev.n_u)
+    Xbar = nominal_states(s.plant, U)
+    Xbar[3, 2] = np.nan
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        sensitivity_normal_equations(dev, U, Xbar, objective_of(dev, s.problem))
+    U[2] = np.nan
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        run_belief(dev, U, s.problem, 8, 0, X=Xbar * 0 + s.plant.initial_state(1))
+
+
+def test_the_field_basis_on_the_device_equals_the_hosts():
+    """`IncrementalBasis` with its Phi on the device (SVD through a QR there): the same rank and
+    span, coefficients that rebuild the snapshots to round-off; `merge` too."""
+    from sep_control.design.basis import IncrementalBasis
+
+    rng = np.random.default_rng(3)
+    n = 500
+    modes = np.linalg.qr(rng.standard_normal((n, 12)))[0] * np.logspace(0, -6, 12)
+    blocks = [rng.standard_normal((9, 12)) @ modes.T for _ in range(5)]
+    host, dev = IncrementalBasis(n, 1e-8), IncrementalBasis(n, 1e-8, xp=guard)
+    for D in blocks:
+        ch = host.add(D)
+        cd = dev.add(guard.asarray(D))
+        assert isinstance(cd, GuardArray) and cd.shape == ch.shape
+        np.testing.assert_allclose(to_host(cd) @ to_host(dev.phi).T, D, rtol=0, atol=1e-10 * np.abs(D).max())
+    assert dev.rank == host.rank == 12
+    P_h, P_d = host.phi @ host.phi.T, to_host(dev.phi) @ to_host(dev.phi).T
+    np.testing.assert_allclose(P_d, P_h, rtol=0, atol=1e-9)
+    other = np.linalg.qr(rng.standard_normal((n, 4)))[0]
+    coef = rng.standard_normal((4, 20))
+    host.merge(other, coef)
+    dev.merge(guard.asarray(other), coef)
+    assert dev.rank == host.rank == 16
+    np.testing.assert_allclose(to_host(dev.phi).T @ to_host(dev.phi), np.eye(16), rtol=0, atol=1e-12)

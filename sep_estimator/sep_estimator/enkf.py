@@ -12,7 +12,14 @@ With ``antithetic=True`` (M even) members i and i + M/2 receive opposite noise d
 so the mean carries no first-order sampling noise: what remains is the nonlinear
 (second-order) effect of the spread. This matters when the belief mean is optimized
 over U, where sampling noise would otherwise be fitted as if it were signal.
-Pure numpy: no ROS import.
+
+On a device the ensemble stays there for the whole run (`upload`, `download`: the copies of
+the caller's array module, e.g. `sep_plant.device`): the forecast steps it there, the analysis
+forms the anomalies and P_xy = A_x' A_y / (M-1) there, and only the small parts cross: H X and
+P_yy (M n_y and n_y^2 numbers) down, the gain's weights solve(P_yy, innovations) (M n_y) up,
+the field's mean and std (2 n_f) down per step. The random numbers are drawn on the host, so
+a device run filters with the same draws. With numpy the operations are those of 0.8.0.
+Pure numpy (or a numpy-compatible module): no ROS import.
 """
 from __future__ import annotations
 
@@ -37,15 +44,21 @@ class EnsembleKalmanFilter:
 
     def __init__(self, step: StepFn, observe: ObserveFn, w_std: np.ndarray | float,
                  v_std: np.ndarray | float, rng: np.random.Generator, antithetic: bool = False,
-                 field: FieldFn | None = None, noise_on_inputs: bool = True):
+                 field: FieldFn | None = None, noise_on_inputs: bool = True,
+                 upload: Callable[[np.ndarray], object] | None = None,
+                 download: Callable[[object], np.ndarray] | None = None):
         """`step(X, u + w)` when the noise enters the inputs, else `step(X, u, w)` with w of
-        len(w_std) channels; `field` maps members to the field whose mean/std `run` reports."""
+        len(w_std) channels; `field` maps members to the field whose mean/std `run` reports.
+        `upload`/`download`: a host array to the ensemble's array module and back (None:
+        numpy, no copies); `step`, `observe` and `field` then take and return that module's arrays."""
         self.step, self.observe, self.rng = step, observe, rng
         self.antithetic = antithetic
         self.field = field
         self.noise_on_inputs = noise_on_inputs
         self.w_std = np.asarray(w_std, dtype=float)
         self.v_std = np.asarray(v_std, dtype=float)
+        self.upload = upload or (lambda a: a)
+        self.download = download or (lambda a: a)
 
     def _draw(self, M: int, n: int) -> np.ndarray:
         if not self.antithetic:
@@ -71,22 +84,24 @@ class EnsembleKalmanFilter:
         Ay = HX - HX.mean(axis=0)
         V = np.diag(np.broadcast_to(self.v_std, (n_y,)) ** 2)
         P_xy = Ax.T @ Ay / (M - 1)
-        P_yy = Ay.T @ Ay / (M - 1) + V
+        P_yy = self.download(Ay.T @ Ay / (M - 1)) + V
         v = self._draw(M, n_y) * self.v_std
-        innov = y + v - HX                                   # (M, n_y)
+        innov = y + v - self.download(HX)                    # (M, n_y)
         # K innov_i for all members: P_xy P_yy^{-1} innov_i
-        return X + np.linalg.solve(P_yy, innov.T).T @ P_xy.T
+        return X + self.upload(np.linalg.solve(P_yy, innov.T).T) @ P_xy.T
 
     def run(self, X0: np.ndarray, U: np.ndarray, Y: np.ndarray) -> EnKFResult:
         """Filter along inputs U (N, n_u) and observations Y (N+1, n_y) (y_0 unused: x_0 is the prior)."""
         N = U.shape[0]
-        X = np.array(X0, dtype=float)
+        X = self.upload(np.array(X0, dtype=float))
         F = X if self.field is None else self.field(X)
         mean = np.empty((N + 1, F.shape[1]))
         std = np.empty_like(mean)
-        mean[0], std[0] = F.mean(axis=0), F.std(axis=0, ddof=1)
+        mean[0], std[0] = self.download(F.mean(axis=0)), self.download(F.std(axis=0, ddof=1))
         for k in range(N):
             X = self.analysis(self.forecast(X, U[k]), Y[k + 1])
             F = X if self.field is None else self.field(X)
-            mean[k + 1], std[k + 1] = F.mean(axis=0), F.std(axis=0, ddof=1)
+            mean[k + 1], std[k + 1] = self.download(F.mean(axis=0)), self.download(F.std(axis=0, ddof=1))
+        if not (np.isfinite(mean).all() and np.isfinite(std).all()):
+            raise FloatingPointError("the EnKF's ensemble became non-finite")
         return EnKFResult(mean, std)

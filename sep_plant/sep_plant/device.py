@@ -21,11 +21,13 @@ Pure numpy: no ROS import; CuPy is imported only for `cuda`.
 from __future__ import annotations
 
 import copy
+import time
+from dataclasses import dataclass, fields as dc_fields
 from typing import Any
 
 import numpy as np
 
-from sep_plant.plants.backend import to_host
+from sep_plant.plants.backend import namespace, to_host
 from sep_plant.plants.blocks import step_in_blocks
 
 DEVICES = ("cpu", "cuda")
@@ -61,11 +63,78 @@ def array_module(device: str):
     return cupy
 
 
+#: share of the device's free memory the resident batches may use (the rest: CuPy's memory pool
+#: slack, the design's field bases and sums)
+DEVICE_MEMORY_SHARE = 0.6
+#: state-sized float64 rows alive per run of a resident batch: the state, the stepped state (a
+#: plant's step returns a new array), the field deviation and one spare. The step's own
+#: temporaries are a block's, not the batch's (the plant steps DEVICE_BLOCK_NODES at a time):
+#: DEVICE_BLOCK_BYTES_PER_NODE per node of one block, set aside once
+DEVICE_RUN_COPIES = 4
+DEVICE_BLOCK_BYTES_PER_NODE = 160
+
+
+@dataclass
+class TransferStats:
+    """What a `DevicePlant` moved and stepped: bytes each way, run-steps, step time (`timing`)."""
+
+    to_device: int = 0
+    to_host: int = 0
+    run_steps: int = 0
+    step_s: float = 0.0
+
+    def snapshot(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dc_fields(self)}
+
+
+def synchronize(xp) -> None:
+    """Wait for the device's queued work (CuPy); nothing for a host module or the emulator."""
+    cuda = getattr(xp, "cuda", None)
+    if cuda is not None:
+        cuda.Device().synchronize()
+
+
+def check_finite(X) -> None:
+    """Raise FloatingPointError when the device array X holds a non-finite value: one reduction
+    on the device and one scalar to the host (where a numpy state is checked per line solve,
+    `sep_plant.plants.adi`, a device state is checked per step or per reduced result, because
+    each check is a host synchronization)."""
+    if not bool(namespace(X).isfinite(X.sum())):
+        raise FloatingPointError("the plant's step on the device gave non-finite values: non-finite state "
+                                 "or input, or a non-positive conductivity?")
+
+
+def device_memory(xp) -> int:
+    """Free bytes on the current device (CuPy's `mem_info` plus what its pool holds free);
+    `EMULATED_DEVICE_MEMORY` for a module without `cuda` (the tests' emulator)."""
+    cuda = getattr(xp, "cuda", None)
+    if cuda is None:
+        return EMULATED_DEVICE_MEMORY
+    free, _ = cuda.runtime.memGetInfo()
+    pool = xp.get_default_memory_pool()
+    return int(free) + int(pool.free_bytes())
+
+
+#: what the emulated device pretends to hold (bytes)
+EMULATED_DEVICE_MEMORY = 8 << 30
+
+
+def device_runs_per_batch(plant: Any, n_arrays: int = DEVICE_RUN_COPIES, share: float = DEVICE_MEMORY_SHARE) -> int:
+    """Runs of `plant` a resident batch may hold on its device, in float64: `share` of the free
+    device memory, less one block's step temporaries (DEVICE_BLOCK_BYTES_PER_NODE per node of
+    `block_nodes`), over `n_arrays` state rows per run (the memory plan, docs/gpu.md). An H200
+    (~140 GB free): about 2400 runs of 10^6 states."""
+    xp = getattr(plant, "xp", np)
+    block = int(getattr(plant, "block_nodes", DEVICE_BLOCK_NODES)) * DEVICE_BLOCK_BYTES_PER_NODE
+    per_run = 8 * n_arrays * int(plant.n_x)
+    return max(1, (int(share * device_memory(xp)) - block) // per_run)
+
+
 class DevicePlant:
     """A device-capable plant whose batched steps run on the array module `xp` (host arrays in
     and out; see the module docstring). Every other attribute is the wrapped plant's."""
 
-    _OWN = ("_plant", "xp", "device", "block_nodes")
+    _OWN = ("_plant", "xp", "device", "block_nodes", "stats", "timing")
 
     def __init__(self, plant: Any, xp, name: str, block_nodes: int = DEVICE_BLOCK_NODES):
         if not getattr(plant, "device_capable", False):
@@ -81,6 +150,8 @@ class DevicePlant:
         object.__setattr__(self, "xp", xp)
         object.__setattr__(self, "device", name)
         object.__setattr__(self, "block_nodes", int(block_nodes))
+        object.__setattr__(self, "stats", TransferStats())
+        object.__setattr__(self, "timing", False)
 
     @property
     def plant(self) -> Any:
@@ -113,7 +184,7 @@ class DevicePlant:
 
     def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """x_{k+1} = f(x_k, u_k + w_k), stepped on the device a block of runs at a time; a new
-        host array."""
+        host array (the round trip: what a caller that keeps no state on the device pays)."""
         xp = self.xp
         X = np.asarray(x, dtype=float)
         single = X.ndim == 1
@@ -122,14 +193,44 @@ class DevicePlant:
         W = None if w is None else np.atleast_2d(np.asarray(w, dtype=float))
 
         def upload(A, i, j):                        # inputs given once for every run stay one row
-            return None if A is None else xp.asarray(A if A.shape[0] == 1 else A[i:j])
+            return None if A is None else self.to_device(A if A.shape[0] == 1 else A[i:j])
 
         def block(Xb: np.ndarray, runs: np.ndarray) -> np.ndarray:
             i, j = int(runs[0]), int(runs[-1]) + 1
-            return to_host(self._plant.step(xp.asarray(Xb), upload(U, i, j), upload(W, i, j)))
+            out = self.step_resident(self.to_device(Xb), upload(U, i, j), upload(W, i, j))
+            check_finite(out)
+            return self.to_host(out)
 
         out = step_in_blocks(block, X, np.arange(X.shape[0]), self.block_nodes)
         return out[0] if single else out
+
+    def step_resident(self, X, u, w=None):
+        """One batched step of device arrays (X (M, n_x) on the device, u, w host or device):
+        the new state stays on the device. Stepped whole: the caller sizes the batch
+        (`device_runs_per_batch`). With `timing`, the device is synchronized after the step and
+        the time counted in `stats.step_s`."""
+        xp = self.xp
+        u = self.to_device(u) if isinstance(u, np.ndarray) else u
+        w = self.to_device(w) if isinstance(w, np.ndarray) else w
+        t0 = time.perf_counter() if self.timing else 0.0
+        out = self._plant.step(X, u, w)
+        if self.timing:
+            synchronize(xp)
+            self.stats.step_s += time.perf_counter() - t0
+        self.stats.run_steps += int(X.shape[0]) if X.ndim > 1 else 1
+        return out
+
+    def to_device(self, A):
+        """A host array on the device (counted in `stats`)."""
+        A = np.ascontiguousarray(A, dtype=float)
+        self.stats.to_device += A.nbytes
+        return self.xp.asarray(A)
+
+    def to_host(self, A) -> np.ndarray:
+        """A device array's host copy (counted in `stats`)."""
+        out = to_host(A)
+        self.stats.to_host += out.nbytes
+        return out
 
     def __repr__(self) -> str:
         return f"DevicePlant({self._plant!r}, device={self.device!r})"
@@ -143,10 +244,33 @@ def on_device(plant: Any, device: str = "cpu", xp=None) -> Any:
     return DevicePlant(plant, array_module(device) if xp is None else xp, device)
 
 
+def array_module_of(plant: Any):
+    """The array module a plant's resident batches live in: the `DevicePlant`'s, else numpy."""
+    return plant.xp if isinstance(plant, DevicePlant) else np
+
+
+def step_resident(plant: Any):
+    """The batched step whose state stays where it is: `DevicePlant.step_resident` on a device,
+    the plant's own `step` on the CPU (numpy in, numpy out: the host path unchanged)."""
+    return plant.step_resident if isinstance(plant, DevicePlant) else plant.step
+
+
+def to_device(plant: Any, A):
+    """A host array in `plant`'s array module (itself on the CPU)."""
+    return plant.to_device(A) if isinstance(plant, DevicePlant) else A
+
+
+def to_host_of(plant: Any, A) -> np.ndarray:
+    """A resident array's host copy (itself on the CPU), counted in the plant's `stats`."""
+    return plant.to_host(A) if isinstance(plant, DevicePlant) else A
+
+
 def base_plant(plant: Any) -> Any:
     """The plant a `DevicePlant` wraps (the plant itself otherwise): what is shipped and described."""
     return plant.plant if isinstance(plant, DevicePlant) else plant
 
 
-__all__ = ["DEVICES", "DEVICE_BLOCK_NODES", "DeviceError", "DevicePlant", "array_module", "base_plant",
-           "on_device"]
+__all__ = ["DEVICES", "DEVICE_BLOCK_BYTES_PER_NODE", "DEVICE_BLOCK_NODES", "DEVICE_MEMORY_SHARE", "DEVICE_RUN_COPIES", "DeviceError",
+           "DevicePlant", "TransferStats", "array_module", "array_module_of", "base_plant", "check_finite",
+           "device_memory", "device_runs_per_batch", "on_device", "step_resident", "synchronize", "to_device",
+           "to_host_of"]

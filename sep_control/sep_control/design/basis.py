@@ -16,7 +16,12 @@ the data. Memory: n_f r for Phi instead of every snapshot; cost per block n_f r 
 same way, streaming their coefficients instead of the n_f-long vectors.
 `truncate(coefficients)` then compresses the basis to the span the coefficients actually use
 (an SVD of the r x m coefficient matrix, not of the n_f x m data).
-Pure numpy: no ROS import.
+
+`xp`: the array module Phi lives in. On a device (`sep_plant.device`) the snapshots arrive
+there and Phi stays there: the n_f-long work (the projections, the SVD of the residual block,
+the QR of the new directions) runs on the device, and only the coefficients (b x r) and the
+singular values come to the host. With numpy the operations are those of 0.8.0, bit for bit.
+Pure numpy (or a numpy-compatible module): no ROS import.
 """
 from __future__ import annotations
 
@@ -26,10 +31,11 @@ import numpy as np
 class IncrementalBasis:
     """Orthonormal basis of the snapshots added so far (columns of `phi`)."""
 
-    def __init__(self, n: int, tol: float = 1e-12, max_rank: int | None = None):
+    def __init__(self, n: int, tol: float = 1e-12, max_rank: int | None = None, xp=np):
         self.n, self.tol = int(n), float(tol)
         self.max_rank = max_rank
-        self._phi = np.zeros((self.n, 0))
+        self.xp = xp
+        self._phi = xp.zeros((self.n, 0))
         self._cols = 0
         self.scale = 0.0
 
@@ -47,38 +53,45 @@ class IncrementalBasis:
 
         `scale`: the size the tolerance is relative to, when it is not the largest norm in D
         (default), e.g. the largest snapshot of a whole set that arrives in parts."""
-        D = np.atleast_2d(D)
+        xp = self.xp
+        D = xp.atleast_2d(D)
         if D.shape[1] != self.n:
             raise ValueError(f"snapshots of length {D.shape[1]}, basis of length {self.n}")
         if scale is None:
-            scale = float(np.sqrt(np.einsum("ij,ij->i", D, D)).max(initial=0.0))
+            norms = xp.sqrt(xp.einsum("ij,ij->i", D, D))
+            scale = float(norms.max(initial=0.0)) if xp is np else (float(norms.max()) if D.shape[0] else 0.0)
         self.scale = max(self.scale, float(scale))
         phi = self.phi
-        C = D @ phi
-        E = D - C @ phi.T
-        C2 = E @ phi                     # re-orthogonalize (classical Gram-Schmidt, twice)
-        E -= C2 @ phi.T
-        C += C2
-        if self.scale == 0.0 or np.linalg.norm(E) <= self.tol * self.scale:
+        if xp is not np and self._cols == 0:     # no products with an empty basis on a device
+            C, E = xp.zeros((D.shape[0], 0)), D.copy()
+        else:
+            C = D @ phi
+            E = D - C @ phi.T
+            C2 = E @ phi                 # re-orthogonalize (classical Gram-Schmidt, twice)
+            E -= C2 @ phi.T
+            C += C2
+        if self.scale == 0.0 or float(xp.linalg.norm(E)) <= self.tol * self.scale:
             # every singular value of E is at most its Frobenius norm: nothing to add, and no SVD
             # (most blocks once the basis holds the responses: 3/4 of them at the reference)
             return C
-        U, S, Vt = np.linalg.svd(E, full_matrices=False)
-        keep = S > self.tol * self.scale
-        keep &= np.arange(S.size) < self.n - self._cols       # never more directions than n
+        U, S, Vt = np.linalg.svd(E, full_matrices=False) if xp is np else _svd_wide(xp, E)
+        S_host = S if xp is np else S.get()
+        # the kept directions are a leading run: S is sorted, and so are the caps on their number
+        k = int(np.count_nonzero(S_host > self.tol * self.scale))
+        k = min(k, self.n - self._cols)                          # never more directions than n
         if self.max_rank is not None:
-            keep &= np.arange(S.size) < max(0, self.max_rank - self._cols)
-        k = int(np.count_nonzero(keep))
+            k = min(k, max(0, self.max_rank - self._cols))
         if k == 0:
             return C
         # the smallest kept directions (S near tol * scale) carry the projection's round-off at
         # a relative size of eps |D| / S: orthogonalize them once more and among themselves
         # (V_old = V R + round-off, so E's coefficients on V are U S R')
-        V = Vt[keep].T
-        V -= phi @ (phi.T @ V)
-        V, R = np.linalg.qr(V)
+        V = Vt[:k].copy().T
+        if xp is np or self._cols:
+            V -= phi @ (phi.T @ V)
+        V, R = np.linalg.qr(V) if xp is np else _qr(xp, V)
         self._grow(V)
-        return np.hstack([C, (U[:, keep] * S[keep]) @ R.T])
+        return xp.hstack([C, (U[:, :k] * S[:k]) @ R.T])
 
     def merge(self, phi: np.ndarray, coefficients: np.ndarray, block: int = 64) -> None:
         """Add the snapshots phi @ coefficients (phi (n, r_c) orthonormal, coefficients (r_c, m)),
@@ -93,30 +106,64 @@ class IncrementalBasis:
                              f"fit a basis of length {self.n}")
         if phi.shape[1] == 0 or coefficients.size == 0:
             return
+        xp = self.xp
         self.scale = max(self.scale, float(np.sqrt(np.einsum("ij,ij->j", coefficients, coefficients)).max()))
         own = self.phi
-        A = phi - own @ (own.T @ phi)
-        A -= own @ (own.T @ A)                      # re-orthogonalize
-        Q, R = np.linalg.qr(A)
-        Z = R @ coefficients                       # (r_c, m): the residual snapshots on Q
+        if xp is not np and self._cols == 0:         # no products with an empty basis on a device
+            A = phi.copy()
+        else:
+            A = phi - own @ (own.T @ phi)
+            A -= own @ (own.T @ A)                  # re-orthogonalize
+        Q, R = np.linalg.qr(A) if xp is np else _qr(xp, A)
+        Z = (R if xp is np else R.get()) @ coefficients     # (r_c, m): the residual snapshots on Q
         room = None if self.max_rank is None else max(0, self.max_rank - self._cols)
         sub = IncrementalBasis(phi.shape[1], self.tol, max_rank=room)
         for i in range(0, Z.shape[1], block):
             sub.add(Z[:, i:i + block].T, scale=self.scale)      # the tolerance against our scale
         if sub.rank:
-            V = Q @ sub.phi
-            V -= own @ (own.T @ V)                 # orthogonal to the basis to round-off
-            self._grow(np.linalg.qr(V)[0])
+            V = Q @ (sub.phi if xp is np else xp.asarray(sub.phi))
+            if xp is np or self._cols:
+                V -= own @ (own.T @ V)             # orthogonal to the basis to round-off
+            self._grow(np.linalg.qr(V)[0] if xp is np else _qr(xp, V)[0])
 
     def _grow(self, V: np.ndarray) -> None:
         need = self._cols + V.shape[1]
         if need > self._phi.shape[1]:     # amortized growth of the column buffer
             cap = max(need, 2 * self._phi.shape[1], 16)
-            buf = np.zeros((self.n, cap))
+            buf = self.xp.zeros((self.n, cap))
             buf[:, :self._cols] = self._phi[:, :self._cols]
             self._phi = buf
         self._phi[:, self._cols:need] = V
         self._cols = need
+
+
+#: what the device's own QR failed with, once (then the host's QR serves: a slower, working design)
+QR_FALLBACK: list[str] = []
+
+
+def _qr(xp, A):
+    """The thin QR of a tall device array: the device's (cuSOLVER), or the host's if the device
+    module's fails to run (no cuSOLVER in the installation, say), said once on stderr."""
+    if not QR_FALLBACK:
+        try:
+            return xp.linalg.qr(A)
+        except (ImportError, RuntimeError, AttributeError) as exc:
+            import sys
+            QR_FALLBACK.append(f"{type(exc).__name__}: {exc}")
+            print(f"sep: the device's QR failed ({QR_FALLBACK[0]}); the field basis uses the host's QR",
+                  file=sys.stderr, flush=True)
+    Q, R = np.linalg.qr(A.get())
+    return xp.asarray(Q), xp.asarray(R)
+
+
+def _svd_wide(xp, E):
+    """The thin SVD U S V' of a wide device block E (b x n_f, b << n_f) through its QR: E' = Q R
+    on the device (cuSOLVER's geqrf/orgqr: n_f b^2 flops, streamed once), the b x b SVD of R' on
+    the host, V = Q V_r. The same factorization as an SVD of E to round-off (QR is backward
+    stable), without a bidiagonalization of the n_f-long block on the device."""
+    Q, R = _qr(xp, E.T)
+    Ur, S, Vrt = np.linalg.svd(R.T.get())
+    return xp.asarray(Ur), xp.asarray(S), (Q @ xp.asarray(Vrt.T)).T
 
 
 def truncate(phi: np.ndarray, coefficients: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:

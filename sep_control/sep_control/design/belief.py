@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from sep_estimator.enkf import EnKFResult, EnsembleKalmanFilter
+from sep_plant.device import array_module_of, device_runs_per_batch, step_resident, to_device, to_host_of
 from sep_plant.problem import Objective, Problem
 from sep_plant.protocol import Plant, nominal_states, noise_channels
 
@@ -61,19 +62,22 @@ def run_belief(plant: Plant, U: np.ndarray, problem: Problem, members: int, seed
     """
     ybar = plant.observe(nominal_states(plant, U) if X is None else X)
     n_w = noise_channels(plant)
-    batch = runs_per_batch(int(plant.n_x), int(plant.n_field), memory_budget)
+    xp, stepper = array_module_of(plant), step_resident(plant)      # on a device the ensemble stays there
+    batch = (runs_per_batch(int(plant.n_x), int(plant.n_field), memory_budget) if xp is np
+             else device_runs_per_batch(plant))
 
     def step(X: np.ndarray, Uk: np.ndarray, Wk: np.ndarray | None = None) -> np.ndarray:
         if X.shape[0] <= batch:
-            return plant.step(X, Uk) if Wk is None else plant.step(X, Uk, Wk)
-        out = np.empty_like(X)
+            return stepper(X, Uk) if Wk is None else stepper(X, Uk, Wk)
+        out = xp.empty_like(X)
         for a in range(0, X.shape[0], batch):
             b = slice(a, a + batch)
-            out[b] = plant.step(X[b], Uk[b]) if Wk is None else plant.step(X[b], Uk[b], Wk[b])
+            out[b] = stepper(X[b], Uk[b]) if Wk is None else stepper(X[b], Uk[b], Wk[b])
         return out
 
     enkf = EnsembleKalmanFilter(step, plant.observe, problem.channels("w_std", n_w),
                                 problem.channels("v_std", int(plant.n_y)), np.random.default_rng(seed),
                                 antithetic=True, field=plant.field,
-                                noise_on_inputs=bool(getattr(plant, "noise_on_inputs", True)))
+                                noise_on_inputs=bool(getattr(plant, "noise_on_inputs", True)),
+                                upload=lambda a: to_device(plant, a), download=lambda a: to_host_of(plant, a))
     return enkf.run(plant.initial_state(members), U, ybar)

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sep_plant.device import base_plant
+from sep_plant.device import array_module_of, base_plant, step_resident, to_device, to_host_of
+from sep_plant.plants.backend import namespace, to_host
 from sep_plant.protocol import Plant, noise_channels, nominal_states
 
 from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
@@ -177,7 +178,7 @@ def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, in
     on the merged basis Phi, and Phi (see `impulse_experiments`)."""
     N, n_ch = shape[0], shape[3]
     Y = np.zeros(shape)
-    basis = IncrementalBasis(n_f, field_tol)
+    basis = IncrementalBasis(n_f, field_tol, xp=namespace(*(phi for _, phi, _ in parts)))
     flat = [Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1) if phi.shape[1] else np.zeros((0, 0))
             for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
     # the tolerance is against the largest response of all chunks, whatever their order
@@ -194,8 +195,8 @@ def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, in
         if phi.shape[1]:
             # phi_c on Phi: (phi' Phi)' Yc per (j, lag), a batched BLAS product (einsum's own loop
             # took 7x longer at Allen-Cahn's r ~ 1000)
-            Yc[j0:j1] = np.matmul((phi.T @ basis.phi).T, Yc_local)
-    return Y, Yc, basis.phi.copy()
+            Yc[j0:j1] = np.matmul(to_host(phi.T @ basis.phi).T, Yc_local)
+    return Y, Yc, to_host(basis.phi).copy()
 
 
 def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
@@ -213,7 +214,7 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     n_ch = n_u + n_w
     n = j1 - j0
     Y = np.zeros((n, lags, n_y, n_ch))
-    basis = IncrementalBasis(n_f, field_tol)
+    basis = IncrementalBasis(n_f, field_tol, xp=array_module_of(plant))
     blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
     desc = None if bar_desc is None else (bar_desc if n_chunks == 1 else f"{bar_desc} {i + 1}/{n_chunks}")
     bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
@@ -255,7 +256,8 @@ class _Ring:
         E = np.eye(n_u + n_w)[chs]
         self.pert = (np.vstack([E, -E]) if self.sides == 2 else np.vstack([E, np.zeros((1, E.shape[1]))])) * delta
         self.rows = self.pert.shape[0]
-        self.X = np.empty((lags * self.rows, int(plant.n_x)))
+        self.xp, self.step = array_module_of(plant), step_resident(plant)    # the runs stay on a device
+        self.X = self.xp.empty((lags * self.rows, int(plant.n_x)))
         self.slot_start = np.full(lags, -1)              # start step j held by each slot (-1: none)
 
     def advance(self, k: int, N: int, u_k: np.ndarray, xbar_k: np.ndarray | None) -> np.ndarray:
@@ -264,7 +266,7 @@ class _Ring:
         rows, n_u, n_w, X = self.rows, self.n_u, self.n_w, self.X
         s = k % self.lags
         if k < N:
-            X[s * rows:(s + 1) * rows] = xbar_k
+            X[s * rows:(s + 1) * rows] = to_device(self.plant, xbar_k)
             self.slot_start[s] = k
         used = min(k + 1, self.lags) * rows              # ramp-up: only the slots filled so far
         j_slot = self.slot_start[:used // rows]
@@ -274,11 +276,11 @@ class _Ring:
             Uk[s * rows:(s + 1) * rows] += self.pert[:, :n_u]
             if n_w:
                 Wk[s * rows:(s + 1) * rows] += self.pert[:, n_u:]
-            X[:used] = self.plant.step(X[:used], Uk, Wk)
+            X[:used] = self.step(X[:used], Uk, Wk)
         else:   # ramp-down: step only the slots still in an experiment (one or two ring ranges)
             for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < self.lags))):
                 r0, r1 = a * rows, b * rows
-                X[r0:r1] = self.plant.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
+                X[r0:r1] = self.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
         return j_slot
 
     def record(self, k: int, j_slot: np.ndarray, field_lags: int, Y: np.ndarray, basis: IncrementalBasis,
@@ -292,16 +294,23 @@ class _Ring:
         if not np.any(active):
             return
         j, lag = j_slot[active], lag[active]
-        sel = np.flatnonzero(np.repeat(active, rows))
-        Yo = plant.observe(self.X[sel]).reshape(len(j), rows, int(plant.n_y))
+        sel = self._index(np.flatnonzero(np.repeat(active, rows)))
+        Yo = to_host_of(plant, plant.observe(self.X[sel])).reshape(len(j), rows, int(plant.n_y))
         Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = _difference(Yo, m, self.sides, self.delta)
         keep = lag <= field_lags
         if np.any(keep):
             n_f = int(plant.n_field)
-            fsel = np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows))
+            fsel = self._index(np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows)))
             Ff = plant.field(self.X[fsel]).reshape(int(keep.sum()), rows, n_f)
             D = _difference(Ff, m, self.sides, self.delta).reshape(-1, n_f)             # (keep m, n_f)
-            blocks.append((j[keep], lag[keep], chs, basis.add(D)))
+            C = to_host_of(plant, basis.add(D))
+            if self.xp is not np and not np.isfinite(C).all():     # a device state is checked here, once
+                raise FloatingPointError("impulse experiments on the device gave non-finite field responses")
+            blocks.append((j[keep], lag[keep], chs, C))
+
+    def _index(self, idx: np.ndarray):
+        """Row indices for the runs' array (on a device: uploaded, as CuPy wants)."""
+        return idx if self.xp is np else self.xp.asarray(idx)
 
 
 def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:

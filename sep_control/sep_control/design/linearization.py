@@ -23,6 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from sep_estimator.enkf import EnKFResult
+from sep_plant.device import array_module_of, step_resident, to_device, to_host_of
 from sep_plant.problem import Objective
 from sep_plant.protocol import Plant, fields
 
@@ -79,23 +80,25 @@ class _ChunkedGram:
     by side (row c holds experiment c's field deviations at those steps, zero before it started)
     and multiplied as rows @ rows.T in one BLAS call (a symmetric rank-k update), which runs
     several times faster than one small product per step and 1.4x faster than the transposed
-    layout's rows.T @ rows (plate 64^2: 1.37 vs 2.01 s per Gram matrix, one core)."""
+    layout's rows.T @ rows (plate 64^2: 1.37 vs 2.01 s per Gram matrix, one core). `xp`: the
+    array module the rows and J'J live in (a device's: cuBLAS there, J'J downloaded once)."""
 
-    def __init__(self, n: int, n_f: int, N: int):
-        self.n_f, self.filled = n_f, 0
+    def __init__(self, n: int, n_f: int, N: int, xp=np):
+        self.n_f, self.filled, self.xp = n_f, 0, xp
         self.chunk = max(1, min(N, (1 << 22) // max(1, n_f * n)))
-        self.rows = np.zeros((n, self.chunk * n_f))
-        self.JtJ = np.zeros((n, n))
+        self.rows = xp.zeros((n, self.chunk * n_f))
+        self.JtJ = xp.zeros((n, n))
 
     def add(self, D: np.ndarray, sqrt_w: float, last: bool) -> None:
         """Add one step's deviations D (m, n_f) with weight sqrt(w); `last`: flush."""
         m, n_f = D.shape[0], self.n_f
-        np.multiply(D, sqrt_w, out=self.rows[:m, self.filled * n_f:(self.filled + 1) * n_f])
+        self.xp.multiply(D, sqrt_w, out=self.rows[:m, self.filled * n_f:(self.filled + 1) * n_f])
         self.filled += 1
         if self.filled == self.chunk or last:
             used = self.rows[:m, :self.filled * n_f]
             self.JtJ[:m, :m] += used @ used.T
-            used[:] = 0.0
+            if self.chunk > 1:         # one step a chunk: the next step overwrites every used row
+                used[:] = 0.0
             self.filled = 0
 
 
@@ -112,6 +115,9 @@ def sensitivity_normal_equations(plant: Plant, U: np.ndarray, Xbar: np.ndarray, 
     Xbar (N+1, n_x) are the nominal states; `residual_field` (N+1, n_f) replaces their field as
     the trajectory whose residual f_k - f* enters J'r (the belief mean, for the belief-space
     problem). Columns are ordered (j, c) -> j n_u + c. With gram=False only J'r is formed.
+    The batch grows in place in one (N n_u, n_x) buffer. On a device (`sep_plant.device`) the
+    batch, D_k and the sums stay there for the whole pass: the inputs go up (N n_u numbers a
+    step) and J'J, J'r come down once.
     """
     N, n_u = U.shape
     n = N * n_u
@@ -119,27 +125,35 @@ def sensitivity_normal_equations(plant: Plant, U: np.ndarray, Xbar: np.ndarray, 
     Fbar = fields(plant, Xbar)
     n_f = Fbar.shape[1]
     res = (Fbar if residual_field is None else residual_field) - obj.target
-    Jtr = np.zeros(n)
-    X = np.empty((0, Xbar.shape[1]))
+    xp, step = array_module_of(plant), step_resident(plant)
+    Fbar_d, res_d = to_device(plant, Fbar), to_device(plant, res)
+    Xbar_d = to_device(plant, Xbar)
+    Jtr = xp.zeros(n)
+    X = xp.empty((n, Xbar.shape[1]))
     eye = np.eye(n_u) * eps
     run_steps = 0
-    acc = _ChunkedGram(n, n_f, N) if gram else None
+    acc = _ChunkedGram(n, n_f, N, xp) if gram else None
     for k in range(N):
         # start the n_u experiments of step k from the nominal state, then step every active run
-        X = np.vstack([X, np.repeat(Xbar[k][None], n_u, axis=0)])
-        Uk = np.repeat(U[k][None], X.shape[0], axis=0)
+        m = n_u * (k + 1)
+        X[m - n_u:m] = Xbar_d[k]
+        Uk = np.repeat(U[k][None], m, axis=0)
         Uk[-n_u:] += eye
-        X = plant.step(X, Uk)
-        run_steps += X.shape[0]
-        D = (plant.field(X) - Fbar[k + 1]) / eps               # (n_u (k+1), n_f)
+        X[:m] = step(X[:m], to_device(plant, Uk))
+        run_steps += m
+        D = plant.field(X[:m]) - Fbar_d[k + 1]                   # (n_u (k+1), n_f)
+        D /= eps
         w = q[k + 1] / n_f
-        Jtr[:D.shape[0]] += w * (D @ res[k + 1])
+        Jtr[:m] += w * (D @ res_d[k + 1])
         if acc is not None:
             acc.add(D, np.sqrt(w), last=k == N - 1)
     # input penalty r_u |u|^2
     JtJ = np.empty((0, 0))
+    Jtr = to_host_of(plant, Jtr)
     if acc is not None:
-        JtJ = acc.JtJ
+        JtJ = to_host_of(plant, acc.JtJ)
+        if not (np.isfinite(JtJ).all() and np.isfinite(Jtr).all()):
+            raise FloatingPointError("sensitivity experiments gave non-finite field deviations")
         JtJ[np.diag_indices(n)] += obj.r_u
     Jtr += obj.r_u * U.ravel()
     return NormalEquations(JtJ, Jtr, n, run_steps)

@@ -13,6 +13,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from sep_plant.plants.backend import namespace, to_host
 from sep_plant.problem import Objective
 from sep_plant.scenario import json_default
 
@@ -90,6 +91,9 @@ class MetricsAccumulator:
     def add_field(self, k: int, f_k: np.ndarray, rows: slice = slice(None)) -> None:
         """The field of step k of the runs `rows` (all by default; a chunk of them otherwise)."""
         obj = self.obj
+        xp = namespace(f_k)
+        if xp is not np:                       # a device field: reduced there, the sums come to the host
+            return self._add_device_field(xp, k, f_k, rows)
         sq = obj.squared_error(f_k)
         if k >= 1:
             self.cost[rows] += obj.field_cost(k, sq)
@@ -98,6 +102,29 @@ class MetricsAccumulator:
             self.band_ok[rows] &= np.all(np.abs(f_k - obj.target) <= obj.band, axis=-1)
             self.sq_sum[rows] += sq
         self.sum_traj[k] += np.sum(f_k, axis=0)
+
+    def _add_device_field(self, xp, k: int, f_k, rows: slice) -> None:
+        """`add_field` of a device array (`sep_control.evaluation.montecarlo`): the same sums, with
+        the per-run ones (M numbers) and the summed field (n_field) copied to the host."""
+        obj = self.obj
+        target = obj.target if np.ndim(obj.target) == 0 else self._on(xp, "target", obj.target)
+        band = obj.band if np.ndim(obj.band) == 0 else self._on(xp, "band", obj.band)
+        err = f_k - target
+        sq = to_host(xp.mean(err**2, axis=-1))
+        if k >= 1:
+            self.cost[rows] += obj.field_cost(k, sq)
+        k0, k1 = obj.window
+        if k0 <= k <= k1:
+            self.band_ok[rows] &= to_host(xp.all(xp.abs(err) <= band, axis=-1))
+            self.sq_sum[rows] += sq
+        self.sum_traj[k] += to_host(xp.sum(f_k, axis=0))
+
+    def _on(self, xp, name: str, value):
+        """A host constant's device copy, made once."""
+        cache = self.__dict__.setdefault("_device", {})
+        if name not in cache:
+            cache[name] = xp.asarray(np.asarray(value, dtype=float))
+        return cache[name]
 
     def add_input(self, k: int, u_k: np.ndarray, rows: slice = slice(None)) -> None:
         self.cost[rows] += self.obj.input_cost(u_k)

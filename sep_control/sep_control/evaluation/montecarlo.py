@@ -12,6 +12,13 @@ Per step k = 0..N (as the ROS graph does it):
                                               clip(ubar_k) in open loop, where the filter still runs,
                                               or the ROM-MPC's first move);
     x_{k+1} = f(x_k, u_k, w_k);           ahat_{k+1|k} = KF predict with u_k - ubar_k.
+
+On a device (`sep_plant.device`) the runs' states stay there for the whole rollout
+(`_Resident`): the plant steps them there, the metrics reduce the field there (per-run sums and
+the summed field cross, `MetricsAccumulator.add_field`), the reconstruction f_nom + Phi (g_k a)
+and the 2-sigma coverage count are formed there (Phi uploaded once), and only the outputs
+(M n_y), the per-run sums and the kept trajectories come to the host. The filter and the
+controller (n_r-sized) run on the host.
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -24,7 +31,7 @@ import numpy as np
 from sep_estimator.design import Design
 from sep_estimator.ltv import LQG
 from sep_estimator.tvkf import KalmanFilter
-from sep_plant.device import base_plant
+from sep_plant.device import array_module_of, base_plant, check_finite, step_resident, to_device, to_host_of
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import Plant
 
@@ -219,25 +226,69 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
     keep_f = max(0, min(M, out.F.shape[0] - a0))           # kept trajectories in this batch
     keep_e = max(0, min(M, out.F_hat.shape[0] - a0))
     covered = 0
-    x = plant.initial_state(M)
+    dev = _Resident(plant, G, f_nom, lqg.field_std)
+    step = step_resident(plant)
+    x = dev.up(plant.initial_state(M))
     for k in range(N + 1):
         f = plant.field(x)
-        out.F[a0:a0 + keep_f, k] = f[:keep_f]
+        if keep_f:
+            out.F[a0:a0 + keep_f, k] = dev.down(f[:keep_f])
         acc.add_field(k, f, rows)
-        y = plant.observe(x) + v[:, k]
+        y = dev.down(plant.observe(x)) + v[:, k]
         out.Y[rows, k] = y
         a = kf.update(k, y - y_nom[k])
-        est = f_nom[k] + G.apply(k, a)
-        out.F_hat[a0:a0 + keep_e, k] = est[:keep_e]
+        est = dev.estimate(k, a)
+        if keep_e:
+            out.F_hat[a0:a0 + keep_e, k] = dev.down(est[:keep_e])
         if k > 0:
-            covered += int(np.count_nonzero(np.abs(est - f) <= 2.0 * lqg.field_std[k]))
+            covered += dev.covered(k, est, f)
         if k == N:
             break
         u = law.command(k, a)
         out.U[rows, k] = u
         acc.add_input(k, u, rows)
-        x = plant.step(x, u, w[:, k])
+        x = step(x, u, w[:, k])
         kf.predict(k, u - nom.u[k])
         if affine is not None:
             kf.a = kf.a + affine.r[k]
     return covered
+
+
+class _Resident:
+    """Where a Monte Carlo batch's n_field-sized work happens: the host for a numpy plant (the
+    0.8.0 operations), the device of a `DevicePlant` otherwise (f_nom, the field std and the
+    field map's Phi' uploaded once; the field map's float32 copy when it has one)."""
+
+    def __init__(self, plant: Plant, G, f_nom: np.ndarray, field_std: np.ndarray):
+        self.plant, self.G, self.f_nom, self.field_std = plant, G, f_nom, field_std
+        self.xp = xp = array_module_of(plant)
+        if xp is not np:
+            self.f_nom_d, self.two_std_d = to_device(plant, f_nom), to_device(plant, 2.0 * field_std)
+            PhiT32 = getattr(G, "_PhiT32", None)
+            self.PhiT = (None if not hasattr(G, "Phi") else
+                         xp.asarray(PhiT32) if PhiT32 is not None else to_device(plant, np.ascontiguousarray(G.Phi.T)))
+
+    def up(self, A: np.ndarray):
+        return A if self.xp is np else to_device(self.plant, A)
+
+    def down(self, A) -> np.ndarray:
+        if self.xp is np:
+            return A
+        check_finite(A)
+        return to_host_of(self.plant, A)
+
+    def estimate(self, k: int, a: np.ndarray):
+        """f_nom_k + G_k a: the reconstructed field of every run."""
+        if self.xp is np:
+            return self.f_nom[k] + self.G.apply(k, a)
+        if self.PhiT is None:                        # a map without Phi (the oracle's): its own apply
+            return self.f_nom_d[k] + to_device(self.plant, self.G.apply(k, a))
+        c = a @ self.G.g[k].T
+        c = to_device(self.plant, c).astype(self.PhiT.dtype)
+        return self.f_nom_d[k] + (c @ self.PhiT).astype(np.float64)
+
+    def covered(self, k: int, est, f) -> int:
+        """Node-steps whose true field is within 2 sigma of the estimate."""
+        if self.xp is np:
+            return int(np.count_nonzero(np.abs(est - f) <= 2.0 * self.field_std[k]))
+        return int(self.xp.count_nonzero(self.xp.abs(est - f) <= self.two_std_d[k]))
