@@ -244,25 +244,39 @@ def on_device(plant: Any, device: str = "cpu", xp=None) -> Any:
     return DevicePlant(plant, array_module(device) if xp is None else xp, device)
 
 
+def _device_of(plant: Any) -> "DevicePlant | None":
+    """The `DevicePlant` that steps `plant`: itself, or the one a wrapper around it names as its
+    `device_plant` (e.g. the design's run-step meter, which must not hide the device); None on
+    the CPU."""
+    if isinstance(plant, DevicePlant):
+        return plant
+    inner = getattr(plant, "device_plant", None)
+    return inner if isinstance(inner, DevicePlant) else None
+
+
 def array_module_of(plant: Any):
     """The array module a plant's resident batches live in: the `DevicePlant`'s, else numpy."""
-    return plant.xp if isinstance(plant, DevicePlant) else np
+    device = _device_of(plant)
+    return np if device is None else device.xp
 
 
 def step_resident(plant: Any):
-    """The batched step whose state stays where it is: `DevicePlant.step_resident` on a device,
-    the plant's own `step` on the CPU (numpy in, numpy out: the host path unchanged)."""
-    return plant.step_resident if isinstance(plant, DevicePlant) else plant.step
+    """The batched step whose state stays where it is: `step_resident` on a device (the
+    wrapper's own, so that a wrapper still sees the steps), the plant's own `step` on the CPU
+    (numpy in, numpy out: the host path unchanged)."""
+    return plant.step if _device_of(plant) is None else plant.step_resident
 
 
 def to_device(plant: Any, A):
     """A host array in `plant`'s array module (itself on the CPU)."""
-    return plant.to_device(A) if isinstance(plant, DevicePlant) else A
+    device = _device_of(plant)
+    return A if device is None else device.to_device(A)
 
 
 def to_host_of(plant: Any, A) -> np.ndarray:
     """A resident array's host copy (itself on the CPU), counted in the plant's `stats`."""
-    return plant.to_host(A) if isinstance(plant, DevicePlant) else A
+    device = _device_of(plant)
+    return A if device is None else device.to_host(A)
 
 
 def base_plant(plant: Any) -> Any:

@@ -89,6 +89,17 @@ class MeteredPlant:
         self.meter.add(1 if np.ndim(x) == 1 else int(np.shape(x)[0]))
         return self._plant.step(x, u) if w is None else self._plant.step(x, u, w)
 
+    @property
+    def device_plant(self) -> Any:
+        """The wrapped plant, for `sep_plant.device`: a `DevicePlant` keeps its batches resident
+        through the meter (`step_resident`)."""
+        return self._plant
+
+    def step_resident(self, X: Any, u: Any, w: Any = None) -> Any:
+        """The wrapped `DevicePlant`'s resident step of the runs X (device arrays), counted."""
+        self.meter.add(1 if X.ndim == 1 else int(X.shape[0]))
+        return self._plant.step_resident(X, u) if w is None else self._plant.step_resident(X, u, w)
+
     def __repr__(self) -> str:
         return f"MeteredPlant({self._plant!r})"
 
