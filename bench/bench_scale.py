@@ -163,7 +163,7 @@ class StageClock:
 
 
 def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "default",
-            device: str = "cpu", echo: bool = False, threads: int = 1) -> dict:
+            device: str = "cpu", echo: bool = False, threads: int = 1, plan: str | None = None) -> dict:
     """Measure one row (in this process)."""
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -214,7 +214,8 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
             clock = StageClock(plant, echo)
         sampler = Sampler(stats=plant.stats if on_gpu else None) if echo else None
         t0 = time.perf_counter()
-        design = run_design(plant, problem, DesignSettings.for_scenario(scen), show_progress=False,
+        settings = DesignSettings.for_scenario(scen, **({"experiment_plan": plan} if plan else {}))
+        design = run_design(plant, problem, settings, show_progress=False,
                             log=clock.log if clock else (lambda m: None), engine=engine)
         t_design = time.perf_counter() - t0
         if clock:
@@ -270,6 +271,8 @@ def main() -> int:
     ap.add_argument("--log", action="store_true", help="print the design's log lines (and, on a GPU, each "
                     "stage's row) to stderr as they come")
     ap.add_argument("--threads", type=int, default=1, help="BLAS threads of the design's host work (default 1)")
+    ap.add_argument("--experiment-plan", choices=["0.8", "0.9"], default=None,
+                    help="the design's experiment plan (default: the scenario's, i.e. 0.8; see `sep design --help`)")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     for v in args.block_nodes:
@@ -277,7 +280,7 @@ def main() -> int:
             ap.error(f"--block-nodes: expected a number of nodes or 'default', got {v!r}")
     if args.row:
         print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0], args.device, args.log,
-                                 args.threads)))
+                                 args.threads, args.experiment_plan)))
         return 0
     names = args.rows or (list(QUICK) if args.quick else DEFAULT_ROWS)
     trees = ([(f"@{Path(args.against).name}", Path(args.against).resolve())] if args.against else []) + [("", REPO)]
@@ -295,6 +298,7 @@ def main() -> int:
                 proc = subprocess.run([sys.executable, __file__, "--row", name, "--runs", str(args.runs),
                                        "--block-nodes", value, "--device", args.device,
                                        "--threads", str(args.threads)]
+                                      + (["--experiment-plan", args.experiment_plan] if args.experiment_plan else [])
                                       + (["--dask", args.dask] if args.dask else []) + (["--log"] if args.log else []),
                                       env=env, stdout=subprocess.PIPE, stderr=None if args.log else subprocess.PIPE,
                                       text=True)

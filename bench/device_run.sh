@@ -10,7 +10,8 @@
 #   1. preflight (90): every CuPy call of the resident path, bandwidth, kernel compilation,
 #      plate 256^2 / block 100^3 steps, and a small design + Monte Carlo, GPU against CPU
 #   2. plate 256^2 (150): the design and a 100-run Monte Carlo on the GPU, per-stage table
-#   3. block 100^3 = 10^6 states (what is left of TOTAL = 470 s, at least 120): the same
+#   3. block 100^3 = 10^6 states (what is left of TOTAL = 470 s, at least 120): the same, with the
+#      opt-in experiment plan 0.9 (about a third of the run-steps; BLOCK_PLAN=0.8 for 0.8.0's)
 # A step that hits its timeout prints its sampled profile (where its time went) before it stops.
 # A dry run without a GPU (the tests' emulator, small rows, short limits):
 #     DEVICE=emulated PLATE_ROW=plate:64 BLOCK_ROW=block:24 TOTAL=200 bash bench/device_run.sh
@@ -46,6 +47,6 @@ step plate256 "${PLATE_TIMEOUT:-150}" python3 bench/bench_scale.py --device "$DE
     --threads "${THREADS:-16}" --log --json "$out/device_plate256.json"
 left=$(( ${TOTAL:-470} - ($(date +%s) - T0) ))
 step block100 "${BLOCK_TIMEOUT:-$(( left > 120 ? left : 120 ))}" python3 bench/bench_scale.py --device "$DEVICE" --rows "${BLOCK_ROW:-block:100}" --runs 100 \
-    --threads "${THREADS:-16}" --log --json "$out/device_block100.json"
+    --threads "${THREADS:-16}" --experiment-plan "${BLOCK_PLAN:-0.9}" --log --json "$out/device_block100.json"
 kill "$SMI" 2>/dev/null || true
 stamp "done; exit codes:"; cat "$out/device_exit_codes.txt"
