@@ -88,3 +88,19 @@ def test_unknown_env_is_refused():
 
     with pytest.raises(PlantConfigError, match="env must be one of"):
         make_plant("controlgym", {"env": "pendulum"})
+
+
+def test_a_generic_gym_env_is_a_plant():
+    """plant type gym: any resettable env by its factory, with the noise keys switched off."""
+    from sep_plant.conformance import check_plant
+    from sep_plant.plants import make_plant
+
+    p = make_plant("gym", {"env": "sep_plant.plants.controlgym:make_env",
+                           "env_kwargs": {"env": "burgers", "n_state": 16, "sensor_noise_cov": 0.1},
+                           "noise_off": {"process_noise_cov": 0.0, "sensor_noise_cov": 0.0},
+                           "mean_samples": 5, "noise_modes": 4})
+    check_plant(p)
+    assert (p.n_x, p.n_u, p.n_y, p.n_w, p.dt) == (16, 8, 10, 4, 0.05)
+    fast = _plant(env="burgers", n_state=16)
+    x = fast.initial_states([1, 2])
+    np.testing.assert_allclose(p.step(x, np.ones(8)), fast.step(x, np.ones(8)), rtol=0, atol=1e-12)
