@@ -25,6 +25,7 @@ from sep_estimator.design import Design
 from sep_estimator.ltv import LQG
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.device import base_plant
+from sep_plant.initial import initial_states
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import Plant
 
@@ -219,7 +220,7 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
     keep_f = max(0, min(M, out.F.shape[0] - a0))           # kept trajectories in this batch
     keep_e = max(0, min(M, out.F_hat.shape[0] - a0))
     covered = 0
-    x = plant.initial_state(M)
+    x = initial_states(plant, seed, run_ids)          # each run's own draw (`sep_plant.initial`)
     for k in range(N + 1):
         f = plant.field(x)
         out.F[a0:a0 + keep_f, k] = f[:keep_f]
