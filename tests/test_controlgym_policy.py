@@ -92,3 +92,25 @@ def test_policy_refuses_bad_input(design):
     pol = DesignPolicy(d)
     with pytest.raises(ValueError, match="outputs"):
         pol.act(np.zeros(3))
+
+
+def test_mpc_policy_keeps_the_envs_action_limit(design):
+    """rom_mpc as a policy on a design whose problem has the env's action limit: the actions stay
+    inside it and the episode's reward is finite."""
+    import dataclasses
+
+    from sep_control.control.policy import DesignPolicy
+    from sep_plant.plants.controlgym import make_env
+
+    plant, d = design
+    limited = dataclasses.replace(d, scenario=d.scenario.replace(u_min=-0.05, u_max=0.05))
+    pol = DesignPolicy(limited, "rom_mpc", observation_lag=1, mpc={"horizon": 5})
+    env = make_env("burgers", **KEYS)
+    obs, _ = env.reset(seed=1)
+    total = 0.0
+    for _ in range(env.n_steps):
+        u = pol.act(obs)
+        assert np.all(np.abs(u) <= 0.05 + 1e-12)
+        obs, r, *_ = env.step(u)
+        total += r
+    assert np.isfinite(total)
