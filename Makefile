@@ -67,12 +67,13 @@ EXAMPLE_PLANTS := $(ROOT)/examples/burgers
 
 # Re-run pip whenever requirements.txt changes; the stamp lives inside .venv, so removing
 # .venv also forces a fresh install.
-$(STAMP): $(ROOT)/requirements.txt $(addsuffix /pyproject.toml,$(EXAMPLE_PLANTS)) | check-python
+$(STAMP): $(ROOT)/requirements.txt $(ROOT)/requirements-controlgym.txt $(addsuffix /pyproject.toml,$(EXAMPLE_PLANTS)) | check-python
 	@if [ ! -x "$(PY)" ]; then \
 	  echo "creating $(VENV) with $(PYTHON) (Python $$($(call PY_VERSION_OF,"$(PYTHON)")))"; \
 	  "$(PYTHON)" -m venv "$(VENV)"; \
 	fi
 	"$(PY)" -m pip install --disable-pip-version-check --progress-bar off -q -r "$(ROOT)/requirements.txt"
+	"$(PY)" -m pip install --disable-pip-version-check --progress-bar off -q --no-deps -r "$(ROOT)/requirements-controlgym.txt"
 	"$(PY)" -m pip install --disable-pip-version-check --progress-bar off -q --no-deps $(addprefix -e ,$(EXAMPLE_PLANTS))
 	@touch "$@"
 

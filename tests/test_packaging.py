@@ -251,7 +251,7 @@ def scratch_checkout(tmp_path):
     """The Makefile and the files its venv rule depends on, in an empty folder (no .venv)."""
     root = tmp_path / 'checkout'
     (root / 'examples/burgers').mkdir(parents=True)
-    for rel in ('Makefile', 'requirements.txt', 'examples/burgers/pyproject.toml'):
+    for rel in ('Makefile', 'requirements.txt', 'requirements-controlgym.txt', 'examples/burgers/pyproject.toml'):
         (root / rel).write_bytes((REPO_ROOT / rel).read_bytes())
     return root
 

@@ -27,8 +27,9 @@ def example_available() -> bool:
 example_available()
 
 #: every plant sep ships or shows, with the input the conformance check steps with (the fmu
-#: plant needs an FMU file: tests/test_fmu_plant.py builds test FMUs and checks them)
-PLANTS = [(name, {}) for name in BUILTIN if name != "fmu"] + [("sep_burgers.plant:BurgersPlant", {}),
+#: plant needs an FMU file: tests/test_fmu_plant.py builds test FMUs and checks them; the gym and
+#: controlgym plants need controlgym: tests/test_controlgym_plant.py checks them)
+PLANTS = [(name, {}) for name in BUILTIN if name not in ("fmu", "gym", "controlgym")] + [("sep_burgers.plant:BurgersPlant", {}),
                                              ("broken_plants:ToyPlant", {}), ("broken_plants:NoisePlant", {})]
 
 

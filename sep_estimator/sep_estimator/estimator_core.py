@@ -81,6 +81,26 @@ class EstimatorCore:
         when the design has disturbance states (`sep_estimator.disturbance`)."""
         return self.kf.a[0]
 
+    def predicted(self, k: int) -> np.ndarray:
+        """The predicted estimate zhat_{k|k-1} (n,) of step k: the filter has run the time update
+        of step k-1 (`applied`) and not yet the measurement update of step k.
+
+        A plant whose measurement of step k arrives only after its command of step k (an
+        observation lagged one step, as controlgym's envs return it) is commanded from it:
+        ``controller.command(k, core.predicted(k))``, the certainty-equivalent law on the best
+        estimate before y_k. At k = 0 before any measurement it is the prior mean (zeros).
+
+        Raises
+        ------
+        ValueError
+            The filter is not at the prior of step k.
+        """
+        kf = self.kf
+        if kf.k != k or kf.posterior:
+            where = f"the posterior of step {kf.k}" if kf.posterior else f"the prior of step {kf.k}"
+            raise ValueError(f"predicted({k}): the filter is at {where}")
+        return kf.a[0].copy()
+
     def field_estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """(fbar_k + G_k a_hat, per-node std) at the filter's current step."""
         k = self.kf.k

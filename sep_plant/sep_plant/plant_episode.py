@@ -4,7 +4,8 @@ Per step k = 0..N: y_k = h(x_k) + v_k goes out (after the clock reads k dt); if 
 command of step k is awaited, clipped to the input limits, goes out as the applied input, and
 x_{k+1} = f(x_k, u_k, w_k). The noise of (seed, run) is run `run` of
 `sep_plant.noise.noise_sequences(problem, info, seed, runs)`, the numbers the offline Monte
-Carlo uses for that run, so a lockstep episode reproduces it exactly.
+Carlo uses for that run, and the episode starts from that run's initial state
+(`sep_plant.initial.initial_states`), so a lockstep episode reproduces it exactly.
 
 Modes (docs/reference/topics.md):
 
@@ -30,6 +31,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from sep_plant import gate, topics
+from sep_plant.initial import initial_states
 from sep_plant.noise import DEFAULT_SEED, noise_sequences
 from sep_plant.problem import Problem
 from sep_plant.protocol import Plant, PlantInfo, clip_inputs
@@ -121,6 +123,7 @@ class PlantEpisode:
         self.input_names = list(info.input_names)
         w, v = noise_sequences(problem, info, seed, [run])
         self.w, self.v = w[0], v[0]
+        self.seed, self.run_index = int(seed), int(run)
         self.lo, self.hi = problem.limits(info.n_u)
         self.k = 0
         self.last_cmd_step = -1
@@ -166,7 +169,7 @@ class PlantEpisode:
     def run(self, wait: Wait, sink: EpisodeSink) -> None:
         """Step the episode to its end (k = N), raising `CommandTimeout` in lockstep when a
         command does not come."""
-        x = self.plant.initial_state(1)
+        x = initial_states(self.plant, self.seed, [self.run_index])     # run `run`'s draw (`sep_plant.initial`)
         self.t_start = self.clock()
         for k in range(self.N + 1):
             self.k = k

@@ -70,6 +70,16 @@ Optional method::
                                               cluster worker without the files calls with their
                                               shipped bytes (`sep_control.compute.engine`)
 
+Optional method (uncertain initial state, `sep_plant.initial`)::
+
+    initial_states(seeds) -> (M, n_x)         one initial state per integer seed, drawn from the
+                                              plant's initial-state distribution (deterministic in
+                                              the seed); initial_state stays the nominal one the
+                                              design starts from (its mean, or another state the
+                                              plant documents). The Monte Carlo and the plant node
+                                              draw run r of seed s with `initial_seed(s, r)`; the
+                                              design fits the filter's prior to sampled draws
+
 State arrays must be copyable and restartable: a state is a float64 array; sep copies rows of
 it (nominal snapshots) and later starts experiments from those copies, so `step` must depend on
 nothing but its arguments (no hidden internal state, no random numbers of its own: every

@@ -112,10 +112,26 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     X_nom = ident.X_ext[: problem.n_steps + 1]
     F_nom = fields(plant, X_nom)
     nominal = Nominal(U, outputs(plant, X_nom), F_nom, *((belief.mean, belief.std) if belief is not None else ()))
-    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind,
-            "run_steps": meter.as_dict()}
+    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind}
+    with meter.stage("identification"):            # the free responses of sampled initial states
+        lqg = _initial_prior_hook(counted, final.lqg, nominal, meta, log)
+    meta["run_steps"] = meter.as_dict()
     return Design(scenario, PlantInfo.of(plant), obj, np.asarray(plant.field_coordinates(), dtype=float), nominal,
-                  final.lqg, ident.hankel_sv, meta)
+                  lqg, ident.hankel_sv, meta)
+
+
+def _initial_prior_hook(plant: Plant, lqg, nominal: Nominal, meta: dict[str, Any], log: Callable[[str], None]):
+    """The filter's prior P_0 from sampled initial states (`sep_control.design.initial_prior`);
+    the LQG unchanged for a plant whose initial state is known."""
+    from sep_control.design.initial_prior import fit_initial_prior, with_initial_prior
+
+    prior = fit_initial_prior(plant, lqg.rom, nominal.u, nominal.y)
+    if prior is not None:
+        meta["initial_prior"] = {"k0": prior.k0, "fit": prior.fit, "run_steps": prior.run_steps,
+                                 "trace": float(np.trace(prior.delta))}
+        log(f"initial state uncertain: the filter's prior at step {prior.k0} from {prior.run_steps} "
+            f"free-response run-steps (the ROM explains {prior.fit:.0%} of their output deviations)")
+    return with_initial_prior(lqg, prior)
 
 
 def _with_limit_margin(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext,

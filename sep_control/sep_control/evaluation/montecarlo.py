@@ -32,6 +32,7 @@ from sep_estimator.design import Design
 from sep_estimator.ltv import LQG
 from sep_estimator.tvkf import KalmanFilter
 from sep_plant.device import array_module_of, base_plant, check_finite, step_resident, to_device, to_host_of
+from sep_plant.initial import initial_states
 from sep_plant.noise import noise_sequences
 from sep_plant.protocol import Plant
 
@@ -228,7 +229,7 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
     covered = 0
     dev = _Resident(plant, G, f_nom, lqg.field_std)
     step = step_resident(plant)
-    x = dev.up(plant.initial_state(M))
+    x = dev.up(initial_states(plant, seed, run_ids))   # each run's own draw (`sep_plant.initial`)
     for k in range(N + 1):
         f = plant.field(x)
         if keep_f:

@@ -25,6 +25,8 @@ BUILTIN: dict[str, str] = {
     "block": "sep_plant.plants.heat:HeatBlock",
     "allen_cahn": "sep_plant.plants.allen_cahn:AllenCahnPlant",
     "fmu": "sep_plant.plants.fmu.plant:FMUPlant",
+    "gym": "sep_plant.plants.gym:GymPlant",
+    "controlgym": "sep_plant.plants.controlgym:ControlgymPlant",
 }
 
 

@@ -56,6 +56,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from sep_plant.initial import offset_states, spread_key
 from sep_plant.plants import adi, keys
 from sep_plant.plants.heat import GridPlant, actuator_profiles, check_lengths, check_nodes
 
@@ -80,7 +81,7 @@ class AllenCahnPlant(GridPlant):
                  eps: float = 0.04, actuator_centers: Sequence[Sequence[float]] = _ACTUATORS,
                  actuator_sigma: float = 0.12, sensor_positions: Sequence[Sequence[float]] = _SENSORS,
                  initial_center: Sequence[float] = (0.5, 0.5), initial_radius: float = 0.25,
-                 dt: float = 0.25):
+                 dt: float = 0.25, initial_spread: float = 0.0):
         self.nodes = check_nodes("nodes", nodes, 2)
         self.lengths = check_lengths("lengths", lengths, 2)
         self.eps = keys.positive("eps", eps)
@@ -90,6 +91,7 @@ class AllenCahnPlant(GridPlant):
         self.initial_center = keys.numbers("initial_center", initial_center, lo=0.0, hi=1.0, length=2)
         self.initial_radius = keys.number("initial_radius", initial_radius, lo=0.0)
         self.dt = keys.positive("dt", dt)
+        self.initial_spread = keys.number("initial_spread", initial_spread, lo=0.0)
         if self.dt >= 1.0:
             raise keys.PlantConfigError(f"dt must be < 1 (the linearly implicit reaction needs "
                                         f"1 + dt (3 phi^2 - 1) > 0), got {self.dt:g}")
@@ -110,7 +112,7 @@ class AllenCahnPlant(GridPlant):
                 "actuator_sigma": self.actuator_sigma,
                 "sensor_positions": [list(p) for p in self.sensor_positions],
                 "initial_center": list(self.initial_center), "initial_radius": self.initial_radius,
-                "dt": self.dt}
+                "dt": self.dt, **spread_key(self.initial_spread)}
 
     def actuator_profiles(self) -> np.ndarray:
         """b_j(x_i), (n_x, n_u): Gaussians with peak 1 (dimensionless)."""
@@ -125,6 +127,11 @@ class AllenCahnPlant(GridPlant):
     def initial_state(self, batch: int = 1) -> np.ndarray:
         """The disc of `initial_radius` at `initial_center`: (batch, n_x)."""
         return np.repeat(self._phi0[None, :], batch, axis=0)
+
+    def initial_states(self, seeds) -> np.ndarray:
+        """(M, n_x): one initial state per seed, the known one plus a uniform offset of std
+        `initial_spread` (`sep_plant.initial.offset_states`; 0: the known state exactly)."""
+        return offset_states(self.initial_state(1)[0], self.initial_spread, seeds)
 
     # ------------------------------------------------------------- physics
     @staticmethod

@@ -67,6 +67,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sep_plant.plants import adi, blocks, keys
+from sep_plant.initial import offset_states, spread_key
 from sep_plant.plants.backend import DeviceConstants, namespace
 
 #: T_K = (T + offset) * scale for each temperature unit
@@ -259,7 +260,8 @@ class _Heat(GridPlant):
                 "radiation": self.radiation, "unit": self.unit,
                 "boundary_temperatures": dict(self.boundary_temperatures), "t_init": self.t_init,
                 "lamp_centers": [list(c) for c in self.lamp_centers], "lamp_sigma": self.lamp_sigma,
-                "sensor_positions": [list(p) for p in self.sensor_positions], "dt": self.dt}
+                "sensor_positions": [list(p) for p in self.sensor_positions], "dt": self.dt,
+                **spread_key(self.initial_spread)}
 
     def lamp_profiles(self) -> np.ndarray:
         """b_j(x_i), (n_x, n_u): Gaussians each integrating to 1 over the box [1/m^d]."""
@@ -273,6 +275,11 @@ class _Heat(GridPlant):
     def initial_state(self, batch: int = 1) -> np.ndarray:
         """T = t_init everywhere: (batch, n_x)."""
         return np.full((batch, self.n_x), self.t_init)
+
+    def initial_states(self, seeds) -> np.ndarray:
+        """(M, n_x): one initial state per seed, the known one plus a uniform offset of std
+        `initial_spread` (`sep_plant.initial.offset_states`; 0: the known state exactly)."""
+        return offset_states(self.initial_state(1)[0], self.initial_spread, seeds)
 
     # ------------------------------------------------------------- physics
     def _conductivity(self, T):
@@ -313,9 +320,10 @@ class HeatPlate(_Heat):
                  boundary_temperatures: Mapping[str, float] = MappingProxyType({"x_max": 150.0}),
                  t_init: float = 100.0, lamp_centers: Sequence[Sequence[float]] = _LAMPS_2D,
                  lamp_sigma: float = 0.1, sensor_positions: Sequence[Sequence[float]] = _SENSORS_2D,
-                 dt: float = 0.25):
+                 dt: float = 0.25, initial_spread: float = 0.0):
         self._setup(nodes, lengths, k0, beta, t_ref, t_scale, eta, t_amb, radiation, unit,
                     boundary_temperatures, t_init, lamp_centers, lamp_sigma, sensor_positions, dt)
+        self.initial_spread = keys.number("initial_spread", initial_spread, lo=0.0)
 
 
 class HeatBlock(_Heat):
@@ -329,9 +337,10 @@ class HeatBlock(_Heat):
                  boundary_temperatures: Mapping[str, float] = MappingProxyType({"z_min": 150.0}),
                  t_init: float = 100.0, lamp_centers: Sequence[Sequence[float]] = _LAMPS_3D,
                  lamp_sigma: float = 0.2, sensor_positions: Sequence[Sequence[float]] = _SENSORS_3D,
-                 dt: float = 0.25):
+                 dt: float = 0.25, initial_spread: float = 0.0):
         self._setup(nodes, lengths, k0, beta, t_ref, t_scale, eta, t_amb, radiation, unit,
                     boundary_temperatures, t_init, lamp_centers, lamp_sigma, sensor_positions, dt)
+        self.initial_spread = keys.number("initial_spread", initial_spread, lo=0.0)
 
 
 __all__ = ["GridPlant", "HeatBlock", "HeatPlate", "UNITS", "actuator_profiles", "check_faces",

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from sep_plant.plants import adi, blocks, keys
+from sep_plant.initial import offset_states, spread_key
 from sep_plant.plants.backend import DeviceConstants, namespace
 
 
@@ -43,7 +44,8 @@ class SlabPlant:
                  gamma: float = 0.2, t_ref: float = 100.0, t_scale: float = 50.0, eta: float = 0.002,
                  t_right: float = 150.0, t_init: float = 100.0,
                  heater_centers: Sequence[float] = (0.1, 0.3, 0.5, 0.7, 0.9), heater_sigma: float = 0.02,
-                 sensor_positions: Sequence[float] = (0.1, 0.3, 0.5, 0.7, 0.9), dt: float = 0.25):
+                 sensor_positions: Sequence[float] = (0.1, 0.3, 0.5, 0.7, 0.9), dt: float = 0.25,
+                 initial_spread: float = 0.0):
         self.n_x = keys.integer("n_x", n_x, lo=4)
         self.length = keys.positive("length", length)
         self.k0 = keys.positive("k0", k0)
@@ -58,6 +60,7 @@ class SlabPlant:
         self.heater_sigma = keys.positive("heater_sigma", heater_sigma)
         self.sensor_positions = keys.numbers("sensor_positions", sensor_positions, lo=0.0, hi=1.0)
         self.dt = keys.positive("dt", dt)
+        self.initial_spread = keys.number("initial_spread", initial_spread, lo=0.0)
         for temp in (self.t_init, self.t_right):
             if 1 + self.beta * (temp - self.t_ref) / self.t_scale <= 0 or 1 + self.gamma <= 0:
                 raise keys.PlantConfigError(f"K(x,T) is not positive at T = {temp:g}: check "
@@ -84,7 +87,7 @@ class SlabPlant:
                 "gamma": self.gamma, "t_ref": self.t_ref, "t_scale": self.t_scale, "eta": self.eta,
                 "t_right": self.t_right, "t_init": self.t_init, "heater_centers": list(self.heater_centers),
                 "heater_sigma": self.heater_sigma, "sensor_positions": list(self.sensor_positions),
-                "dt": self.dt}
+                "dt": self.dt, **spread_key(self.initial_spread)}
 
     def grid(self) -> np.ndarray:
         """Node positions x_i = i L / n_x (the Dirichlet node x = L is eliminated)."""
@@ -110,6 +113,11 @@ class SlabPlant:
     def initial_state(self, batch: int = 1) -> np.ndarray:
         """T(x, 0) = t_init everywhere: (batch, n_x)."""
         return np.full((batch, self.n_x), self.t_init)
+
+    def initial_states(self, seeds) -> np.ndarray:
+        """(M, n_x): one initial state per seed, the known one plus a uniform offset of std
+        `initial_spread` (`sep_plant.initial.offset_states`; 0: the known state exactly)."""
+        return offset_states(self.initial_state(1)[0], self.initial_spread, seeds)
 
     def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Advance one step: x_{k+1} = f(x_k, u_k + w_k) for every run of the batch."""

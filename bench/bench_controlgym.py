@@ -1,0 +1,182 @@
+"""sep on controlgym's PDE environments, scored by the env's own reward, noise and reset.
+
+For each task: sep designs from the env as a black box (plant type controlgym, the env's noise
+off, its noise levels as w_std / v_std, the reward's weights as the objective's), and each
+controller runs N seeded resets of the env itself (``env.reset(seed=i)``, i < N; the env's
+own process and sensor noise, its own reward summed over its n_steps):
+
+* zero         u = 0;
+* sep open     sep's nominal input alone (open loop);
+* sep ROM-LQG  the design as a policy (`sep_control.control.policy.DesignPolicy`, one-step-lagged
+               observations: controlgym returns with step(u_k) the measurement of x_k);
+* sep ROM-MPC  where the env has action limits;
+* cg LQG (mean) / cg LQG (true x0)  controlgym's white-box LQG (it reads A, B, C; linear envs
+               only), its filter started from the mean initial state or, as controlgym's own
+               ``LQG.run`` does, from the true one; scored by the same loop as the others
+               (all n_steps rewards; ``LQG.run`` drops the last one);
+* PPO (quoted) the controlgym example notebook's figure for its Burgers task (-172.1 after
+               50 x 32 x 100 env steps); quoted, not measured here.
+
+Beside the rewards: the plant run-steps the design spent (every `plant.step` row, the
+conformance check's included) and the design's wall time (a shared machine: indicative only).
+Tasks: `notebook_burgers` (make("burgers", n_state=64, process_noise_cov=1e-5,
+sensor_noise_cov=0.05), target 0.1 cos(2 pi x / L)) and any controlgym env at its defaults by
+name. No assertions.
+
+    OPENBLAS_NUM_THREADS=1 python bench/bench_controlgym.py [--tasks notebook_burgers,wave]
+        [--resets 100] [--noise-modes 8] [--n-r 20]
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sep_control.control.policy import DesignPolicy
+from sep_control.design.pipeline import DesignSettings, run_design
+from sep_plant.plants.controlgym import ControlgymPlant, controlgym_problem, envs_module, make_env
+
+#: the controlgym example notebook's PPO reward on its Burgers task (quoted, not measured)
+PPO_NOTEBOOK_BURGERS = -172.1
+#: tasks beyond the env defaults: env, its keys, the target expression (None: the env's)
+TASKS = {
+    "notebook_burgers": ("burgers", {"n_state": 64, "process_noise_cov": 1e-5, "sensor_noise_cov": 0.05},
+                         "0.1 * cos(2 * pi * x / 1.0)"),
+    "wave_noisy": ("wave", {"process_noise_cov": 1e-5, "sensor_noise_cov": 0.05}, None),
+}
+LINEAR = ("convection_diffusion_reaction", "wave", "schrodinger")
+
+
+def task(name: str) -> tuple[str, dict, str | None]:
+    if name in TASKS:
+        return TASKS[name]
+    return name, {}, None
+
+
+class Counting:
+    """Counts the run-steps of a plant's `step` (an instance attribute: the plant's type is kept)."""
+
+    def __init__(self, plant):
+        self.n = 0
+        inner = plant.step
+
+        def step(x, u, w=None):
+            self.n += int(np.atleast_2d(x).shape[0])
+            return inner(x, u, w)
+        plant.step = step
+
+
+def white_box_lqg(env):
+    """controlgym's LQG class, loaded from its file (its package __init__ imports torch)."""
+    envs_module()
+    path = Path(sys.modules["controlgym"].__path__[0]) / "controllers" / "lqg.py"
+    spec = importlib.util.spec_from_file_location("controlgym_lqg", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.LQG(env)
+
+
+def episodes(env, resets: int, act_factory) -> np.ndarray:
+    """The env's summed reward over its n_steps for seeds 0..resets-1 (act_factory(obs, info) -> act)."""
+    out = np.empty(resets)
+    for i in range(resets):
+        obs, info = env.reset(seed=i)
+        act = act_factory(obs, info)
+        total = 0.0
+        for _ in range(env.n_steps):
+            obs, r, _, _, _ = env.step(np.asarray(act(obs), dtype=float))
+            total += r
+        out[i] = total
+    return out
+
+
+def policy_factory(policy: DesignPolicy):
+    def make(obs, info):
+        policy.reset()
+        return policy.act
+    return make
+
+
+def lqg_factory(lqg, x0_mean: np.ndarray | None):
+    def make(obs, info):
+        est = {"x": np.array(info["state"] if x0_mean is None else x0_mean, dtype=float)}
+        last = {"u": None, "first": True}
+
+        def act(o):
+            if not last["first"]:                     # o measures the state before the last step
+                est["x"] = lqg.evolve_state_estimate(est["x"], last["u"], o)
+            last["first"] = False
+            u = lqg.select_action(est["x"])
+            last["u"] = u
+            return u
+        return act
+    return make
+
+
+def run_task(name: str, args) -> dict:
+    env_id, keys, target = task(name)
+    plant = ControlgymPlant(env=env_id, noise_modes=args.noise_modes, **keys)
+    counter = Counting(plant)
+    problem = controlgym_problem(plant, **({"target": target} if target else {}))
+    t0 = time.perf_counter()
+    design = run_design(plant, problem, DesignSettings(n_r=args.n_r), show_progress=False, log=lambda m: None)
+    design_s = time.perf_counter() - t0
+    env = make_env(env_id, **keys)
+    env.set_target_state(plant.env.target_state if target is None else
+                         np.asarray(problem.target_field(plant.field_coordinates()), dtype=float))
+    row = {"task": name, "n_state": plant.n_x, "steps": env.n_steps, "plant_steps": counter.n, "design_s": design_s}
+    zero = np.zeros(plant.n_u)
+    row["zero"] = episodes(env, args.resets, lambda o, i: (lambda obs: zero))
+    row["sep open"] = episodes(env, args.resets, policy_factory(DesignPolicy(design, "open_loop", 1)))
+    row["sep ROM-LQG"] = episodes(env, args.resets, policy_factory(DesignPolicy(design, "rom_lqg", 1)))
+    if np.isfinite(plant.action_limit):
+        row["sep ROM-MPC"] = episodes(env, args.resets, policy_factory(DesignPolicy(design, "rom_mpc", 1)))
+    if env_id in LINEAR:
+        lqg = white_box_lqg(env)
+        row["cg LQG (mean)"] = episodes(env, args.resets, lqg_factory(lqg, plant.initial_state(1)[0]))
+        row["cg LQG (true x0)"] = episodes(env, args.resets, lqg_factory(lqg, None))
+    if name == "notebook_burgers":
+        row["PPO (quoted)"] = PPO_NOTEBOOK_BURGERS
+    return row
+
+
+COLUMNS = ["zero", "sep open", "sep ROM-LQG", "sep ROM-MPC", "cg LQG (mean)", "cg LQG (true x0)", "PPO (quoted)"]
+
+
+def fmt(v) -> str:
+    if v is None:
+        return "-"
+    if np.isscalar(v):
+        return f"{v:.1f}"
+    return f"{np.mean(v):.1f} ± {np.std(v):.1f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--tasks", default="notebook_burgers", help="comma-separated: notebook_burgers, wave_noisy, "
+                    "or controlgym env names at their defaults")
+    ap.add_argument("--resets", type=int, default=100, help="seeded env resets per controller")
+    ap.add_argument("--noise-modes", type=int, default=8, help="process-noise channels of the plant (Fourier modes)")
+    ap.add_argument("--n-r", type=int, default=20, help="ROM order")
+    args = ap.parse_args()
+    rows = []
+    for name in args.tasks.split(","):
+        row = run_task(name.strip(), args)
+        rows.append(row)
+        print(f"{row['task']}: n_state {row['n_state']}, {row['steps']} steps, design {row['plant_steps']} "
+              f"plant run-steps in {row['design_s']:.0f} s", flush=True)
+    print(f"\nmean ± std of the env's summed reward over {args.resets} seeded resets (higher is better)")
+    print("| task | " + " | ".join(COLUMNS) + " | sep/zero | plant steps | design s |")
+    print("|" + "---|" * (len(COLUMNS) + 4))
+    for r in rows:
+        ratio = np.mean(r["sep ROM-LQG"]) / np.mean(r["zero"])
+        print(f"| {r['task']} | " + " | ".join(fmt(r.get(c)) for c in COLUMNS)
+              + f" | {ratio:.3f} | {r['plant_steps']} | {r['design_s']:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
