@@ -36,7 +36,7 @@ def test_monte_carlo_and_episode_start_from_the_runs_draw():
     the design adds the initial deviation to the filter's prior."""
     from sep_control.design.pipeline import DesignSettings, run_design
     from sep_control.evaluation.montecarlo import simulate
-    from sep_plant.episode import PlantEpisode
+    from sep_plant.plant_episode import PlantEpisode
     from sep_plant.problem import Problem
 
     plant = make_plant("slab", {"n_x": 20, "initial_spread": 3.0})
