@@ -339,7 +339,8 @@ def input_directions(rom: LTVModel, window: Sequence[int], n_d: int | None = Non
 
 def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | None = None,
            std: float | Sequence[float] | None = None, walk_std: float | Sequence[float] = WALK_STD,
-           bands: float = STD0_BANDS, K: np.ndarray | None = None) -> Disturbance | None:
+           bands: float = STD0_BANDS, K: np.ndarray | None = None,
+           noise_std: np.ndarray | None = None) -> Disturbance | None:
     """The design's disturbance model of `kind` on `rom` (None for kind 'none').
 
     Parameters
@@ -364,6 +365,9 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     K : ndarray, shape (N, n_u, n_r), optional
         The ROM's plain LQR gains, for the closed-loop step gains S_cl,i (None: the open-loop
         rule c band / S_i).
+    noise_std : ndarray, shape (n_w,), optional
+        The process noise's std per channel (w_std): the noise kind's prior, sigma_0,i =
+        |diag(w_std) E_w,i| (`_noise_prior_std`); None: the input kind's rule.
 
     Returns
     -------
@@ -389,7 +393,9 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
         note["asked_kind"] = asked
         note["note"] = "the noise enters through the inputs (B_w = B): the noise kind is the input kind"
     n_d = E.shape[1]
-    if std is None:
+    if std is None and kind == "noise" and noise_std is not None:
+        std0, rule = _noise_prior_std(E, noise_std)
+    elif std is None:
         std0, rule = _prior_std(kind, band, bands, S, S_cl, K is not None)
     else:
         std0 = per_direction("disturbance_std", std, n_d)
@@ -434,6 +440,15 @@ def _prior_std(kind: str, band: float, bands: float, S: np.ndarray, S_cl: np.nda
     else:
         rule = f"sigma_0,i = {bands:g} band / S_i (a bias moving the outputs by {bands:g} bands in open loop)"
     return std0, rule
+
+
+def _noise_prior_std(E: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, str]:
+    """sigma_0,i = |diag(w_std) E_w,i|: a constant forcing as large as one step's process noise
+    along direction i (the noise kind's rule; measured on the forced slab, docs/robustness.md: the
+    band rule c band / sqrt(S_i S_cl,i), made for biases of a few % of the band, is so tight a
+    prior that a forcing of several bands is removed only in part)."""
+    w = np.broadcast_to(np.asarray(noise_std, dtype=float), (E.shape[0],))
+    return np.linalg.norm(w[:, None] * E, axis=0), "sigma_0,i = |diag(w_std) E_w,i| (a forcing of one step's noise std)"
 
 
 def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.ndarray:

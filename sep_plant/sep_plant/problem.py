@@ -171,8 +171,10 @@ class Problem:
 
     # ------------------------------------------------------ (de)serialize
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (inf as the strings 'inf'/'-inf'; tuples as lists)."""
-        return {f.name: _encode(getattr(self, f.name)) for f in fields(self)}
+        """JSON-ready dict (inf as the strings 'inf'/'-inf'; tuples as lists). The LQR weighting keys
+        (`CHOICES`) only when not at their defaults: a default problem's dict is sep 0.8's."""
+        return {f.name: _encode(getattr(self, f.name)) for f in fields(self)
+                if not (f.name in CHOICES and getattr(self, f.name) == CHOICES[f.name][0])}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str = "problem") -> "Problem":

@@ -194,8 +194,9 @@ class DesignSettings:
             return None
         K = lqr_gains(rom, problem)[0] if self.disturbance in ("input", "noise") and self.disturbance_std is None \
             else None
+        w = problem.channels("w_std", rom.noise_input.shape[2]) if self.disturbance == "noise" else None
         return choose(rom, self.disturbance, float(problem.band), problem.window, dims=self.disturbance_dims,
-                      std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K)
+                      std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K, noise_std=w)
 
     def rom(self, engine=None) -> RomSettings:
         """The TV-ERA settings of the design's identifications (experiments on `engine`)."""
