@@ -279,7 +279,7 @@ def test_settings_refuse_bad_disturbance_keys():
     assert DesignSettings.from_meta({"settings": {"n_r": 4}}).disturbance == "none"     # older files
     with pytest.raises(DisturbanceError, match="disturbance_std"):
         Disturbance("input", np.eye(2), np.array([-1.0, 1.0]), np.zeros(2))
-    with pytest.raises(DisturbanceError, match="'input' or 'output'"):
+    with pytest.raises(DisturbanceError, match="one of input, output, noise"):
         Disturbance("bias", np.eye(2), np.ones(2), np.zeros(2))
 
 
