@@ -20,7 +20,7 @@ from sep_control.control.mpc import RomMPC
 from sep_control.design.gains import design_lqg, lqr_gains, state_weights, tv_lqr
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.montecarlo import simulate
-from sep_estimator.design_file import VERSION, DesignFileError, load_design, save_design
+from sep_estimator.design_file import VERSION, DesignFileError, load_design, problem_mismatches, save_design
 from sep_estimator.disturbance import augment, choose, cross_input
 from sep_plant.plants.slab import SlabPlant
 from sep_plant.problem import Problem, ProblemError
@@ -120,6 +120,8 @@ def test_design_file_keeps_the_weighting_and_older_files_read_as_output(field_de
         return {**m, "scenario": sc_}
     old = load_design(rewrite_design_file(path, tmp_path / "v4.npz", v4))
     assert old.problem.lqr_weighting == "output"
+    assert problem_mismatches(d.problem, old.problem) == ["problem.lqr_weighting: 'field' != 'output'"]
+    assert problem_mismatches(old.problem, d.problem) == ["problem.lqr_weighting: 'output' != 'field'"]
     noise4 = rewrite_design_file(path, tmp_path / "n4.npz",
                                  lambda m: {**v4(m), "disturbance": {**m["disturbance"], "kind": "noise"}})
     with pytest.raises(DesignFileError, match="needs format version 5"):

@@ -475,5 +475,8 @@ def problem_mismatches(designed: Problem, running: Problem) -> list[str]:
     """"problem.KEY: designed != running" for each resolved problem key but n_steps (a plant
     mismatch, `Scenario.plant_mismatches`) and the `RUN_TIME_KEYS`."""
     a, b = designed.resolved().to_dict(), running.resolved().to_dict()
-    return [f"problem.{k}: {a[k]!r} != {b[k]!r}" for k in a
+    for k in set(a) ^ set(b):           # keys a dict omits at their defaults (the LQR weighting's)
+        a.setdefault(k, getattr(designed, k))
+        b.setdefault(k, getattr(running, k))
+    return [f"problem.{k}: {a[k]!r} != {b[k]!r}" for k in sorted(a)
             if k not in RUN_TIME_KEYS and k != "n_steps" and not same_value(a[k], b[k])]
