@@ -10,7 +10,7 @@ ratio), ROM/oracle.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=sep_plant:sep_estimator:sep_control:examples/burgers \\
         python bench/bench_field_weighting.py [--cases reference burgers rod plate block allen_cahn]
-        [--runs 1000] [--mpc rod]
+        [--runs 1000] [--mpc rod] [--weightings output field]
 
 The rod needs examples/fmu_rod/rod.fmu (python examples/fmu_rod/build_fmu.py).
 """
@@ -40,11 +40,11 @@ ORACLE_MAX_NX = 500
 WEIGHTINGS = ("output", "field")
 
 
-def run_case(case: str, runs: int, controllers: list[str]) -> dict[str, dict]:
+def run_case(case: str, runs: int, controllers: list[str], weightings=WEIGHTINGS) -> dict[str, dict]:
     scen = load_scenario(SCENARIOS[case])
     st = DesignSettings.for_scenario(scen)
     rows: dict[str, dict] = {}
-    for w in WEIGHTINGS:
+    for w in weightings:
         t0 = time.perf_counter()
         d = run_design(scen.plant, scen.problem.replace(lqr_weighting=w), st, show_progress=False,
                        log=lambda m: None)
@@ -63,7 +63,7 @@ def run_case(case: str, runs: int, controllers: list[str]) -> dict[str, dict]:
             rows[f"{case} | oracle_lqg | {w}"] = orc
         print(f"{case}: {w} design {took:.1f} s", flush=True)
     for name, r in rows.items():
-        ref = rows[name.rsplit("|", 1)[0] + "| output"]
+        ref = rows.get(name.rsplit("|", 1)[0] + "| output", r)
         r["d_in_band"] = r["in_band"] - ref["in_band"]
         r["cost/output"] = r["cost_mean"] / ref["cost_mean"]
     print(format_table(rows, COLUMNS), flush=True)
@@ -75,12 +75,15 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", choices=list(SCENARIOS), default=list(SCENARIOS))
     ap.add_argument("--runs", type=int, default=1000, help="Monte Carlo runs per column (seed 1, runs 0..R-1)")
     ap.add_argument("--mpc", nargs="*", default=["rod"], help="cases that also run rom_mpc")
+    ap.add_argument("--weightings", nargs="+", choices=WEIGHTINGS, default=list(WEIGHTINGS),
+                    help="the weightings to design with (the same seeds: columns of separate runs compare)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     table: dict[str, dict] = {}
     with threadpool_limits(1):
         for case in args.cases:
-            table.update(run_case(case, args.runs, ["rom_lqg"] + (["rom_mpc"] if case in args.mpc else [])))
+            table.update(run_case(case, args.runs, ["rom_lqg"] + (["rom_mpc"] if case in args.mpc else []),
+                                  args.weightings))
     print(f"\n{args.runs} runs per row (seed 1); d_in_band and cost/output against the output weighting:")
     print(format_table(table, COLUMNS))
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")

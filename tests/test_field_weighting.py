@@ -20,6 +20,7 @@ from sep_control.control.mpc import RomMPC
 from sep_control.design.gains import design_lqg, lqr_gains, state_weights, tv_lqr
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.evaluation.montecarlo import simulate
+from sep_control.evaluation.oracle import oracle_lqg
 from sep_estimator.design_file import VERSION, DesignFileError, load_design, problem_mismatches, save_design
 from sep_estimator.disturbance import augment, choose, cross_input
 from sep_plant.plants.slab import SlabPlant
@@ -154,6 +155,16 @@ def test_noise_kind_acts_through_the_noise_channels(forced):
     z = augment(rom, dist)
     np.testing.assert_array_equal(z.A[:, :rom.n, rom.n:], rom.Bw @ dist.map)
     np.testing.assert_array_equal(z.C[:, :, rom.n:], 0.0)
+    # the oracle, like for like: the same directions through its full-order noise channels, and
+    # the same field weighting on its own (identity) field map
+    orc = oracle_lqg(d, sc.plant)
+    assert orc.disturbance is dist and orc.model.n == sc.info.n_x + dist.n_d
+    full = orc.rom
+    np.testing.assert_allclose(orc.model.A[:, :full.n, full.n:], full.Bw @ dist.map)
+    Kf = lqr_gains(full, d.problem, dist)[0]
+    np.testing.assert_array_equal(orc.K, Kf)
+    q = d.problem.lqr_field_weights(sc.info.n_field)
+    np.testing.assert_allclose(state_weights(full, d.problem), q[:, None, None] * np.eye(sc.info.n_x)[None])
     # prior: a forcing of one step's noise std along each direction
     np.testing.assert_allclose(dist.std0, np.linalg.norm(0.3 * sc.problem.channels("w_std", 3)[:, None]
                                                           / 0.3 * dist.map, axis=0))
