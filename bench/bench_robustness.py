@@ -1,9 +1,13 @@
 """Robustness to model mismatch: a design run on truth plants that differ from its model, against a
 design made on each truth itself (no assertions; ratios side by side in one run).
 
-Cases (--cases, default all): the reference slab, the plate (sep_plant/scenarios/plate.yaml) and
+Cases (--cases, default all): the reference slab, the plate (sep_plant/scenarios/plate.yaml),
 the Burgers ring (examples/burgers/scenario.yaml, needs examples/burgers on PYTHONPATH or the
-package installed). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/robustness.md):
+package installed) and the forced slab (sep_plant/scenarios/slab_forced.yaml: noise channels of
+its own). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/robustness.md):
+
+* the forced slab: the model itself, and a constant source spread over the slab (source 0.1 and
+  0.3 F/s), the forcing that enters neither through the inputs nor the sensors; no other rows;
 
 * the model itself (the shipped scenario unbiased);
 * a biased boundary temperature, 2 and 3 units of the band's unit off (slab t_right 148, 147;
@@ -18,7 +22,9 @@ package installed). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/
 Columns, all ROM-LQG on the truth with the same Monte Carlo seeds (seed 1, runs 0..R-1):
 
 * the model's designs, one per value of the design setting ``disturbance`` (the default
-  first, then input, output, none);
+  first, then input, output, none; noise too where the plant's noise has channels of its own)
+  and per LQR weighting in --weightings (default: the default, output; the column says
+  w=field for the field weighting);
 * matched: a design made on the truth itself (`run_design` on the truth plant; on the
   PerturbedPlant for a perturbation), disturbance none: the best a design can do there;
 * oracle (cases of n_x <= 500: the slab, n_x 100, and the Burgers ring, n_x 128; not the
@@ -32,7 +38,8 @@ cost <= 1.15 x matched; on the unbiased scenario the cost within 1 % of the dist
 design with no loss in band. A row's last column says which targets it meets.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=sep_plant:sep_estimator:sep_control:examples/burgers \\
-        python bench/bench_robustness.py [--cases slab plate burgers] [--runs 300] [--quick]
+        python bench/bench_robustness.py [--cases slab plate burgers forced] [--runs 300] [--quick]
+        [--weightings output field] [--rows 147]
 
 The plate's designs take ~45 s each (one per column and truth): the whole benchmark takes 30-60 min.
 """
@@ -57,14 +64,17 @@ from sep_plant.truth import truth_plant
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIOS = {"slab": None, "plate": REPO / "sep_plant/scenarios/plate.yaml",
-             "burgers": REPO / "examples/burgers/scenario.yaml"}
+             "burgers": REPO / "examples/burgers/scenario.yaml",
+             "forced": REPO / "sep_plant/scenarios/slab_forced.yaml"}
 COLUMNS = ["in_band", "cost_mean", "mean_dev_end", "d_in_band", "cost/matched", "design_s", "targets"]
 ORACLE_MAX_NX = 500
 
 
-def disturbance_settings() -> list[str]:
-    """The design setting `disturbance` values to compare, the default first."""
-    return list(dict.fromkeys([DesignSettings().disturbance, "input", "output", "none"]))
+def disturbance_settings(scen=None) -> list[str]:
+    """The design setting `disturbance` values to compare, the default first (noise where the
+    plant's noise has channels of its own: on the inputs it is the input kind)."""
+    own = scen is not None and not scen.info.noise_on_inputs
+    return list(dict.fromkeys([DesignSettings().disturbance, "input", *(["noise"] if own else []), "output", "none"]))
 
 
 def settings_for(scen, disturbance: str) -> DesignSettings:
@@ -72,8 +82,15 @@ def settings_for(scen, disturbance: str) -> DesignSettings:
     return dataclasses.replace(st, disturbance=disturbance)
 
 
-def design_on(plant, problem, settings) -> tuple[object, float]:
+def variant_label(disturbance: str, weighting: str) -> str:
+    """The column of a model design: 'dist=input' (output weighting), 'dist=input w=field'."""
+    return f"dist={disturbance}" + ("" if weighting == "output" else f" w={weighting}")
+
+
+def design_on(plant, problem, settings, weighting: str | None = None) -> tuple[object, float]:
     t0 = time.perf_counter()
+    if weighting is not None:
+        problem = problem.replace(lqr_weighting=weighting)
     d = run_design(plant, problem, settings, show_progress=False, log=lambda m: None)
     return d, time.perf_counter() - t0
 
@@ -103,6 +120,8 @@ def truths_of(case: str, scen, design, slab_shifts: list[float]) -> list[tuple[s
     cfg, band = scen.plant_config, scen.problem.band
     bias = band / 3.0
     rows = [("model itself", {}, {})]
+    if case == "forced":
+        return rows + [(f"source {s:g}", {"source": s}, {}) for s in (0.1, 0.3)]
     if case == "slab":
         rows += [(f"t_right {cfg['t_right'] - d:g}", {"t_right": cfg["t_right"] - d}, {}) for d in (2.0, 3.0)]
     elif case == "plate":
@@ -133,22 +152,27 @@ def slab_boundary_shifts() -> list[float]:
                             d.nominal.u, k1) / band for x in (2.0, 3.0)]
 
 
-def run_case(case: str, args, variants: list[str], slab_shifts: list[float]) -> dict[str, dict]:
+def run_case(case: str, args, slab_shifts: list[float]) -> dict[str, dict]:
     scen = load_scenario(SCENARIOS[case])
-    designs = {}
-    for v in variants:
-        designs[v] = design_on(scen.plant, scen.problem, settings_for(scen, v))
-        print(f"{case}: design (disturbance {v}) {designs[v][1]:.1f} s", flush=True)
-    model_design = designs[variants[0]][0]
+    designs, plain = {}, None
+    for w in args.weightings:
+        for v in disturbance_settings(scen):
+            designs[variant_label(v, w)] = design_on(scen.plant, scen.problem, settings_for(scen, v), w)
+            print(f"{case}: design (disturbance {v}, weighting {w}) {designs[variant_label(v, w)][1]:.1f} s",
+                  flush=True)
+    plain = designs.get("dist=none") or design_on(scen.plant, scen.problem, settings_for(scen, "none"))
+    model_design = next(iter(designs.values()))[0]
     table: dict[str, dict] = {}
     for label, keys, pert in truths_of(case, scen, model_design, slab_shifts):
+        if args.rows and not any(r in label for r in args.rows):
+            continue
         truth = truth_plant(scen, keys, pert)
         if truth.is_model:
-            matched, t_m = designs["none"]
+            matched, t_m = plain
         else:
             matched, t_m = design_on(truth.plant, truth.scenario.problem, settings_for(scen, "none"))
         ref = rom_metrics(truth.plant, matched, args.runs)
-        rows = {f"{case}: {label} | dist={v}": {**rom_metrics(truth.plant, d, args.runs), "design_s": t}
+        rows = {f"{case}: {label} | {v}": {**rom_metrics(truth.plant, d, args.runs), "design_s": t}
                 for v, (d, t) in designs.items()}
         rows[f"{case}: {label} | matched"] = {**ref, "design_s": t_m}
         if scen.info.n_x <= ORACLE_MAX_NX:
@@ -159,10 +183,16 @@ def run_case(case: str, args, variants: list[str], slab_shifts: list[float]) -> 
             r["d_in_band"] = r["in_band"] - ref["in_band"]
             r["cost/matched"] = r["cost_mean"] / ref["cost_mean"]
             if "dist=" in name:
-                r["targets"] = targets(r, ref, truth.is_model, rows.get(f"{case}: {label} | dist=none"))
+                none = rows.get(f"{case}: {label} | {variant_label('none', weighting_of(name))}")
+                r["targets"] = targets(r, ref, truth.is_model, none)
         print(format_table(rows, COLUMNS), flush=True)
         table.update(rows)
     return table
+
+
+def weighting_of(name: str) -> str:
+    """The LQR weighting of a row's column ('output' unless it says w=...)."""
+    return name.rsplit("w=", 1)[1] if " w=" in name else "output"
 
 
 def rom_metrics(plant, design, runs: int) -> dict:
@@ -183,17 +213,20 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", choices=list(SCENARIOS), default=list(SCENARIOS))
     ap.add_argument("--runs", type=int, default=300, help="Monte Carlo runs per column (seed 1, runs 0..R-1)")
     ap.add_argument("--quick", action="store_true", help="100 runs per column")
+    ap.add_argument("--weightings", nargs="+", choices=["output", "field"], default=["output"],
+                    help="LQR/MPC weightings of the model's designs (problem key lqr_weighting)")
+    ap.add_argument("--rows", nargs="*", default=[], help="only the truths whose label contains one of these")
     args = ap.parse_args()
     if args.quick:
         args.runs = 100
-    variants = disturbance_settings()
-    print(f"disturbance settings compared: {', '.join(variants)}")
+    print(f"disturbance settings compared: {', '.join(disturbance_settings())} (and noise on plants with noise "
+          f"channels of their own); weightings: {', '.join(args.weightings)}")
     t0 = time.perf_counter()
     table: dict[str, dict] = {}
     with threadpool_limits(1):
         shifts = slab_boundary_shifts() if "burgers" in args.cases else []
         for case in args.cases:
-            table.update(run_case(case, args, variants, shifts))
+            table.update(run_case(case, args, shifts))
     print(f"\nROM-LQG on truth plants, {args.runs} runs per row (seed 1, the same runs in every row); "
           "d_in_band and cost/matched against the design made on the truth itself:")
     print(format_table(table, COLUMNS))

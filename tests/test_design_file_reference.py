@@ -2,8 +2,11 @@
 This test implements that page in plain numpy (np.load of the .npz, json of its meta; nothing of
 sep's filter, controller, model or design-file reader) and checks that it reproduces the offline
 Monte Carlo's ROM-LQG inputs to 1e-9, for designs without disturbance states, with input and with
-output disturbance states, and with input limits that bind. Only the plant and the noise (what
+output disturbance states, with noise-kind ones and the field weighting on a slab whose noise has
+channels of its own (the page's recursion does not change with the weighting: it is in K), and
+with input limits that bind. Only the plant and the noise (what
 the page's reader supplies: the real plant and its sensors) come from sep."""
+import dataclasses
 import json
 
 import numpy as np
@@ -56,6 +59,8 @@ def augmented(meta, a):
     Cz = np.concatenate([C, np.zeros(C.shape[:2] + (n_d,))], axis=2)
     if kind == "input":
         Az[:, :n_r, n_r:] = B @ M
+    elif kind == "noise":
+        Az[:, :n_r, n_r:] = a["Bw"] @ M
     else:
         Cz[:, :, n_r:] = M
     Bz = np.concatenate([B, np.zeros((N, n_d, n_u))], axis=1)
@@ -99,16 +104,19 @@ def designs(tmp_path_factory):
     out = {}
     base = yaml.safe_load(TINY_YAML)
     scn = Scenario.from_dict({**base, "u_min": 0.0, "u_max": 0.6})     # limits that bind
-    for kind in ("none", "input", "output"):
+    own = scn.with_plant(noise_centers=[0.25, 0.75], noise_sigma=0.2)
+    own = dataclasses.replace(own, problem=own.problem.replace(lqr_weighting="field"))
+    for kind in ("none", "input", "output", "noise"):
         st = DesignSettings(p=5, q=5, n_r=10, ensemble=20, belief_iter=1, disturbance=kind)
-        d = run_design(scn.plant, scn.problem, st, show_progress=False, log=lambda m: None)
+        sc = own if kind == "noise" else scn
+        d = run_design(sc.plant, sc.problem, st, show_progress=False, log=lambda m: None)
         path = tmp_path_factory.mktemp("ref") / f"{kind}.npz"
         save_design(path, d)
         out[kind] = path
     return out
 
 
-@pytest.mark.parametrize("kind", ["none", "input", "output"])
+@pytest.mark.parametrize("kind", ["none", "input", "output", "noise"])
 def test_the_pages_recursion_reproduces_the_monte_carlo(designs, kind, one_blas_thread):
     d = load_design(designs[kind])
     plant = d.scenario.plant
@@ -119,3 +127,4 @@ def test_the_pages_recursion_reproduces_the_monte_carlo(designs, kind, one_blas_
     np.testing.assert_allclose(U, mc.U, rtol=0, atol=1e-9)
     np.testing.assert_allclose(F_hat, mc.F_hat, rtol=0, atol=1e-9 * np.abs(mc.F_hat).max())
     assert (d.lqg.n_d > 0) == (kind != "none")
+    assert d.disturbance is None or d.disturbance.kind == kind

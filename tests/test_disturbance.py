@@ -22,7 +22,7 @@ from sep_control.control.mpc import RomMPC
 from sep_control.design.gains import augmented_lqr, design_lqg, lqr_gains, output_weights, tv_lqr
 from sep_control.design.pipeline import DesignSettings
 from sep_control.evaluation.montecarlo import simulate
-from sep_estimator.design_file import DesignFileError, arrays_of, load_design, save_design
+from sep_estimator.design_file import VERSION, DesignFileError, arrays_of, load_design, save_design
 from sep_estimator.disturbance import (Disturbance, DisturbanceError, augment, choose, cross_input, direction_labels,
                                        input_directions, noise_covariance, step_gain)
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel
@@ -279,7 +279,7 @@ def test_settings_refuse_bad_disturbance_keys():
     assert DesignSettings.from_meta({"settings": {"n_r": 4}}).disturbance == "none"     # older files
     with pytest.raises(DisturbanceError, match="disturbance_std"):
         Disturbance("input", np.eye(2), np.array([-1.0, 1.0]), np.zeros(2))
-    with pytest.raises(DisturbanceError, match="'input' or 'output'"):
+    with pytest.raises(DisturbanceError, match="one of input, output, noise"):
         Disturbance("bias", np.eye(2), np.ones(2), np.zeros(2))
 
 
@@ -355,7 +355,7 @@ def test_version_4_round_trip_with_disturbance_states(design, tmp_path):
     d = design
     back = load_design(save_design(tmp_path / "d.npz", d), expect_scenario=d.scenario)
     dist, got = d.disturbance, back.disturbance
-    assert back.meta["version"] == 4 and back.meta["n_r"] == d.n_r and back.n_r == d.n_r
+    assert back.meta["version"] == VERSION and back.meta["n_r"] == d.n_r and back.n_r == d.n_r
     assert back.meta["disturbance"] == d.meta["disturbance"] == dist.record()
     np.testing.assert_array_equal(got.map, dist.map)
     np.testing.assert_array_equal(got.std0, dist.std0)
@@ -403,4 +403,4 @@ def test_older_versions_read_as_kind_none(design, tmp_path):
     assert d.meta["disturbance"] == {"kind": "none", "n_d": 0}
     np.testing.assert_array_equal(d.lqg.K, plain.lqg.K)
     back = load_design(save_design(tmp_path / "again.npz", d))
-    assert back.meta["version"] == 4 and back.meta["disturbance"]["kind"] == "none"
+    assert back.meta["version"] == VERSION and back.meta["disturbance"]["kind"] == "none"

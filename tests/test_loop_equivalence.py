@@ -2,7 +2,9 @@
 simulation (`sep_control.evaluation.montecarlo.simulate`, same seed and run) to 1e-9 F over the whole
 trajectory, and its state estimates (the ROM state and the disturbance estimates) the offline
 filter's; plant + lqg (two processes) and plant + estimator + lqr (three processes), for designs
-with input disturbance states (the default), output ones, and none."""
+with input disturbance states (the default), output ones, and none; and for the field-weighted
+LQR (lqr_weighting: field) with noise-kind disturbance states on a slab whose process noise has
+channels of its own."""
 import json
 
 import numpy as np
@@ -25,6 +27,22 @@ def small_kind_case(tmp_path_factory, request):
     """The small scenario designed with disturbance states of another kind (output, none)."""
     kind = request.param
     return _cached_case(tmp_path_factory, f'small_{kind}', settings={'disturbance': kind}, **SMALL)
+
+
+FIELD_NOISE_YAML = """\
+plant: {type: slab, n_x: 20, noise_centers: [0.25, 0.75], noise_sigma: 0.2, sensor_positions: [0.2, 0.5, 0.8]}
+n_steps: 40
+band_window: [24, 40]
+lqr_k_switch: 20
+lqr_weighting: field
+"""
+
+
+@pytest.fixture(scope='session')
+def field_noise_case(tmp_path_factory):
+    """A small slab with its own noise channels, the field weighting and the noise kind."""
+    return _cached_case(tmp_path_factory, 'small_field_noise', yaml_text=FIELD_NOISE_YAML,
+                        settings={'disturbance': 'noise'})
 
 
 def run_episode(launcher, probe, case, tmp_path, *, three: bool, seed: int, run: int,
@@ -107,6 +125,15 @@ def test_lockstep_equivalence_disturbance_kinds(launcher, probe, small_kind_case
     case = small_kind_case
     kind = case.design.disturbance.kind if case.design.disturbance is not None else 'none'
     assert kind == case.design.meta['settings']['disturbance']
+    pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=7, run=3)
+    assert summary['status'] == 'completed' and summary['steps'] == case.n_steps
+    check_equivalence(pr, case, 7, 3)
+
+
+def test_lockstep_equivalence_field_weighting_and_noise_kind(launcher, probe, field_noise_case, tmp_path):
+    case = field_noise_case
+    assert case.design.disturbance.kind == 'noise' and case.design.problem.lqr_weighting == 'field'
+    assert not case.design.info.noise_on_inputs
     pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=7, run=3)
     assert summary['status'] == 'completed' and summary['steps'] == case.n_steps
     check_equivalence(pr, case, 7, 3)

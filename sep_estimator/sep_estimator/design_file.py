@@ -20,9 +20,13 @@ index conventions of `sep_estimator.ltv`):
     Bw (N, n_r, n_w)   only for plants whose noise does not enter through the inputs
     K (N, n_u, n_z)  L (N+1, n_z, n_y)  P_post (N+1, n_z, n_z)  field_std (N+1, n_field)
     hankel_sv (N+1, n_sv)
-    dist_map (n_u, n_d) E or (n_y, n_d) F, dist_std0 (n_d,), dist_walk_std (n_d,)
+    dist_map (n_u, n_d) E, (n_w, n_d) E_w or (n_y, n_d) F, dist_std0 (n_d,), dist_walk_std (n_d,)
                        only with disturbance states (`sep_estimator.disturbance`)
 
+Version 5 adds the disturbance kind "noise" (dist_map (n_w, n_d): directions of the process
+noise's channels) and the LQR weighting keys of the problem (lqr_weighting, lqr_field_nodes,
+lqr_field_time; the field weighting's gains are on the stored field map); files of versions 1-4
+read with the output weighting (their problem has no such key) and kinds none/input/output.
 Version 4 adds the disturbance states: meta["disturbance"] = {"kind": "none" | "input" |
 "output", "n_d", "directions" (how chosen, singular values), "std0_rule"}; A, B, C, rom_dims
 and meta["n_r"] stay the ROM's, the gains and the filter's schedule are on z = [a; d]. Files of
@@ -66,10 +70,10 @@ from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
 
 FORMAT = "sep-design"
-#: 4: disturbance states, the belief statistics may be absent (meta["belief"]); 3 (sep 0.4): belief
+#: 5: disturbance kind noise, LQR weighting keys; 4: disturbance states, the belief statistics may be absent (meta["belief"]); 3 (sep 0.4): belief
 #: statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64
-VERSION = 4
-READS = (1, 2, 3, 4)
+VERSION = 5
+READS = (1, 2, 3, 4, 5)
 #: (N+1) x n_field trajectories larger than this many numbers are stored as a truncated SVD
 COMPRESS_ABOVE = 1 << 20
 TRAJECTORY_TOL = 1e-11
@@ -112,7 +116,7 @@ def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
         "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
     }
     if kind != "none":
-        out["dist_map"] = (nu if kind == "input" else ny, n_d)
+        out["dist_map"] = ({"input": nu, "noise": info.noise_dim}.get(kind, ny), n_d)
         out["dist_std0"], out["dist_walk_std"] = (n_d,), (n_d,)
     if field_rank is None:
         out["G"] = (N + 1, nf, n_r)
@@ -391,6 +395,8 @@ def _disturbance_kind(path: Path, meta: dict, version: int, info: PlantInfo) -> 
                               f"got {kind!r}")
     if kind == "none":
         return kind, 0
+    if kind == "noise" and version < 5:
+        raise DesignFileError(f"{path}: meta disturbance kind 'noise' needs format version 5, the file says {version}")
     if not isinstance(n_d, int) or isinstance(n_d, bool) or not 1 <= n_d <= info.n_y:
         raise DesignFileError(f"{path}: meta disturbance n_d must be an integer in 1..n_y = {info.n_y}, got {n_d!r}")
     return kind, n_d
@@ -472,5 +478,8 @@ def problem_mismatches(designed: Problem, running: Problem) -> list[str]:
     """"problem.KEY: designed != running" for each resolved problem key but n_steps (a plant
     mismatch, `Scenario.plant_mismatches`) and the `RUN_TIME_KEYS`."""
     a, b = designed.resolved().to_dict(), running.resolved().to_dict()
-    return [f"problem.{k}: {a[k]!r} != {b[k]!r}" for k in a
+    for k in set(a) ^ set(b):           # keys a dict omits at their defaults (the LQR weighting's)
+        a.setdefault(k, getattr(designed, k))
+        b.setdefault(k, getattr(running, k))
+    return [f"problem.{k}: {a[k]!r} != {b[k]!r}" for k in sorted(a)
             if k not in RUN_TIME_KEYS and k != "n_steps" and not same_value(a[k], b[k])]

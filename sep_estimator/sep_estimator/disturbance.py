@@ -8,6 +8,13 @@ and the LQR of the augmented ROM acts on them (docs/method.md):
 
 * ``input``: a bias of the inputs, along n_d orthonormal input directions E (n_u, n_d):
       a_{k+1} = A_k a_k + B_k (du_k + E d_k) + B_w,k w_k,    dy_k = C_k a_k + v_k.
+* ``noise``: a constant forcing where the plant's process noise enters, along n_d orthonormal
+  directions E_w (n_w, n_d) of its noise channels:
+      a_{k+1} = A_k a_k + B_k du_k + B_w,k (E_w d_k) + B_w,k w_k,    dy_k = C_k a_k + v_k.
+  An unmodelled source spread over the domain, on a plant whose noise has channels of its own
+  (noise_on_inputs false). For a plant whose noise enters through the inputs B_w = B, and the
+  noise kind IS the input kind: `choose` makes an input-kind model (recorded as asked for
+  'noise'), the same numbers; the two kinds share every function here (`channels`).
 * ``output``: a bias of the sensors, F (n_y, n_d) (F = I: one bias per sensor), estimated and
   removed from the measurements, not acted on:
       a_{k+1} = A_k a_k + B_k du_k + B_w,k w_k,              dy_k = C_k a_k + F d_k + v_k.
@@ -50,7 +57,9 @@ import numpy as np
 from sep_estimator.ltv import DenseFieldMap, FieldMap, LTVModel, PODFieldMap
 
 #: the disturbance models a design can have (`DesignSettings.disturbance`)
-KINDS = ("none", "input", "output")
+KINDS = ("none", "input", "output", "noise")
+#: kinds whose states act through a channel matrix (B, or the noise channels B_w) along E
+ACTING = ("input", "noise")
 #: input directions kept: singular values of the step gain above this times the largest
 DIRECTION_RTOL = 1e-6
 #: default prior std: a bias that moves the outputs by STD0_BANDS bands (module docstring)
@@ -69,10 +78,11 @@ class Disturbance:
 
     Parameters
     ----------
-    kind : {"input", "output"}
-        Input bias (acts through B_k along E) or sensor bias (adds F d_k to the outputs).
-    map : ndarray, shape (n_u, n_d) or (n_y, n_d)
-        E (orthonormal input directions) or F (sensor directions).
+    kind : {"input", "noise", "output"}
+        Input bias (acts through B_k along E), forcing through the noise channels (B_w,k along
+        E_w) or sensor bias (adds F d_k to the outputs).
+    map : ndarray, shape (n_u, n_d), (n_w, n_d) or (n_y, n_d)
+        E (orthonormal input directions), E_w (noise-channel directions) or F (sensor directions).
     std0 : ndarray, shape (n_d,)
         Prior std sigma_0 of d_0 (mean zero).
     walk_std : ndarray, shape (n_d,)
@@ -92,7 +102,7 @@ class Disturbance:
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS[1:]:
-            raise DisturbanceError(f"disturbance kind must be 'input' or 'output', got {self.kind!r}")
+            raise DisturbanceError(f"disturbance kind must be one of {', '.join(KINDS[1:])}, got {self.kind!r}")
         E = np.asarray(self.map, dtype=float)
         s0, sw = np.asarray(self.std0, dtype=float), np.asarray(self.walk_std, dtype=float)
         if E.ndim != 2 or E.shape[1] < 1 or s0.shape != (E.shape[1],) or sw.shape != (E.shape[1],):
@@ -130,7 +140,7 @@ def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names
                      terms: int = 3) -> list[str]:
     """A name for each disturbance state: 'd_0 = bias of <output>' (output kind), or its input
     direction by its largest weights, 'd_0 along +0.71 heater_1 +0.71 heater_2' (input kind; at
-    most `terms` inputs, '...' when more carry weight)."""
+    most `terms` inputs, '...' when more carry weight; the noise kind names its channels noise_j)."""
     if dist.kind == "output":
         out = []
         for i in range(dist.n_d):
@@ -140,6 +150,7 @@ def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names
             out.append(f"d_{i} = bias of {output_names[j]}" if single else f"d_{i} (sensor bias direction {i})")
         return out
     labels = []
+    input_names = channel_names(dist, input_names)
     for i in range(dist.n_d):
         col = dist.map[:, i]
         order = np.argsort(-np.abs(col), kind="stable")
@@ -147,6 +158,14 @@ def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names
         text = " ".join(f"{col[j]:+.2f} {input_names[j]}" for j in big[:terms])
         labels.append(f"d_{i} along {text}" + (" ..." if len(big) > terms else ""))
     return labels
+
+
+def channel_names(dist: Disturbance, input_names: Sequence[str]) -> list[str]:
+    """The names of the channels the map's rows stand for: the inputs (input kind), noise_0 ..
+    noise_{n_w-1} (noise kind)."""
+    if dist.kind == "noise":
+        return [f"noise_{j}" for j in range(dist.map.shape[0])]
+    return list(input_names)
 
 
 # --------------------------------------------------------------- the augmented model
@@ -194,8 +213,8 @@ class PaddedFieldMap:
 def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
     """The model on z = [a; d] (module docstring).
 
-    A_z = [[A, B E], [0, I]] (input) or blockdiag(A, I) (output), B_z = [B; 0], C_z = [C, 0]
-    (input) or [C, F] (output), G_z = [G, 0], B_w,z = blockdiag(B_w, I) (the walk's own
+    A_z = [[A, B E], [0, I]] (input), [[A, B_w E_w], [0, I]] (noise) or blockdiag(A, I) (output),
+    B_z = [B; 0], C_z = [C, 0] (input, noise) or [C, F] (output), G_z = [G, 0], B_w,z = blockdiag(B_w, I) (the walk's own
     channels, `noise_covariance`), P0 = blockdiag(0, diag(sigma_0^2)).
 
     Parameters
@@ -203,7 +222,7 @@ def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
     rom : LTVModel
         The ROM on a (n_r states).
     dist : Disturbance or None
-        The disturbance states; its map has n_u rows (input kind) or n_y rows (output kind).
+        The disturbance states; its map has n_u rows (input kind), n_w (noise) or n_y (output).
 
     Returns
     -------
@@ -218,10 +237,10 @@ def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
     if dist is None:
         return rom
     N, n, n_u, n_d = rom.n_steps, rom.n, rom.n_u, dist.n_d
-    expect = n_u if dist.kind == "input" else rom.n_y
+    expect = rom.n_y if dist.kind == "output" else channels(rom, dist.kind).shape[2]
     if dist.map.shape[0] != expect:
-        raise DisturbanceError(f"{dist.kind} disturbance map has {dist.map.shape[0]} rows, the ROM has {expect} "
-                               f"{'inputs' if dist.kind == 'input' else 'outputs'}")
+        what = {"input": "inputs", "noise": "noise channels", "output": "outputs"}[dist.kind]
+        raise DisturbanceError(f"{dist.kind} disturbance map has {dist.map.shape[0]} rows, the ROM has {expect} {what}")
     nz = n + n_d
     A = np.zeros((N, nz, nz))
     A[:, :n, :n] = rom.A
@@ -252,53 +271,66 @@ def noise_covariance(W: np.ndarray, dist: Disturbance | None) -> np.ndarray:
     return out
 
 
+def channels(rom: LTVModel, kind: str) -> np.ndarray:
+    """The channel matrix a kind's states act through (N, n, n_c): B_k (input) or B_w,k (noise;
+    B_k for a model whose noise enters through the inputs, where the two kinds coincide)."""
+    return rom.noise_input if kind == "noise" else rom.B
+
+
 def cross_input(rom: LTVModel, dist: Disturbance | None) -> np.ndarray:
-    """The a-d block of A_z, (N, n_r, n_d): B_k E (input) or 0 (output, none)."""
+    """The a-d block of A_z, (N, n_r, n_d): B_k E (input), B_w,k E_w (noise) or 0 (output, none)."""
     if dist is None or dist.kind == "output":
         return np.zeros((rom.n_steps, rom.n, 0 if dist is None else dist.n_d))
-    return rom.B @ dist.map
+    return channels(rom, dist.kind) @ dist.map
 
 
 # ----------------------------------------------------------------- choosing d
-def step_gain(rom: LTVModel, window: Sequence[int], K: np.ndarray | None = None) -> np.ndarray:
+def step_gain(rom: LTVModel, window: Sequence[int], K: np.ndarray | None = None,
+              kind: str = "input") -> np.ndarray:
     """Gamma = mean over k in [k0, k1] of C_k M_k, M_0 = 0, M_{k+1} = A_k M_k + B_k (n_y, n_u):
     the outputs' response to a constant unit input from k = 0, averaged over the band window;
-    with the state feedback K (N, n_u, n), the closed loop's: M_{k+1} = (A_k + B_k K_k) M_k + B_k."""
+    with the state feedback K (N, n_u, n), the closed loop's: M_{k+1} = (A_k + B_k K_k) M_k + B_k.
+    Kind 'noise': through the noise channels, B_w,k for B_k in the last term (n_y, n_w)."""
     k0, k1 = int(window[0]), min(int(window[1]), rom.n_steps)
-    M = np.zeros((rom.n, rom.n_u))
-    acc = np.zeros((rom.n_y, rom.n_u))
+    Bc = channels(rom, kind)
+    M = np.zeros((rom.n, Bc.shape[2]))
+    acc = np.zeros((rom.n_y, Bc.shape[2]))
     for k in range(k1 + 1):          # a recursion over steps: nothing to batch
         if k >= k0:
             acc += rom.C[k] @ M
         if k < rom.n_steps:
             A = rom.A[k] if K is None else rom.A[k] + rom.B[k] @ K[k]
-            M = A @ M + rom.B[k]
+            M = A @ M + Bc[k]
     return acc / (k1 - k0 + 1)
 
 
 def input_directions(rom: LTVModel, window: Sequence[int], n_d: int | None = None,
-                     rtol: float = DIRECTION_RTOL) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                     rtol: float = DIRECTION_RTOL, kind: str = "input"
+                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """E (n_u, n_d'), the singular values S_1..S_nd' of Gamma E, and the record of the choice.
 
     The right singular vectors of `step_gain` with the largest singular values, n_d of them
     (default min(n_y, n_u)), less those whose singular value is at most `rtol` S_1 (not
     detectable at steady state). Raises DisturbanceError for n_d outside 1..min(n_y, n_u) or
-    when no direction is left."""
-    G = step_gain(rom, window)
-    n_max = min(rom.n_y, rom.n_u)
+    when no direction is left. Kind 'noise': the same through the noise channels (n_w for n_u)."""
+    G = step_gain(rom, window, kind=kind)
+    n_c = G.shape[1]
+    n_max = min(rom.n_y, n_c)
     n_d = n_max if n_d is None else int(n_d)
     if not 1 <= n_d <= n_max:
-        raise DisturbanceError(f"disturbance_dims must be in 1..{n_max} (min(n_y, n_u) = min({rom.n_y}, "
-                               f"{rom.n_u}): at most n_y input biases are detectable), got {n_d}")
+        what = "n_w" if kind == "noise" else "n_u"
+        raise DisturbanceError(f"disturbance_dims must be in 1..{n_max} (min(n_y, {what}) = min({rom.n_y}, "
+                               f"{n_c}): at most n_y {kind} disturbances are detectable), got {n_d}")
     _, S, Vt = np.linalg.svd(G)
     S = S[:n_max]
     keep = int(np.count_nonzero(S[:n_d] > rtol * S[0])) if S[0] > 0 else 0
     if keep == 0:
-        raise DisturbanceError("the ROM's step gain is zero over the band window: no input disturbance is "
+        raise DisturbanceError(f"the ROM's step gain is zero over the band window: no {kind} disturbance is "
                                "detectable; use disturbance: output or none")
     E = np.ascontiguousarray(Vt[:keep].T)
     rank = int(np.linalg.matrix_rank(G @ E, tol=rtol * S[0]))
-    note = {"rule": "right singular vectors of the band-window step gain Gamma = mean_k C_k M_k, largest first",
+    note = {"rule": "right singular vectors of the band-window step gain Gamma = mean_k C_k M_k, largest first"
+                    + (" (through the noise channels)" if kind == "noise" else ""),
             "window": [int(window[0]), int(window[1])], "singular_values": [float(s) for s in S],
             "rtol": rtol, "asked": n_d, "kept": keep, "dropped": n_d - keep,
             "detectable": rank == keep, "rank_gamma_E": rank}
@@ -307,15 +339,17 @@ def input_directions(rom: LTVModel, window: Sequence[int], n_d: int | None = Non
 
 def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | None = None,
            std: float | Sequence[float] | None = None, walk_std: float | Sequence[float] = WALK_STD,
-           bands: float = STD0_BANDS, K: np.ndarray | None = None) -> Disturbance | None:
+           bands: float = STD0_BANDS, K: np.ndarray | None = None,
+           noise_std: np.ndarray | None = None) -> Disturbance | None:
     """The design's disturbance model of `kind` on `rom` (None for kind 'none').
 
     Parameters
     ----------
     rom : LTVModel
         The identified ROM.
-    kind : {"none", "input", "output"}
-        The disturbance model.
+    kind : {"none", "input", "output", "noise"}
+        The disturbance model ('noise' on a model whose noise enters through the inputs: the
+        input kind, recorded as asked for 'noise').
     band : float
         The objective's band (output units), the scale of the prior std.
     window : (k0, k1)
@@ -331,6 +365,9 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     K : ndarray, shape (N, n_u, n_r), optional
         The ROM's plain LQR gains, for the closed-loop step gains S_cl,i (None: the open-loop
         rule c band / S_i).
+    noise_std : ndarray, shape (n_w,), optional
+        The process noise's std per channel (w_std): the noise kind's prior, sigma_0,i =
+        |diag(w_std) E_w,i| (`_noise_prior_std`); None: the input kind's rule.
 
     Returns
     -------
@@ -348,9 +385,17 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
         raise DisturbanceError(f"disturbance must be one of {', '.join(KINDS)}, got {kind!r}")
     if kind == "none":
         return None
+    asked = kind
+    if kind == "noise" and rom.Bw is None:      # B_w = B: the noise kind is the input kind
+        kind = "input"
     E, S, S_cl, note = _directions(rom, kind, window, dims, K)
+    if asked != kind:
+        note["asked_kind"] = asked
+        note["note"] = "the noise enters through the inputs (B_w = B): the noise kind is the input kind"
     n_d = E.shape[1]
-    if std is None:
+    if std is None and kind == "noise" and noise_std is not None:
+        std0, rule = _noise_prior_std(E, noise_std)
+    elif std is None:
         std0, rule = _prior_std(kind, band, bands, S, S_cl, K is not None)
     else:
         std0 = per_direction("disturbance_std", std, n_d)
@@ -363,11 +408,11 @@ def _directions(rom: LTVModel, kind: str, window: Sequence[int], dims: int | Non
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """(E or F, the open-loop step gains S_i, the closed-loop ones S_cl,i, the record) of `kind`
     (S_cl = S without K; both 1 for the output kind, F = I)."""
-    if kind == "input":
-        E, S, note = input_directions(rom, window, dims)
+    if kind in ACTING:
+        E, S, note = input_directions(rom, window, dims, kind=kind)
         S_cl = S
         if K is not None:
-            S_cl = np.linalg.norm(step_gain(rom, window, K) @ E, axis=0)
+            S_cl = np.linalg.norm(step_gain(rom, window, K, kind) @ E, axis=0)
             note["closed_loop_gains"] = [float(v) for v in S_cl]
         return E, S, S_cl, note
     n_d = rom.n_y if dims is None else int(dims)
@@ -397,6 +442,15 @@ def _prior_std(kind: str, band: float, bands: float, S: np.ndarray, S_cl: np.nda
     return std0, rule
 
 
+def _noise_prior_std(E: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, str]:
+    """sigma_0,i = |diag(w_std) E_w,i|: a constant forcing as large as one step's process noise
+    along direction i (the noise kind's rule; measured on the forced slab, docs/robustness.md: the
+    band rule c band / sqrt(S_i S_cl,i), made for biases of a few % of the band, is so tight a
+    prior that a forcing of several bands is removed only in part)."""
+    w = np.broadcast_to(np.asarray(noise_std, dtype=float), (E.shape[0],))
+    return np.linalg.norm(w[:, None] * E, axis=0), "sigma_0,i = |diag(w_std) E_w,i| (a forcing of one step's noise std)"
+
+
 def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.ndarray:
     """A setting given for every direction (a number) or per direction (n_d numbers), >= 0."""
     v = np.asarray(value, dtype=float)
@@ -407,6 +461,6 @@ def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.nda
     return np.broadcast_to(v, (n_d,)).astype(float)
 
 
-__all__ = ["KINDS", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
+__all__ = ["KINDS", "ACTING", "channels", "channel_names", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
            "noise_covariance", "choose", "input_directions", "step_gain", "padded_field_map", "cross_input",
            "per_direction"]

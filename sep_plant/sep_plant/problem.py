@@ -9,6 +9,9 @@ resolved against a `PlantInfo` and the field coordinates:
     q_k = q_window for k in the band window [k_start, k_end], q_outside elsewhere;
     in band: |f_{k,i} - f*_i| <= band for every node i and every k in the window;
     LQR on the outputs: Q_y,k = (lqr_q_late if k >= lqr_k_switch else lqr_q_early) I / n_y, R = lqr_r I;
+    or, lqr_weighting "field", on the reconstructed field f = G_k a: Q_f,k = q_lqr,k I / n_field
+    (lqr_field_nodes "mean") or q_lqr,k I ("sum"), q_lqr,k the schedule above (lqr_field_time
+    "lqr") or the objective's q_k ("objective");
     noise: w ~ N(0, diag(w_std^2)) (n_w channels), v ~ N(0, diag(v_std^2)) (n_y sensors).
 
 The target f* is a constant, a list of n_field values, or an expression in the node
@@ -59,6 +62,9 @@ class Problem:
     lqr_q_late: float = 1.0
     lqr_q_early: float = 0.1
     lqr_r: float = 0.01
+    lqr_weighting: str = "output"               # the LQR's state weight: on the outputs, or on the field
+    lqr_field_nodes: str = "mean"               # field weighting: mean or sum over the nodes
+    lqr_field_time: str = "lqr"                 # field weighting's q_k: the LQR's schedule or the objective's
     # optimizer start: constant input
     u_init: Vector = 0.1
 
@@ -93,6 +99,15 @@ class Problem:
         """Scalar Q_y multiplier per step k = 0..N (Q_y,k = w_k I)."""
         k = np.arange(self.n_steps + 1)
         return np.where(k >= self.k_switch, self.lqr_q_late, self.lqr_q_early) / n_y
+
+    def lqr_field_weights(self, n_field: int) -> np.ndarray:
+        """Scalar Q_f multiplier per step k = 0..N of the field weighting (Q_f,k = w_k I over the
+        n_field nodes): the LQR's schedule (lqr_q_early, lqr_q_late) or the objective's q_k
+        (`lqr_field_time`), divided by n_field for the mean over the nodes (`lqr_field_nodes`)."""
+        k = np.arange(self.n_steps + 1)
+        q = (self.q_weights() if self.lqr_field_time == "objective"
+             else np.where(k >= self.k_switch, self.lqr_q_late, self.lqr_q_early))
+        return q / (n_field if self.lqr_field_nodes == "mean" else 1.0)
 
     # ------------------------------------------------------ per-plant values
     def channels(self, key: str, n: int) -> np.ndarray:
@@ -156,8 +171,10 @@ class Problem:
 
     # ------------------------------------------------------ (de)serialize
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (inf as the strings 'inf'/'-inf'; tuples as lists)."""
-        return {f.name: _encode(getattr(self, f.name)) for f in fields(self)}
+        """JSON-ready dict (inf as the strings 'inf'/'-inf'; tuples as lists). The LQR weighting keys
+        (`CHOICES`) only when not at their defaults: a default problem's dict is sep 0.8's."""
+        return {f.name: _encode(getattr(self, f.name)) for f in fields(self)
+                if not (f.name in CHOICES and getattr(self, f.name) == CHOICES[f.name][0])}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str = "problem") -> "Problem":
@@ -348,7 +365,15 @@ def _coerce(key: str, v: Any, source: str) -> Any:
     return v
 
 
+#: string keys and their values (the first is the default)
+CHOICES = {"lqr_weighting": ("output", "field"), "lqr_field_nodes": ("mean", "sum"),
+           "lqr_field_time": ("lqr", "objective")}
+
+
 def _problems(p: Problem):
+    for k, allowed in CHOICES.items():
+        if getattr(p, k) not in allowed:
+            yield f"{k} must be one of {', '.join(allowed)} (got {getattr(p, k)!r})"
     for k in ("band", "q_window", "lqr_r", "lqr_q_late", "lqr_q_early"):
         v = getattr(p, k)
         if not (math.isfinite(v) and v > 0):

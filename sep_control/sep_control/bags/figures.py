@@ -246,7 +246,7 @@ def episode_disturbance_figure(rep: Reports, path: Path) -> Path | None:
     kind = r0.design.disturbance.kind if r0.design is not None and r0.design.disturbance is not None else None
     ax.axhline(0.0, color="0.5", lw=0.8)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("input bias" if kind == "input" else "sensor bias" if kind == "output" else "d_hat")
+    ax.set_ylabel({"input": "input bias", "noise": "forcing (noise channels)", "output": "sensor bias"}.get(kind, "d_hat"))
     ax.set_title("disturbance estimates d_hat_k" + (" (mean over runs)" if len(reps) > 1 else ""))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")

@@ -96,11 +96,12 @@ SETTINGS_OPTIONS = (
      "u in [0, 0.6] any c that binds costs the band (docs/robustness.md)", False),
     ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin", False),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude", False),
-    ("--disturbance", "disturbance", dict(choices=["input", "output", "none"]),
+    ("--disturbance", "disturbance", dict(choices=["input", "output", "noise", "none"]),
      "disturbance states of the ROM filter for offset-free tracking (docs/method.md): input = constant input "
      "biases along the input directions the sensors detect (the right singular vectors of the ROM's band-window "
-     "step gain; a boundary, ambient or heater offset), removed by the LQR; output = one bias per sensor, "
-     "removed from the estimate; none = the plain LQG", True),
+     "step gain; a boundary, ambient or heater offset), removed by the LQR; noise = constant forcings where the "
+     "process noise enters (its own channels: a distributed source; the input kind when the noise is on the "
+     "inputs); output = one bias per sensor, removed from the estimate; none = the plain LQG", True),
     ("--disturbance-std", "disturbance_std", dict(type=float, nargs="+"),
      "prior std of the disturbances: one number, or one per direction (default: c band / sqrt(S_i S_cl,i), a bias "
      f"moving the outputs by c = {STD0_BANDS:g} bands along direction i, S_i and S_cl,i its open-loop and "

@@ -3,9 +3,10 @@
 The identification's field map G_k = Phi g_k spans every field response of the experiments.
 With the LQG running (and without it) the ROM state a_k spreads as X_k (`state_spread`);
 directions of Phi that X_k moves by less than `FIELD_MAP_TOL` times the largest spread are
-dropped (`compress_field_map`). Neither the LQR (weights on the outputs) nor the filter (it
-reads the outputs) uses G, so the gains do not change; the field std `LQG.field_std` is that
-of the compressed map.
+dropped (`compress_field_map`). The filter (it reads the outputs) does not use G, nor does the
+LQR weighting the outputs, so those gains do not change; an LQR weighting the field
+(lqr_weighting: field) is redesigned on the compressed map (`gains.regained`), so that its gains
+and the MPC's weights read the same map. The field std `LQG.field_std` is that of the compressed map.
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from sep_estimator.ltv import LQG, KalmanSchedule, LTVModel, PODFieldMap, psd_factor
 
-from sep_control.design.gains import GainsResult, estimate_covariances
+from sep_control.design.gains import GainsResult, estimate_covariances, regained
 
 #: relative tolerance of the design's field map against the ROM state's spread
 #: (`compress_field_map`, `state_spread`). Measured on the four shipped scenarios (200 closed-loop
@@ -60,4 +61,5 @@ def compressed_lqg(gains: GainsResult, tol: float = FIELD_MAP_TOL, name: str = "
     if isinstance(rom.G, PODFieldMap):
         X = state_spread(gains.model, gains.K, gains.kf, gains.V)[:, :rom.n, :rom.n]
         rom = replace(rom, G=compress_field_map(rom.G, X, tol))
+        gains = regained(gains, rom)
     return gains.lqg(name, rom)

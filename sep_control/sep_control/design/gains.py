@@ -5,11 +5,17 @@ For a_{k+1} = A_k a_k + B_k du_k, minimize
 by the backward Riccati recursion (S_N = Q_N):
     K_k = -(R + B_k' S_{k+1} B_k)^{-1} B_k' S_{k+1} A_k
     S_k = Q_k + A_k' S_{k+1} (A_k + B_k K_k),
-so du_k = K_k a_k. On the ROM the state weight comes from the outputs, Q_k = C_k' Q_y,k C_k.
+so du_k = K_k a_k. On the ROM the state weight comes from the outputs, Q_k = C_k' Q_y,k C_k, or
+(problem key lqr_weighting: field) from the field the design's map reconstructs, f = G_k a + fbar_k:
+Q_k = G_k' Q_f,k G_k, Q_f,k = w_k I (`Problem.lqr_field_weights`: mean or sum over the nodes),
+computed as w_k G_k' G_k (`FieldMap.gram`: g_k' g_k for a POD map, nothing in n_field), so the
+weight between the sensors counts too (`state_weights`). Either way K_k is precomputed: the
+online law costs the same.
 
 With disturbance states (`sep_estimator.disturbance`: z = [a; d], d held constant in the
 prediction) the same Riccati recursion on the augmented model, A_z = [[A, A_ad], [0, I]],
-B_z = [B; 0], Q_z = blockdiag(C' Q_y C, 0) (the true outputs C a, not the measured C a + F d),
+B_z = [B; 0], Q_z = blockdiag(Q, 0) (the true outputs C a, not the measured C a + F d; or the field G a, which d
+does not move),
 gives K_k = [K_a,k, K_d,k] (`augmented_lqr`): K_a is the ROM's gain exactly (the a-block of the
 recursion does not see d), and
     input kind (A_ad = B E): K_d ~ -E, the bias cancelled as far as R lets it (R weighs du, so
@@ -102,6 +108,19 @@ def output_weights(C: np.ndarray, q_y: np.ndarray) -> np.ndarray:
     return q_y[:, None, None] * np.einsum("kyi,kyj->kij", C, C)
 
 
+def field_weights(G, q_f: np.ndarray) -> np.ndarray:
+    """Q_k = G_k' (q_f,k I) G_k = q_f,k G_k' G_k for all k (G a field map of N+1 steps, q_f (N+1,))."""
+    return np.stack([q_f[k] * G.gram(k) for k in range(q_f.shape[0])])
+
+
+def state_weights(model: LTVModel, problem: Problem) -> np.ndarray:
+    """Q_k (N+1, n, n) of the LQR on `model` (its own state a, no disturbance states): on the
+    outputs, C_k' Q_y,k C_k, or on the reconstructed field, G_k' Q_f,k G_k (problem.lqr_weighting)."""
+    if problem.lqr_weighting == "field":
+        return field_weights(model.G, problem.lqr_field_weights(model.G.n_field))
+    return output_weights(model.C, problem.lqr_output_weights(model.n_y))
+
+
 def command(u_nom_k: np.ndarray, K_k: np.ndarray, a_hat: np.ndarray, u_min, u_max) -> np.ndarray:
     """u_k = clip(ubar_k + K_k zhat_k); a_hat (M, n) or (n,) the filter's state (with the
     disturbance estimates, if any); limits scalars or (n_u,)."""
@@ -119,6 +138,7 @@ class GainsResult:
     V: np.ndarray          # (n_y, n_y) sensor noise covariance
     rom: LTVModel | None = None                # the ROM on a (None: `model`)
     disturbance: Disturbance | None = None     # the disturbance states (None: none)
+    problem: Problem | None = None             # the weights they were designed with (`regained`)
 
     def lqg(self, name: str = "rom_lqg", rom: LTVModel | None = None) -> LQG:
         """The LQG of these gains on `rom` (default: the ROM they were designed on; else the same
@@ -143,11 +163,12 @@ def lqr_gains(rom: LTVModel, problem: Problem, disturbance: Disturbance | None =
     S : ndarray, shape (N+1, n_z, n_z)
         The Riccati cost-to-go (the MPC's terminal weight).
     Q : ndarray, shape (N+1, n_z, n_z)
-        Q_z,k = blockdiag(C_k' Q_y,k C_k, 0): the weight of the true outputs.
+        Q_z,k = blockdiag(Q_k, 0), Q_k = C_k' Q_y,k C_k (the true outputs) or G_k' Q_f,k G_k
+        (the field, `state_weights`).
     R : ndarray, shape (n_u, n_u)
         lqr_r I.
     """
-    Q = output_weights(rom.C, problem.lqr_output_weights(rom.n_y))
+    Q = state_weights(rom, problem)
     R = np.eye(rom.n_u) * problem.lqr_r
     K, S = tv_lqr(rom.A, rom.B, Q, R)
     if disturbance is not None:
@@ -157,8 +178,8 @@ def lqr_gains(rom: LTVModel, problem: Problem, disturbance: Disturbance | None =
 
 
 def design_lqg(model: LTVModel, problem: Problem, disturbance: Disturbance | None = None) -> GainsResult:
-    """TV-LQR (weights on the outputs) and TV Kalman filter for `model` under `problem`'s
-    weights and noise: Q_k = C_k' Q_y,k C_k, R = lqr_r I, W = diag(w_std^2), V = diag(v_std^2);
+    """TV-LQR (weights on the outputs or the field, `state_weights`) and TV Kalman filter for
+    `model` under `problem`'s weights and noise: Q_k = C_k' Q_y,k C_k or G_k' Q_f,k G_k, R = lqr_r I, W = diag(w_std^2), V = diag(v_std^2);
     with `disturbance` both on the augmented model z = [a; d] (`sep_estimator.disturbance.augment`,
     `augmented_lqr`; the filter from P_0 = blockdiag(0, diag(sigma_0^2)), W_z with the walk).
 
@@ -180,7 +201,19 @@ def design_lqg(model: LTVModel, problem: Problem, disturbance: Disturbance | Non
     W, V = problem.noise_covariances(model.noise_input.shape[2], model.n_y)
     z = augment(model, disturbance)
     Wz = noise_covariance(W, disturbance)
-    return GainsResult(z, K, kalman_gains(z, Wz, V), Wz, V, model, disturbance)
+    return GainsResult(z, K, kalman_gains(z, Wz, V), Wz, V, model, disturbance, problem)
+
+
+def regained(gains: GainsResult, rom: LTVModel) -> GainsResult:
+    """`gains` with the LQR redesigned on `rom` (the same A_k, B_k, C_k, another field map: the
+    compressed one) when its problem weighs the field, so that K and the MPC's weights (`lqr_gains`
+    on the design's map) agree; the filter does not change (it does not read the field map).
+    Unchanged for the output weighting."""
+    p = gains.problem
+    if p is None or p.lqr_weighting != "field":
+        return gains
+    K = lqr_gains(rom, p, gains.disturbance)[0]
+    return GainsResult(gains.model, K, gains.kf, gains.W, gains.V, rom, gains.disturbance, p)
 
 
 def estimate_covariances(model: LTVModel, K: np.ndarray, kf, V: np.ndarray, closed_loop: bool = True) -> np.ndarray:

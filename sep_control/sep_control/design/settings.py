@@ -94,7 +94,7 @@ class DesignSettings:
         Keep this many closed-loop input stds inside u_min/u_max (0: none).
     margin_iterations : int
         Nominal + LQG redesigns with the tightened limits.
-    disturbance : {"input", "output", "none"}
+    disturbance : {"input", "output", "noise", "none"}
         Disturbance states of the ROM filter for offset-free tracking (`sep_estimator.disturbance`):
         input biases along the detectable input directions, one bias per sensor, or none.
     disturbance_std : float or list of float, optional
@@ -196,7 +196,7 @@ class DesignSettings:
         stds of another length than n_d."""
         if self.disturbance == "none":
             return
-        n_max = n_y if self.disturbance == "output" else min(n_y, n_u)
+        n_max = n_y if self.disturbance == "output" else n_y if self.disturbance == "noise" else min(n_y, n_u)
         n_d = n_max if self.disturbance_dims is None else int(self.disturbance_dims)
         if n_d > n_y:
             raise ValueError(f"disturbance_dims = {n_d} > n_y = {n_y}: at most as many disturbances as sensors "
@@ -216,9 +216,11 @@ class DesignSettings:
         gains); None for 'none'."""
         if self.disturbance == "none":
             return None
-        K = lqr_gains(rom, problem)[0] if self.disturbance == "input" and self.disturbance_std is None else None
+        K = lqr_gains(rom, problem)[0] if self.disturbance in ("input", "noise") and self.disturbance_std is None \
+            else None
+        w = problem.channels("w_std", rom.noise_input.shape[2]) if self.disturbance == "noise" else None
         return choose(rom, self.disturbance, float(problem.band), problem.window, dims=self.disturbance_dims,
-                      std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K)
+                      std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K, noise_std=w)
 
     def resolved(self) -> "DesignSettings":
         """These settings with the keys left at None set by the experiment plan (`PLANS`)."""

@@ -249,7 +249,7 @@ def describe_disturbance(dist) -> str:
     sv = ", ".join(f"{v:.3g}" for v in d.get("singular_values", []))
     where = (f"input directions E: right singular vectors of the band-window step gain (singular values {sv}); "
              f"kept {d.get('kept')} of {d.get('asked')}, detectable {'yes' if d.get('detectable') else 'NO'}"
-             if dist.kind == "input" else "F = I (one bias per sensor)")
+             if dist.kind in ("input", "noise") else "F = I (one bias per sensor)")
     std0 = ", ".join(f"{v:.3g}" for v in dist.std0)
     walk = ", ".join(f"{v:.3g}" for v in dist.walk_std) if np.any(dist.walk_std) else "0 (constant)"
     return (f"disturbance states: {dist.kind}, n_d = {dist.n_d}; {where}; prior std {std0} "

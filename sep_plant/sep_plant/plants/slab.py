@@ -1,6 +1,6 @@
 """The paper's plant: the nonlinear 1-D heat slab as a batched black-box simulator.
 
-    dT/dt = K(x,T) T_xx - eta T + sum_j b_j(x) (u_j + w_j),
+    dT/dt = K(x,T) T_xx - eta T + sum_j b_j(x) (u_j + w_j) + s,
     K(x,T) = k0 (1 + beta (T - t_ref)/t_scale)(1 + gamma x/L),
     dT/dx(0) = 0 (insulated), T(L) = t_right, T(x, 0) = t_init;   y = T(sensor nodes) + v.
 
@@ -13,6 +13,12 @@ tens of nanoseconds per node-step instead of tens of microseconds per run-step.
 
 Nodes x_i = i L / n_x (i = 0..n_x-1) in metres; five Gaussian heaters (each integrating to 1
 over the slab) and five sensors at the nodes nearest their positions, by default.
+
+Optional keys (off by default, the reference unchanged): `source` s, a constant heat source
+spread uniformly over the slab [F/s] (a truth key: an unmodelled distributed forcing), and
+`noise_centers` (with `noise_sigma`), process noise through channels of its own: n_w Gaussian
+profiles e_l(x) (each integrating to 1) instead of the heaters,
+    ... + sum_j b_j(x) u_j + sum_l e_l(x) w_l + s        (noise_on_inputs false, n_w channels).
 Pure numpy/scipy: no ROS import.
 """
 from __future__ import annotations
@@ -45,7 +51,8 @@ class SlabPlant:
                  t_right: float = 150.0, t_init: float = 100.0,
                  heater_centers: Sequence[float] = (0.1, 0.3, 0.5, 0.7, 0.9), heater_sigma: float = 0.02,
                  sensor_positions: Sequence[float] = (0.1, 0.3, 0.5, 0.7, 0.9), dt: float = 0.25,
-                 initial_spread: float = 0.0):
+                 initial_spread: float = 0.0, source: float = 0.0,
+                 noise_centers: Sequence[float] | None = None, noise_sigma: float | None = None):
         self.n_x = keys.integer("n_x", n_x, lo=4)
         self.length = keys.positive("length", length)
         self.k0 = keys.positive("k0", k0)
@@ -61,6 +68,10 @@ class SlabPlant:
         self.sensor_positions = keys.numbers("sensor_positions", sensor_positions, lo=0.0, hi=1.0)
         self.dt = keys.positive("dt", dt)
         self.initial_spread = keys.number("initial_spread", initial_spread, lo=0.0)
+        self.source = keys.number("source", source)
+        self.noise_centers = None if noise_centers is None else keys.numbers("noise_centers", noise_centers,
+                                                                             lo=0.0, hi=1.0)
+        self.noise_sigma = None if noise_sigma is None else keys.positive("noise_sigma", noise_sigma)
         for temp in (self.t_init, self.t_right):
             if 1 + self.beta * (temp - self.t_ref) / self.t_scale <= 0 or 1 + self.gamma <= 0:
                 raise keys.PlantConfigError(f"K(x,T) is not positive at T = {temp:g}: check "
@@ -77,6 +88,12 @@ class SlabPlant:
         keys.distinct("sensor_positions", list(self._sensors))
         self._space = 1.0 + self.gamma * x / self.length                 # (1 + gamma x/L)
         self._b_dt = self.dt * self.heater_profiles()                     # dt b_j(x_i), (n_x, n_u)
+        if self.noise_centers is not None:                                # own noise channels: U = [u, w]
+            self.noise_on_inputs = False
+            self.n_w = len(self.noise_centers)
+            sig = self.heater_sigma if self.noise_sigma is None else self.noise_sigma
+            self._b_dt = np.concatenate([self._b_dt, self.dt * self._gaussians(self.noise_centers, sig)], axis=1)
+        self._src_dt = self.dt * self.source
         self._c_scale = self.dt * self.k0 / self.h**2                     # dt k0 / h^2
         self._diag0 = 1.0 + self.dt * self.eta
         self._device = DeviceConstants()
@@ -87,7 +104,19 @@ class SlabPlant:
                 "gamma": self.gamma, "t_ref": self.t_ref, "t_scale": self.t_scale, "eta": self.eta,
                 "t_right": self.t_right, "t_init": self.t_init, "heater_centers": list(self.heater_centers),
                 "heater_sigma": self.heater_sigma, "sensor_positions": list(self.sensor_positions),
-                "dt": self.dt, **spread_key(self.initial_spread)}
+                "dt": self.dt, **spread_key(self.initial_spread), **self._optional_config()}
+
+    def _optional_config(self) -> dict[str, Any]:
+        """The optional keys that are set (absent at their defaults: the reference's config as before;
+        `source` always with noise channels of their own, so that it is a truth key of that variant)."""
+        out: dict[str, Any] = {}
+        if self.source != 0.0 or self.noise_centers is not None:
+            out["source"] = self.source
+        if self.noise_centers is not None:
+            out["noise_centers"] = list(self.noise_centers)
+        if self.noise_sigma is not None:
+            out["noise_sigma"] = self.noise_sigma
+        return out
 
     def grid(self) -> np.ndarray:
         """Node positions x_i = i L / n_x (the Dirichlet node x = L is eliminated)."""
@@ -104,9 +133,18 @@ class SlabPlant:
 
     def heater_profiles(self) -> np.ndarray:
         """b_j(x_i), shape (n_x, n_u): Gaussians integrating to 1 over the slab."""
+        return self._gaussians(self.heater_centers, self.heater_sigma)
+
+    def noise_profiles(self) -> np.ndarray:
+        """e_l(x_i), shape (n_x, n_w): the noise channels' Gaussians (the heaters' with noise on the inputs)."""
+        if self.noise_centers is None:
+            return self.heater_profiles()
+        return self._gaussians(self.noise_centers, self.heater_sigma if self.noise_sigma is None else self.noise_sigma)
+
+    def _gaussians(self, centers: Sequence[float], sigma: float) -> np.ndarray:
         x = self._x[:, None]
-        c = np.asarray(self.heater_centers)[None, :] * self.length
-        s = self.heater_sigma * self.length
+        c = np.asarray(centers)[None, :] * self.length
+        s = sigma * self.length
         return np.exp(-0.5 * ((x - c) / s) ** 2) / (s * math.sqrt(2.0 * math.pi))
 
     # -------------------------------------------------------------------- API
@@ -125,7 +163,8 @@ class SlabPlant:
         single = np.ndim(x) == 1
         X = xp.atleast_2d(xp.asarray(x))
         U = xp.atleast_2d(xp.asarray(u))
-        if w is not None:
+        own = self.noise_centers is not None
+        if w is not None and not own:
             U = U + xp.atleast_2d(xp.asarray(w))
         M, n = X.shape
         if n != self.n_x or U.shape[-1] != self.n_u:
@@ -133,6 +172,9 @@ class SlabPlant:
                              f"got {X.shape} and {U.shape}")
         if U.shape[0] != M:
             U = xp.broadcast_to(U, (M, self.n_u))
+        if own:                       # the noise channels as extra columns of U (and of b_dt)
+            W = xp.zeros((M, self.n_w)) if w is None else xp.broadcast_to(xp.atleast_2d(xp.asarray(w)), (M, self.n_w))
+            U = xp.concatenate([U, W], axis=1)
         out = blocks.step_in_blocks(self._step, X, U, self.block_nodes)
         return out[0] if single else out
 
@@ -150,6 +192,8 @@ class SlabPlant:
         du[:, 0] *= 2.0               # ghost node: row 0 is (2 T_1 - 2 T_0) / h^2
         du[:, -1] = 0.0               # no coupling between runs
         rhs = X + U @ b_dt.T
+        if self._src_dt != 0.0:
+            rhs += self._src_dt
         rhs[:, -1] += c[:, -1] * self.t_right
         if xp is not np:
             return adi.solve_pcr(-c, d, du, rhs)           # row i: -c_i T_{i-1} + d_i T_i + du_i T_{i+1}
