@@ -55,6 +55,8 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    differ from the design's (logged, reported as model_mismatch)""" + CONTROLLER_PARAMETERS + """
   estimate_timeout_s (float, 0.5)  send the nominal input if no estimate of step k arrives
                                    this long (steady clock) after measurement k  (0 = never)
+  autostart (bool, true)           configure and activate at start; false: a managed node that waits
+                                   for its lifecycle transitions (docs/reference/parameters.md)
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON

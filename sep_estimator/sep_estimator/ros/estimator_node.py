@@ -59,6 +59,8 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    time on large grids, where the product is memory-bound); float64;
                                    auto: float32 from a Phi of 8 MB on (65 536 nodes x r_f 16),
                                    float64 below; messages stay float64
+  autostart (bool, true)           configure and activate at start; false: a managed node that waits
+                                   for its lifecycle transitions (docs/reference/parameters.md)
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON

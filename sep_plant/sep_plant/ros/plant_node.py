@@ -54,6 +54,8 @@ PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file
   wait_for_field_subscribers (int, 0)  matched field subscribers needed before step 0
   start_timeout_s (float, 30)      give up (exit 3) if they do not appear in time
   start_delay_s (float, 0.2)       settle time after they appeared (endpoint matching)
+  autostart (bool, true)            configure and activate at start; false: wait unconfigured for the
+                                   lifecycle transitions (ros2 lifecycle set /sep/plant configure ...)
   diagnostics_period_s (float, 1)  /diagnostics period (also sent on a rejection, at most 5 Hz)
   summary_file (str, '')           write the end-of-episode summary as JSON
   trajectory_file (str, '')        write F (N+1,n_field), U (N,n_u), Y (N+1,n_y) as .npz (kept
