@@ -170,3 +170,33 @@ def test_managed_recorder_records_only_while_active(launcher, probe, tmp_path): 
     assert lc.change(node, 'shutdown')
     assert rec.wait(30) == 0, rec.output()
     assert 'cleaned up: bag closed (5 messages dropped while inactive)' in rec.output()
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_a_deactivated_plant_holds_and_resumes_on_activate(launcher, probe, small_case, tmp_path, mode):  # noqa: F811
+    """The controllers autostart (their lifecycle state: active, as before); the managed plant
+    holds while inactive and finishes the episode once activated again."""
+    from sep_plant.ros import contract as c
+
+    case, dt, N = small_case, small_case.dt, small_case.n_steps
+    pr = probe().subscribe(c.MEASUREMENTS, c.APPLIED_INPUT)
+    launcher.start('lqg', params={'design_file': case.design_file, 'estimate_timeout_s': 0.0})
+    plant = launcher.start('plant', params={'scenario_file': case.scenario_file, 'autostart': False,
+                                            'mode': mode, 'real_time_factor': 2.0,
+                                            'summary_file': tmp_path / 'plant.json'})
+    lc = Lifecycle(pr)
+    assert lc.state('/sep/lqr') == 'active' and lc.state('/sep/estimator') == 'active'   # autostart
+    assert lc.change('/sep/plant', 'configure') and lc.change('/sep/plant', 'activate')
+    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) >= 5, 60, '5 applied inputs')
+    assert lc.change('/sep/plant', 'deactivate')
+    time.sleep(0.5)
+    held = len(pr.by_step(c.MEASUREMENTS, dt))
+    time.sleep(1.5)
+    assert len(pr.by_step(c.MEASUREMENTS, dt)) == held < N + 1          # no step while inactive
+    assert plant.returncode is None
+    assert lc.change('/sep/plant', 'activate')
+    assert plant.wait(120) == 0, plant.output()
+    summary = json.loads((tmp_path / 'plant.json').read_text())
+    assert summary['status'] == 'completed' and summary['steps'] == N
+    pr.wait_for(lambda: len(pr.by_step(c.MEASUREMENTS, dt)) == N + 1, 10, 'every measurement')
+    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) == N, 10, 'every applied input')

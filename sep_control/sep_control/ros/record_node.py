@@ -67,6 +67,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from sep_control.bags.writer import BagSink
 from sep_plant import topics as T
+from sep_plant.ros.lifecycle import autostart
 
 PROG = "sep record"
 EXIT_BAD_INPUT = 2
@@ -123,14 +124,8 @@ class Recorder(LifecycleNode):
 
     def start(self) -> None:
         """autostart: configure and activate now; a refused configure raises RuntimeError(why)."""
-        self._starting = True
-        try:
-            self.trigger_configure()
-        finally:
-            self._starting = False
-        if self.config_error is not None:
-            raise RuntimeError(self.config_error)
-        self.trigger_activate()
+        autostart(self, lambda: RuntimeError(self.config_error) if self.config_error else None,
+                  lambda flag: setattr(self, "_starting", flag))
 
     # ------------------------------------------------------------ lifecycle
     def on_configure(self, state) -> TransitionCallbackReturn:

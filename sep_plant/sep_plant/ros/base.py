@@ -1,8 +1,9 @@
 """What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front
 (`parse_front`), parameters with descriptors (`declare`), exit codes and start/stop errors
-(`StartError`, `StopError`), executors, BLAS thread limits, timing stats (`SampleWindow`,
-`percentiles`), the summary file (`write_summary_json`), publisher flushing, and `NodeBase` (an rclpy
-managed (lifecycle) node with /diagnostics, rejection reporting and the end-of-episode summary).
+(`StartError`, `StopError`, `Shutdown`: from `sep_plant.ros.lifecycle`), executors, BLAS thread
+limits, timing stats (`SampleWindow`, `percentiles`), the summary file (`write_summary_json`),
+publisher flushing, and `NodeBase` (an rclpy managed (lifecycle) node with /diagnostics,
+rejection reporting and the end-of-episode summary).
 How a node process starts, spins and stops (`run_node`, `NodeProcess`, the middleware
 watchdogs) is in `sep_plant.ros.process`.
 ROS-side module (imports rclpy); the pure algorithm modules never import it.
@@ -21,6 +22,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from sep_plant.ros import contract as c
+from sep_plant.ros.lifecycle import Managed, Shutdown, StartError, StopError, managed_node
 from sep_plant.scenario import json_default
 
 # Process exit codes of the nodes (docs/reference/cli.md).
@@ -35,27 +37,6 @@ ROS_ARGS_HELP = ("ROS arguments follow --ros-args, e.g. --ros-args --params-file
 
 #: at most this often a rejected message triggers an immediate /diagnostics message
 REJECTION_DIAGNOSTICS_PERIOD_S = 0.2
-
-
-class StartError(Exception):
-    """A node cannot start (bad parameter, bad file, mismatch): logged, exit code EXIT_CONFIG."""
-
-    exit_code = EXIT_CONFIG
-    #: how the node's log line about it starts (`sep_plant.ros.process.run_node`)
-    lead = 'refusing to start'
-
-
-class StopError(StartError):
-    """A check that passed at start fails after the node has run steps (the plant's scenario changed
-    mid-episode): the node says that it stops and why, writes its summary with status 'error' and
-    exits EXIT_CONFIG."""
-
-    lead = 'stopping'
-
-
-class Shutdown(Exception):
-    """The node was shut down through its lifecycle (the shutdown transition): the process ends
-    with its summary (status 'shutdown') and exit code 0."""
 
 
 EXECUTORS = ('events', 'single')
@@ -232,7 +213,7 @@ class Throttle:
 
 
 # ------------------------------------------------------------------------------- nodes
-class NodeBase:
+class NodeBase(Managed):
     """An rclpy Node (``self.node``, namespace sep) with /diagnostics, rejection reporting and the
     end-of-episode summary.
 
@@ -241,15 +222,9 @@ class NodeBase:
     and put a StartError in ``fatal`` to stop the process; ``prepare(executor)`` runs before
     the episode, ``on_finish(summary)`` after the summary is written.
 
-    The node is a managed (lifecycle) node (`rclpy.lifecycle`, the standard services
-    ``<node>/change_state``, ``get_state``, ``get_available_states``, ``get_available_transitions``,
-    ``get_transition_graph`` and the ``<node>/transition_event`` topic). Subclasses put what
-    loads and checks their files and creates their topics in ``configure()`` (raising StartError
-    to refuse: the transition fails and the node logs why), and react to ``on_activated()`` /
-    ``on_deactivated()``; ``active`` says whether the node acts. What ``configure()`` created
-    (publishers, subscriptions, timers) is destroyed on cleanup. With the parameter ``autostart``
-    (default true) `start()` configures and activates the node at once, as before (a refused
-    configure raises its StartError: exit code 2).
+    The node is a managed (lifecycle) node (`sep_plant.ros.lifecycle.Managed`: ``configure()``,
+    ``on_activated()``, ``on_deactivated()``, ``active``); with the parameter ``autostart``
+    (default true) `NodeProcess` configures and activates it at once, as before.
     """
 
     role = 'node'
@@ -258,15 +233,11 @@ class NodeBase:
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.clock import Clock, ClockType
 
-        self.node = node = managed_node(self, node_name)
+        self.node = node = managed_node(self, node_name, c.NAMESPACE)
         self.log = node.get_logger()
         self.autostart = declare(node, 'autostart', True, 'configure and activate at start (false: wait for '
                                  'the lifecycle transitions, e.g. ros2 lifecycle set NODE configure)')
-        self.configured = self.active = self.shut_down = False
-        self.prepared = False
-        self.config_error: StartError | None = None
-        self._starting = False
-        self._entities: list = []
+        Managed.__init__(self)
         self.summary_file = declare(node, 'summary_file', '', 'end-of-episode summary JSON')
         self.diag_period = declare(node, 'diagnostics_period_s', 1.0,
                                    '/diagnostics period (wall seconds)', lo=0.01, hi=3600.0)
@@ -284,84 +255,6 @@ class NodeBase:
 
     def prepare(self, executor) -> None:
         """Before the episode, with the executor spinning (default: nothing)."""
-
-    # ---------------------------------------------------------- lifecycle
-    def configure(self) -> None:
-        """Load and check what the node needs, create its topics; StartError refuses."""
-
-    def on_activated(self) -> None:
-        """After the activate transition (default: nothing)."""
-
-    def on_deactivated(self) -> None:
-        """After the deactivate transition (default: nothing)."""
-
-    def needs_configure(self) -> bool:
-        """Whether this node has anything to configure (a node without ``configure()`` is ready
-        as it is built: its health and summary need no transition)."""
-        return type(self).configure is not NodeBase.configure
-
-    def ready(self) -> bool:
-        return self.configured or not self.needs_configure()
-
-    def start(self) -> None:
-        """autostart: the configure and activate transitions now; a refused configure raises its
-        StartError (as the node's construction did before it was a managed node)."""
-        self._starting = True
-        try:
-            self.node.trigger_configure()
-        finally:
-            self._starting = False
-        if self.config_error is not None:
-            raise self.config_error
-        self.node.trigger_activate()
-
-    def state_label(self) -> str:
-        return self.node._state_machine.current_state[1]
-
-    def _entity_set(self) -> list:
-        n = self.node
-        return [*n.publishers, *n.subscriptions, *n.timers]
-
-    def _do_configure(self) -> bool:
-        before = {id(e) for e in self._entity_set()}
-        try:
-            self.configure()
-        except Exception as exc:  # noqa: BLE001 - a refused configure leaves the node unconfigured
-            self._destroy([e for e in self._entity_set() if id(e) not in before])
-            self.config_error = exc if isinstance(exc, StartError) else StartError(f'{type(exc).__name__}: {exc}')
-            if not self._starting:
-                self.log.error(f'configure failed, staying unconfigured: {self.config_error}')
-            return False
-        self._entities = [e for e in self._entity_set() if id(e) not in before]
-        self.config_error, self.configured = None, True
-        if not self._starting:
-            self.log.info('configured')
-        return True
-
-    def _do_cleanup(self) -> None:
-        if self.last_k >= 0 and not self.finished:
-            self.finish('cleaned_up')
-        self._destroy(self._entities)
-        self._entities = []
-        self.configured = self.prepared = self.done = self.finished = False
-        self.last_k = -1
-        self.log.info('cleaned up: unconfigured')
-
-    def _destroy(self, entities) -> None:
-        n = self.node
-        for e in entities:
-            for destroy in (n.destroy_publisher, n.destroy_subscription, n.destroy_timer):
-                try:
-                    if destroy(e):
-                        break
-                except Exception:  # noqa: BLE001 - not this kind of entity
-                    continue
-
-    def _set_active(self, active: bool) -> None:
-        self.active = active
-        (self.on_activated if active else self.on_deactivated)()
-        if not self._starting:
-            self.log.info('activated' if active else 'deactivated')
 
     # -------------------------------------------------------- diagnostics
     def health(self) -> c.Health:  # pragma: no cover - overridden
@@ -453,41 +346,3 @@ class NodeBase:
     def destroy_node(self) -> None:
         self.node.destroy_node()
 
-
-def managed_node(owner: NodeBase, node_name: str):
-    """An rclpy LifecycleNode (namespace sep) whose transitions call `owner`: configure ->
-    ``owner.configure()`` (a StartError fails the transition), activate / deactivate ->
-    ``owner.active``, cleanup -> the configured entities destroyed, shutdown -> ``owner.shut_down``
-    (the process then ends)."""
-    from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
-
-    ok, failed = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
-
-    class _Managed(LifecycleNode):
-        def on_configure(self, state):
-            return ok if owner._do_configure() else failed
-
-        def on_activate(self, state):
-            owner._set_active(True)
-            return ok
-
-        def on_deactivate(self, state):
-            owner._set_active(False)
-            return ok
-
-        def on_cleanup(self, state):
-            owner._do_cleanup()
-            return ok
-
-        def on_shutdown(self, state):
-            if owner.active:
-                owner._set_active(False)
-            owner.shut_down = True
-            owner.log.info('shut down')
-            return ok
-
-        def on_error(self, state):
-            owner.active = False
-            return ok
-
-    return _Managed(node_name, namespace=c.NAMESPACE)
