@@ -110,6 +110,8 @@ def test_managed_plant_and_lqg_through_every_transition(launcher, probe, small_c
     plant_summary = json.loads((tmp_path / 'plant.json').read_text())   # written at cleanup
     assert plant_summary['status'] == 'cleaned_up' and plant_summary['steps'] == k + 1   # 0..k applied
     assert plant_summary['safe_input_steps'] == [k]
+    assert not lc.change('/sep/plant', 'configure')             # one episode per plant process
+    assert 'one episode per plant process' in plant.output()
     for node in STATE_NODES:
         assert lc.change(node, 'shutdown')
     assert plant.wait(30) == 0, plant.output()

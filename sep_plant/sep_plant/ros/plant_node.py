@@ -150,11 +150,15 @@ class PlantNode(NodeBase):
         if summary_json:
             self.summary_file = summary_json
         self.executor = None
+        self.episode_started = False
 
     def configure(self) -> None:
         """Load and check the scenario and its plant, build the episode, create the topics."""
         from sep_plant.scenario import scenario_payload
 
+        if self.episode_started:
+            raise StartError('this process has run its episode (one episode per plant process): shut it down '
+                             'and start a new plant')
         self.p = p = declare_parameters(self.node)
         self.scenario = scen = load_checked_scenario(p['scenario_file'])
         self.plant = plant = perturbed(scen.plant, declare_perturbation(self.node, int(scen.plant.n_u),
@@ -309,6 +313,7 @@ class PlantNode(NodeBase):
         (NodeProcess's episode)."""
         self.executor = executor
         self._hold_while_inactive('before the episode')
+        self.episode_started = True
         self.pub_scen.publish(c.scenario_msg(self.payload))
         self.publish_diagnostics()
         self._wait_for_peers()
