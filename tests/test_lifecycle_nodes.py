@@ -8,6 +8,7 @@ autostart:=true (the default) is what every other node test runs.
 from __future__ import annotations
 
 import json
+import re
 import time
 
 import numpy as np
@@ -33,11 +34,16 @@ class Lifecycle:
         key = (node, srv)
         if key not in self.clients:
             typ = ChangeState if srv == 'change_state' else GetState
-            self.clients[key] = self.probe.node.create_client(typ, f'{node}/{srv}')
+            client = self.probe.node.create_client(typ, f'{node}/{srv}')
+            assert client.wait_for_service(timeout_sec=30.0), f'no service {node}/{srv}'
+            # the client sees the server's request reader; the server's response writer may not
+            # have matched the client's reader yet (discovery is asymmetric): a response sent
+            # before that is lost. Settle as Probe.wait_matched does.
+            time.sleep(0.5)
+            self.clients[key] = client
         return self.clients[key]
 
     def _call(self, client, request, timeout: float = 20.0):
-        assert client.wait_for_service(timeout_sec=timeout), f'no service {client.srv_name}'
         fut = client.call_async(request)
         t_end = time.monotonic() + timeout
         while not fut.done():
@@ -51,22 +57,25 @@ class Lifecycle:
         return self._call(self._client(node, 'get_state'), GetState.Request()).current_state.label
 
     def change(self, node: str, transition: str) -> bool:
+        return self._call(self._client(node, 'change_state'), self._request(transition)).success
+
+    @staticmethod
+    def _request(transition: str):
         from lifecycle_msgs.msg import Transition
         from lifecycle_msgs.srv import ChangeState
 
-        req = ChangeState.Request(transition=Transition(label=transition))
-        return self._call(self._client(node, 'change_state'), req).success
+        return ChangeState.Request(transition=Transition(label=transition))
 
 
 def test_managed_plant_and_lqg_through_every_transition(launcher, probe, small_case, tmp_path):  # noqa: F811
     from sep_plant.ros import contract as c
 
-    case, dt = small_case, small_case.dt
+    case, dt, N = small_case, small_case.dt, small_case.n_steps
     pr = probe().subscribe(c.MEASUREMENTS, c.APPLIED_INPUT, c.COMMAND)
     lqg = launcher.start('lqg', params={'design_file': case.design_file, 'autostart': False,
                                         'summary_file': tmp_path / 'lqg.json'})
     plant = launcher.start('plant', params={'scenario_file': case.scenario_file, 'autostart': False,
-                                            'seed': 7, 'run': 3, 'command_timeout_s': 60.0,
+                                            'mode': 'realtime', 'real_time_factor': 1.0,
                                             'summary_file': tmp_path / 'plant.json'})
     lc = Lifecycle(pr)
     for node in STATE_NODES:
@@ -83,18 +92,23 @@ def test_managed_plant_and_lqg_through_every_transition(launcher, probe, small_c
         assert lc.change(node, 'activate')
         assert lc.state(node) == 'active'
 
-    # active: the loop tracks (commands of the LQG come and are applied)
-    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) >= 10, 60, '10 applied inputs')
-    # deactivate the controllers: no more commands; the lockstep plant waits for step k's
+    # active: the loop tracks (commands of the LQG come and are applied; real time at 1x, so that
+    # the test's transitions land mid-episode)
+    pr.wait_for(lambda: len(pr.by_step(c.APPLIED_INPUT, dt)) >= 5, 60, '5 applied inputs')
+    assert len(pr.by_step(c.COMMAND, dt)) >= 4
+    # deactivate the controllers: no more commands (the plant holds its input: deadline misses)
     assert lc.change('/sep/lqr', 'deactivate') and lc.change('/sep/estimator', 'deactivate')
+    time.sleep(0.5)
+    n_cmd, n_applied = len(pr.by_step(c.COMMAND, dt)), len(pr.by_step(c.APPLIED_INPUT, dt))
     time.sleep(1.0)
-    n_cmd = len(pr.by_step(c.COMMAND, dt))
-    k = len(pr.by_step(c.MEASUREMENTS, dt)) - 1                 # the step the plant waits at
-    time.sleep(1.0)
-    assert len(pr.by_step(c.COMMAND, dt)) == n_cmd == k        # commands of steps 0..k-1 only
-    assert len(pr.by_step(c.APPLIED_INPUT, dt)) == k
-    # deactivate the plant: step k gets the safe input (the last applied one), then it holds
+    assert len(pr.by_step(c.COMMAND, dt)) == n_cmd
+    assert len(pr.by_step(c.APPLIED_INPUT, dt)) > n_applied < N
+    # deactivate the plant: the step in progress (k) gets the safe input (the last applied one),
+    # then the plant holds before step k + 1
     assert lc.change('/sep/plant', 'deactivate')
+    time.sleep(1.0)
+    k = len(pr.by_step(c.MEASUREMENTS, dt)) - 1
+    assert k < N
     pr.wait_for(lambda: k in pr.by_step(c.APPLIED_INPUT, dt), 10, f'the applied input of step {k}')
     applied = pr.by_step(c.APPLIED_INPUT, dt)
     np.testing.assert_array_equal(applied[k].effort, applied[k - 1].effort)
@@ -116,7 +130,10 @@ def test_managed_plant_and_lqg_through_every_transition(launcher, probe, small_c
         assert lc.change(node, 'shutdown')
     assert plant.wait(30) == 0, plant.output()
     assert lqg.wait(30) == 0, lqg.output()
-    assert json.loads((tmp_path / 'lqg.json').read_text())['status'] == 'shutdown'
+    lqg_summary = json.loads((tmp_path / 'lqg.json').read_text())
+    assert lqg_summary['status'] == 'shutdown'
+    assert lqg_summary['lqr']['status'] == 'cleaned_up' and lqg_summary['lqr']['commands'] == n_cmd
+    assert lqg_summary['estimator']['status'] == 'cleaned_up'
 
 
 def test_a_configure_with_a_bad_design_file_fails_and_says_why(launcher, probe, tmp_path):  # noqa: F811
@@ -155,7 +172,7 @@ def test_managed_recorder_records_only_while_active(launcher, probe, tmp_path): 
     def send(steps):
         for k in steps:
             pub.publish(c.joint_state(k, 0.25, ['y0'], position=np.array([float(k)])))
-        time.sleep(1.0)
+        time.sleep(2.0)
 
     send(range(0, 3))                                         # inactive: not recorded
     assert lc.change(node, 'activate') and lc.state(node) == 'active'
@@ -171,20 +188,22 @@ def test_managed_recorder_records_only_while_active(launcher, probe, tmp_path): 
     assert (bag / 'metadata.yaml').exists()
     assert lc.change(node, 'shutdown')
     assert rec.wait(30) == 0, rec.output()
-    assert 'cleaned up: bag closed (5 messages dropped while inactive)' in rec.output()
+    # the 2 sent after the deactivate are dropped (the first 3 too, unless discovery lost some)
+    dropped = re.search(r'cleaned up: bag closed \((\d+) messages dropped while inactive\)', rec.output())
+    assert dropped and 2 <= int(dropped.group(1)) <= 5, rec.output()
 
 
-@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
-def test_a_deactivated_plant_holds_and_resumes_on_activate(launcher, probe, small_case, tmp_path, mode):  # noqa: F811
+def test_a_deactivated_plant_holds_and_resumes_on_activate(launcher, probe, small_case, tmp_path):  # noqa: F811
     """The controllers autostart (their lifecycle state: active, as before); the managed plant
-    holds while inactive and finishes the episode once activated again."""
+    holds while inactive and finishes the episode once activated again (real time at 2x: a
+    lockstep episode of the small case is over in 0.1 s, before a test's transition lands)."""
     from sep_plant.ros import contract as c
 
     case, dt, N = small_case, small_case.dt, small_case.n_steps
     pr = probe().subscribe(c.MEASUREMENTS, c.APPLIED_INPUT)
     launcher.start('lqg', params={'design_file': case.design_file, 'estimate_timeout_s': 0.0})
     plant = launcher.start('plant', params={'scenario_file': case.scenario_file, 'autostart': False,
-                                            'mode': mode, 'real_time_factor': 2.0,
+                                            'mode': 'realtime', 'real_time_factor': 2.0,
                                             'summary_file': tmp_path / 'plant.json'})
     lc = Lifecycle(pr)
     assert lc.state('/sep/lqr') == 'active' and lc.state('/sep/estimator') == 'active'   # autostart

@@ -48,8 +48,10 @@ class LqgProcess(NodeProcess):
         if self.finished:
             return
         self.finished = True
-        summ = {'node': 'lqg', 'status': status, 'estimator': self.est.finish(status, error),
-                'lqr': self.lqr.finish(status, error)}
+        # a node cleaned up before has written its summary then (status 'cleaned_up'): that one
+        summ = {'node': 'lqg', 'status': status,
+                'estimator': self.est.finish(status, error) or self.est.last_summary,
+                'lqr': self.lqr.finish(status, error) or self.lqr.last_summary}
         if error:
             summ['error'] = error
         if self.summary_file:

@@ -247,6 +247,7 @@ class NodeBase(Managed):
         self.done = False
         self.fatal: StartError | None = None
         self.finished = False
+        self.last_summary: dict = {}
         self.health_errors = 0              # failed health() calls (logged, see publish_diagnostics)
         self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
         self.pub_diag = node.create_publisher(DiagnosticArray, c.DIAGNOSTICS, c.DIAGNOSTICS_QOS)
@@ -322,6 +323,7 @@ class NodeBase(Managed):
         summ = self.summary(status)
         if error:
             summ['error'] = error
+        self.last_summary = summ            # kept past a cleanup (the lqg's process summary)
         self.publish_diagnostics()
         self.log.info(f'{self.finish_label()} {status}: ' + self.summary_line(summ))
         if self.summary_file:
