@@ -58,7 +58,9 @@ class CommandTimeout(EpisodeError):
 
 
 class EpisodeSink(Protocol):
-    """Where the episode's outputs go (the plant node publishes them)."""
+    """Where the episode's outputs go (the plant node publishes them). A sink may also have
+    ``before_step(k)``, called before step k is measured: a managed plant node holds there
+    while it is inactive."""
 
     def clock(self, k: int) -> None:
         """Step k begins: the time is k dt (published before y_k)."""
@@ -171,8 +173,11 @@ class PlantEpisode:
         command does not come."""
         x = initial_states(self.plant, self.seed, [self.run_index])     # run `run`'s draw (`sep_plant.initial`)
         self.t_start = self.clock()
+        before_step = getattr(sink, 'before_step', None)
         for k in range(self.N + 1):
             self.k = k
+            if before_step is not None:
+                before_step(k)
             self._measure(k, x, sink)
             if k == self.N:
                 self._field(k, x, sink)

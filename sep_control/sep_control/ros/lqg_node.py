@@ -7,6 +7,9 @@ command is published before anything else happens (state_estimate and field_esti
 are still published, after the command, for viewers and bags); the LQR tells the estimator
 the command it sent (used if the plant's applied_input of that step comes late).
 
+Both are managed (lifecycle) nodes (/sep/estimator and /sep/lqr): with autostart:=false
+configure the estimator before the LQR (the LQR uses the estimator's design).
+
 Parameters are those of both nodes (see `estimator --help` and `lqr --help`); ``-p`` on the
 command line applies to both, a params file can address each node (share/sep_control/config/lqg.yaml).
 """
@@ -32,24 +35,23 @@ class LqgProcess(NodeProcess):
 
     def __init__(self, executor: str = 'events'):
         est = EstimatorNode(subscribe_command=False)
-        lqr = LqrNode(design=est.design, standalone=False)
-        if lqr.design_file != est.design_file:
-            lqr.log.warning(f'design_file of lqr ({lqr.design_file}) differs from the '
-                            f'estimator\'s; using the estimator\'s ({est.design_file})')
+        lqr = LqrNode(peer=est, standalone=False)
         est.on_estimate = lqr.on_estimate
         lqr.on_command = est.note_command
-        super().__init__([est, lqr], executor)
         self.est, self.lqr = est, lqr
         # one summary file for the process (a -p summary_file:=X applies to both nodes)
         self.summary_file = est.summary_file or lqr.summary_file
         est.summary_file = lqr.summary_file = ''
+        super().__init__([est, lqr], executor)    # autostart: the estimator is configured first
 
     def finish(self, status: str, error: str | None = None) -> None:
         if self.finished:
             return
         self.finished = True
-        summ = {'node': 'lqg', 'status': status, 'estimator': self.est.finish(status, error),
-                'lqr': self.lqr.finish(status, error)}
+        # a node cleaned up before has written its summary then (status 'cleaned_up'): that one
+        summ = {'node': 'lqg', 'status': status,
+                'estimator': self.est.finish(status, error) or self.est.last_summary,
+                'lqr': self.lqr.finish(status, error) or self.lqr.last_summary}
         if error:
             summ['error'] = error
         if self.summary_file:

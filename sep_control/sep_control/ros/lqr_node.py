@@ -55,6 +55,8 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    differ from the design's (logged, reported as model_mismatch)""" + CONTROLLER_PARAMETERS + """
   estimate_timeout_s (float, 0.5)  send the nominal input if no estimate of step k arrives
                                    this long (steady clock) after measurement k  (0 = never)
+  autostart (bool, true)           configure and activate at start; false: a managed node that waits
+                                   for its lifecycle transitions (docs/reference/parameters.md)
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
@@ -87,11 +89,18 @@ def declare_controller(node, design, log) -> Controller:
 class LqrNode(DesignedNode):
     role = 'lqr'
 
-    def __init__(self, design=None, standalone: bool = True):
+    def __init__(self, peer=None, standalone: bool = True):
         """standalone: subscribe to state estimates and run the watchdog (the `lqr` executable);
-        in `lqg` the estimator calls ``on_estimate`` directly in the same callback."""
-        super().__init__('lqr', design)
-        node, d = self.node, self.design
+        in `lqg` the estimator (`peer`, whose design this node uses) calls ``on_estimate``
+        directly in the same callback."""
+        super().__init__('lqr', peer)
+        self.standalone = standalone
+        self.on_command = None                         # lqg: tell the estimator the command
+
+    def configure(self) -> None:
+        """The design (`DesignedNode.configure`), the control law, the topics."""
+        super().configure()
+        node, d, standalone = self.node, self.design, self.standalone
         self.timeout = declare(node, 'estimate_timeout_s', 0.5,
                                'nominal fallback when no estimate arrives this long after the '
                                'measurement of a step (0 = never)', lo=0.0, hi=3600.0)
@@ -102,7 +111,6 @@ class LqrNode(DesignedNode):
         self.rej = gate.RejectionLog()
         self.last_est = -1
         self.compute_s = SampleWindow()
-        self.on_command = None                         # lqg: tell the estimator the command
         self.pub_cmd = node.create_publisher(c.TOPIC_TYPES[c.COMMAND], c.COMMAND, c.LOOP_QOS)
         self.timer = self._watch_inputs() if standalone else None
         self.log.info(f'lqr: design file {self.design_file} (n_r={d.n_r}, disturbance states '
@@ -128,6 +136,8 @@ class LqrNode(DesignedNode):
     # ----------------------------------------------------------------- core
     def on_estimate(self, k: int, a_hat: np.ndarray, t_recv: float | None = None) -> None:
         """Command for step k from the filter's estimate z_hat = [a_hat; d_hat] (n_r + n_d,)."""
+        if not self.active:              # inactive: no commands
+            return
         t0 = steady() if t_recv is None else t_recv
         out = self.core.estimate(k, a_hat)
         self.last_k = self.core.last_k
@@ -154,6 +164,8 @@ class LqrNode(DesignedNode):
 
     # ---------------------------------------------------- standalone inputs
     def _on_estimate_msg(self, msg) -> None:
+        if not self.active:
+            return
         t = steady()
         k, a, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N, msg.name, msg.position,
                                        self.labels, 'state_estimate position',
@@ -165,6 +177,8 @@ class LqrNode(DesignedNode):
         self.on_estimate(k, a, t)
 
     def _on_measurement(self, msg) -> None:
+        if not self.active:
+            return
         k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if rej is None and self.core.measurement(k):
             self.timer.reset()   # for k = N: ends the episode if its estimate never comes
@@ -172,6 +186,8 @@ class LqrNode(DesignedNode):
 
     def _on_timeout(self) -> None:
         self.timer.cancel()
+        if not self.active:
+            return
         out = self.core.timeout()
         if out is None:
             return

@@ -36,6 +36,15 @@ topics, or those of --ready-topics; optional topics (`topics.OPTIONAL`, the imag
 while they have a publisher), so an orchestrator (the demo, tests) starts the episode
 after it and the bag holds step 0.
 
+Lifecycle: the recorder (node ``sep_recorder``) is a managed node. With the parameter
+``autostart`` (default true) it configures and activates at start, as before. With
+``-p autostart:=false`` it waits unconfigured for the standard lifecycle services
+(``/sep_recorder/change_state`` ...): configure creates the bag (refused when it cannot: the
+transition fails and the log says why) and the subscriptions; activate records; deactivate stops
+recording (messages that arrive while inactive are dropped, counted in the log line of cleanup);
+cleanup closes the bag (metadata written) and removes the subscriptions; shutdown ends the
+process (exit 0). The stop conditions (end of episode, idle, duration) apply while configured.
+
 QoS: contract topics are subscribed reliable/volatile with a deep keep-last queue (the
 scenario topic transient_local, to get the plant's latched scenario); if every publisher
 of a topic offers best effort, the subscription is re-created best effort (as rosbag2 does).
@@ -52,12 +61,13 @@ from pathlib import Path
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from sep_control.bags.writer import BagSink
 from sep_plant import topics as T
+from sep_plant.ros.lifecycle import autostart
 
 PROG = "sep record"
 EXIT_BAD_INPUT = 2
@@ -81,13 +91,15 @@ def _msg_class(msgtype: str):
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
-class Recorder(Node):
-    """Raw subscriptions feeding a `BagSink`, topic discovery and the matched-topics check.
+class Recorder(LifecycleNode):
+    """Raw subscriptions feeding a `BagSink`, topic discovery and the matched-topics check; a
+    managed (lifecycle) node (see the module's docstring).
 
     Parameters
     ----------
-    sink : BagSink
-        Where the received messages go (`sink.types` is filled here).
+    make_sink : callable
+        () -> BagSink, started: where the received messages go (`sink.types` is filled here);
+        called by the configure transition (an exception fails it).
     topics : dict, optional
         {fully qualified topic: (ROS type or '', transient_local)}; default: the recorded
         contract topics (`recording_topics`). A topic without type (outside the contract,
@@ -98,12 +110,36 @@ class Recorder(Node):
         The node's name.
     """
 
-    def __init__(self, sink: BagSink, topics: dict[str, tuple[str, bool]] | None = None,
+    def __init__(self, make_sink, topics: dict[str, tuple[str, bool]] | None = None,
                  namespace: str = T.NAMESPACE, node_name: str = "sep_recorder"):
         super().__init__(node_name)
-        self.sink = sink
-        self.optional = optional_topics(namespace)
-        self.wanted = dict(topics) if topics is not None else recording_topics(namespace)
+        self.make_sink = make_sink
+        self.topics, self.namespace = topics, namespace
+        self.autostart = self.declare_parameter("autostart", True).value
+        self.sink: BagSink | None = None
+        self.config_error: str | None = None
+        self.active = self.shut_down = False
+        self.dropped = 0                    # messages that came while inactive
+        self._starting = False
+
+    def start(self) -> None:
+        """autostart: configure and activate now; a refused configure raises RuntimeError(why)."""
+        autostart(self, lambda: RuntimeError(self.config_error) if self.config_error else None,
+                  lambda flag: setattr(self, "_starting", flag))
+
+    # ------------------------------------------------------------ lifecycle
+    def on_configure(self, state) -> TransitionCallbackReturn:
+        try:
+            self.sink = sink = self.make_sink()
+        except Exception as exc:  # noqa: BLE001 - the transition fails and says why
+            self.config_error = f"cannot create the bag: {exc}"
+            if not self._starting:
+                self.get_logger().error(f"configure failed, staying unconfigured: {self.config_error}")
+            return TransitionCallbackReturn.FAILURE
+        self.config_error = None
+        sink.qos_lookup = self.qos_lookup
+        self.optional = optional_topics(self.namespace)
+        self.wanted = dict(self.topics) if self.topics is not None else recording_topics(self.namespace)
         self.subs: dict[str, object] = {}
         self.best_effort: set[str] = set()
         self.offered: dict[str, list] = {}
@@ -114,6 +150,48 @@ class Recorder(Node):
         self.timer = self.create_timer(0.5, self._discover)
         self.match_timer = self.create_timer(0.05, self._check_matched)
         self.get_logger().info(f"recording {len(self.wanted)} topics to {sink.out} ({sink.storage})")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state) -> TransitionCallbackReturn:
+        self.active = True
+        if not self._starting:
+            self.get_logger().info("activated: recording")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state) -> TransitionCallbackReturn:
+        self.active = False
+        self.get_logger().info("deactivated: not recording")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state) -> TransitionCallbackReturn:
+        self.close()
+        self.get_logger().info(f"cleaned up: bag closed ({self.dropped} messages dropped while inactive)")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state) -> TransitionCallbackReturn:
+        self.active, self.shut_down = False, True
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state) -> TransitionCallbackReturn:
+        self.active = False
+        return TransitionCallbackReturn.SUCCESS
+
+    def configured(self) -> bool:
+        return hasattr(self, "subs")
+
+    def close(self) -> None:
+        """Close the bag (first: its writer thread asks `qos_lookup` while it drains the queue),
+        then remove the subscriptions and timers."""
+        if not hasattr(self, "subs"):
+            return
+        if self.sink is not None:
+            self.sink.close()
+        for sub in self.subs.values():
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self.destroy_timer(self.timer)
+        self.destroy_timer(self.match_timer)
+        del self.subs
 
     def _subscribe(self, topic: str, msgtype: str, transient: bool, reliable: bool) -> None:
         """(Re-)create the raw subscription of `topic`; its callback only queues the bytes."""
@@ -124,7 +202,10 @@ class Recorder(Node):
         now = time.time_ns
 
         def cb(data, info, _topic=topic):
-            put(_topic, info.get("received_timestamp") or now(), data)
+            if self.active:
+                put(_topic, info.get("received_timestamp") or now(), data)
+            else:
+                self.dropped += 1
 
         old = self.subs.pop(topic, None)
         if old is not None:
@@ -234,9 +315,9 @@ def _stop_reason(args: argparse.Namespace, sink: BagSink, now: float, t0: float)
     return None
 
 
-def _record(node: Recorder, sink: BagSink, args: argparse.Namespace, stop: threading.Event) -> str | None:
-    """Spin `node` until a stop condition (None: stopped by a signal); writes --ready-file
-    once the awaited topics are matched."""
+def _record(node: Recorder, args: argparse.Namespace, stop: threading.Event) -> str | None:
+    """Spin `node` until a stop condition while it is configured, or its shutdown transition
+    (None: stopped by a signal); writes --ready-file once the awaited topics are matched."""
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     t0 = time.monotonic()
@@ -244,11 +325,15 @@ def _record(node: Recorder, sink: BagSink, args: argparse.Namespace, stop: threa
     ready_done = not args.ready_file
     while not stop.is_set():
         executor.spin_once(timeout_sec=0.05)
+        if node.shut_down:
+            return "shut down (lifecycle)"
+        if not node.configured():
+            continue
         if not ready_done and node.all_matched(ready_topics):
             ready_done = True
             Path(args.ready_file).write_text(f"{len(node.matched)} topics matched\n")
             node.get_logger().info(f"ready: {len(node.matched)} topics matched ({args.ready_file})")
-        reason = _stop_reason(args, sink, time.monotonic(), t0)
+        reason = _stop_reason(args, node.sink, time.monotonic(), t0)
         if reason is not None:
             return reason
     return None
@@ -274,35 +359,46 @@ def main(argv: list[str] | None = None) -> int:
         signalled.append(signal.Signals(signum).name)
         stop.set()
 
+    def make_sink() -> BagSink:
+        sink = BagSink(out, args.storage, args.flush_interval, namespace=args.namespace)
+        try:
+            sink.start()
+        except BaseException:
+            sink.close()
+            raise
+        return sink
+
     rclpy.init(args=["--ros-args", *ros_args[1:]] if ros_args else None,
                signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     node = None
-    sink = BagSink(out, args.storage, args.flush_interval, namespace=args.namespace)
     reason = None
     try:
-        try:
-            sink.start()
-        except Exception as exc:  # noqa: BLE001
-            print(f"{PROG}: error: cannot create {out}: {exc}", file=sys.stderr)
-            return EXIT_BAD_INPUT
-        node = Recorder(sink, topics, args.namespace)
-        sink.qos_lookup = node.qos_lookup
-        reason = _record(node, sink, args, stop)
+        node = Recorder(make_sink, topics, args.namespace)
+        if node.autostart:
+            try:
+                node.start()
+            except RuntimeError as exc:
+                print(f"{PROG}: error: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+        reason = _record(node, args, stop)
     finally:
-        # the sink first: its writer thread still asks the node for QoS profiles (`qos_lookup`)
+        # the bag first: its writer thread still asks the node for QoS profiles (`qos_lookup`)
         # while it drains the queue; close() reports a writer that did not finish (sink.error)
-        sink.close()
         if node is not None:
+            node.close()
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
-    return _report(reason or (signalled[0] if signalled else "stopped"), sink, out)
+    return _report(reason or (signalled[0] if signalled else "stopped"), node.sink if node else None, out)
 
 
-def _report(reason: str, sink: BagSink, out: Path) -> int:
+def _report(reason: str, sink: BagSink | None, out: Path) -> int:
     """Print what was written (stdout) and a writer error (stderr); the exit code."""
+    if sink is None:
+        print(f"{PROG}: {reason}; never configured, no bag written", flush=True)
+        return 0
     counts = ", ".join(f"{t}: {n}" for t, n in sorted(sink.counted().items())) or "no messages"
     print(f"{PROG}: {reason}; wrote {sink.total} messages to {out} ({counts})", flush=True)
     if sink.error is not None:

@@ -68,8 +68,15 @@ class DesignedNode(NodeBase):
     """A node driven by a design file (``self.design``): its parameters design_file,
     scenario_file, wait_for_scenario_s, exit_at_end, and the check of the plant's scenario."""
 
-    def __init__(self, node_name: str, design=None):
+    def __init__(self, node_name: str, peer: 'DesignedNode | None' = None):
+        """peer: a node of the same process whose design this one uses (the lqg's LQR uses its
+        estimator's: configure the estimator first)."""
         super().__init__(node_name)
+        self.peer = peer
+
+    def configure(self) -> None:
+        """The parameters, the design file loaded and checked against scenario_file, the scenario
+        subscription (StartError: refused)."""
         node = self.node
         self.design_file = declare(node, 'design_file', '', 'design file written by `design` (required)')
         self.scenario_file = declare(node, 'scenario_file', '',
@@ -83,7 +90,7 @@ class DesignedNode(NodeBase):
                                             'run the design on a plant whose keys or actuator/sensor '
                                             'perturbation differ from the design\'s model (logged and '
                                             'reported as model_mismatch)')
-        self.design = design if design is not None else load_design_checked(self.design_file)
+        self.design = self._peer_design() if self.peer is not None else load_design_checked(self.design_file)
         #: how the plant differs from the design's model (empty: it is the model)
         self.model_mismatch: list[str] = check_scenario_file(self.design, self.design_file, self.scenario_file,
                                                              self.allow_model_mismatch)
@@ -96,6 +103,16 @@ class DesignedNode(NodeBase):
         self.plant_scenario_checked = False
         self.sub_scenario = node.create_subscription(c.TOPIC_TYPES[c.SCENARIO], c.SCENARIO,
                                                      self._on_scenario, c.SCENARIO_QOS)
+
+    def _peer_design(self):
+        peer = self.peer
+        if not peer.configured:
+            raise StartError(f'{peer.node.get_fully_qualified_name()} of this process is not configured: '
+                             f'configure it first (this node uses its design)')
+        if self.design_file != peer.design_file:
+            self.log.warning(f'design_file of {self.role} ({self.design_file}) differs from the '
+                             f'{peer.role}\'s; using the {peer.role}\'s ({peer.design_file})')
+        return peer.design
 
     # ----------------------------------------------------------- scenario
     def _on_scenario(self, msg) -> None:

@@ -59,6 +59,8 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    time on large grids, where the product is memory-bound); float64;
                                    auto: float32 from a Phi of 8 MB on (65 536 nodes x r_f 16),
                                    float64 below; messages stay float64
+  autostart (bool, true)           configure and activate at start; false: a managed node that waits
+                                   for its lifecycle transitions (docs/reference/parameters.md)
   exit_at_end (bool, true)         exit 0 after the last step (k = N)
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
@@ -68,9 +70,15 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
 class EstimatorNode(DesignedNode):
     role = 'estimator'
 
-    def __init__(self, design=None, subscribe_command: bool = True, on_estimate=None):
-        super().__init__('estimator', design)
-        node = self.node
+    def __init__(self, subscribe_command: bool = True, on_estimate=None):
+        super().__init__('estimator')
+        self.subscribe_command = subscribe_command
+        self.on_estimate = on_estimate           # direct hook (lqg): f(k, z_hat (n_r + n_d,)) -> None
+
+    def configure(self) -> None:
+        """The design (`DesignedNode.configure`), the filter, the topics, the warm-up."""
+        super().configure()
+        node, subscribe_command = self.node, self.subscribe_command
         self.publish_field = declare(node, 'publish_field_estimate', True,
                                      'publish field_estimate (reconstructed field with std)')
         self.field_precision = declare(node, 'field_precision', 'auto',
@@ -88,7 +96,6 @@ class EstimatorNode(DesignedNode):
         self.input_names = list(self.info.input_names)
         self.labels = c.state_labels(d.n_r, d.lqg.n_d)
         self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name, self.frame_id)
-        self.on_estimate = on_estimate           # direct hook (lqg): f(k, z_hat (n_r + n_d,)) -> None
         self.rej = gate.RejectionLog()
         self.compute_s = SampleWindow()
         self.n_estimates_published = 0
@@ -147,6 +154,8 @@ class EstimatorNode(DesignedNode):
 
     # -------------------------------------------------------------- inputs
     def _on_measurement(self, msg) -> None:
+        if not self.active:                    # inactive: messages are not taken
+            return
         t = steady()
         k = self._step_of(msg, 'measurement', self.N)
         if k is None:
@@ -186,6 +195,8 @@ class EstimatorNode(DesignedNode):
             self.done = True
 
     def _on_applied(self, msg) -> None:
+        if not self.active:                    # inactive: messages are not taken
+            return
         j, u, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N - 1, msg.name, msg.effort,
                                        self.input_names, 'applied_input effort')
         if rej is None:
@@ -194,6 +205,8 @@ class EstimatorNode(DesignedNode):
             self.reject('applied_input', rej, self.rej, j)
 
     def _on_command(self, msg) -> None:
+        if not self.active:                    # inactive: messages are not taken
+            return
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if j is None or not 0 <= j < self.N:
             return  # the plant gates commands; here they are only a fallback for late inputs

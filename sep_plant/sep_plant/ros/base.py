@@ -1,8 +1,9 @@
 """What every ROS 2 node of sep shares (plant, estimator, lqr, lqg): the command-line front
 (`parse_front`), parameters with descriptors (`declare`), exit codes and start/stop errors
-(`StartError`, `StopError`), executors, BLAS thread limits, timing stats (`SampleWindow`,
-`percentiles`), the summary file (`write_summary_json`), publisher flushing, and `NodeBase` (an rclpy
-node with /diagnostics, rejection reporting and the end-of-episode summary).
+(`StartError`, `StopError`, `Shutdown`: from `sep_plant.ros.lifecycle`), executors, BLAS thread
+limits, timing stats (`SampleWindow`, `percentiles`), the summary file (`write_summary_json`),
+publisher flushing, and `NodeBase` (an rclpy managed (lifecycle) node with /diagnostics,
+rejection reporting and the end-of-episode summary).
 How a node process starts, spins and stops (`run_node`, `NodeProcess`, the middleware
 watchdogs) is in `sep_plant.ros.process`.
 ROS-side module (imports rclpy); the pure algorithm modules never import it.
@@ -21,6 +22,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from sep_plant.ros import contract as c
+from sep_plant.ros.lifecycle import Managed, Shutdown, StartError, StopError, managed_node
 from sep_plant.scenario import json_default
 
 # Process exit codes of the nodes (docs/reference/cli.md).
@@ -35,22 +37,6 @@ ROS_ARGS_HELP = ("ROS arguments follow --ros-args, e.g. --ros-args --params-file
 
 #: at most this often a rejected message triggers an immediate /diagnostics message
 REJECTION_DIAGNOSTICS_PERIOD_S = 0.2
-
-
-class StartError(Exception):
-    """A node cannot start (bad parameter, bad file, mismatch): logged, exit code EXIT_CONFIG."""
-
-    exit_code = EXIT_CONFIG
-    #: how the node's log line about it starts (`sep_plant.ros.process.run_node`)
-    lead = 'refusing to start'
-
-
-class StopError(StartError):
-    """A check that passed at start fails after the node has run steps (the plant's scenario changed
-    mid-episode): the node says that it stops and why, writes its summary with status 'error' and
-    exits EXIT_CONFIG."""
-
-    lead = 'stopping'
 
 
 EXECUTORS = ('events', 'single')
@@ -108,6 +94,9 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
     from rclpy.exceptions import ParameterException
 
+    if node.has_parameter(name):        # declared by an earlier configure (lifecycle): its value
+        value = node.get_parameter(name).value
+        return float(value) if isinstance(default, float) and isinstance(value, int) else value
     desc = ParameterDescriptor(name=name, description=description, read_only=read_only,
                                additional_constraints=constraints)
     if isinstance(default, bool):
@@ -224,7 +213,7 @@ class Throttle:
 
 
 # ------------------------------------------------------------------------------- nodes
-class NodeBase:
+class NodeBase(Managed):
     """An rclpy Node (``self.node``, namespace sep) with /diagnostics, rejection reporting and the
     end-of-episode summary.
 
@@ -232,6 +221,10 @@ class NodeBase:
     ``summary(status)`` and ``summary_line(summary)``, set ``done`` when their episode is over
     and put a StartError in ``fatal`` to stop the process; ``prepare(executor)`` runs before
     the episode, ``on_finish(summary)`` after the summary is written.
+
+    The node is a managed (lifecycle) node (`sep_plant.ros.lifecycle.Managed`: ``configure()``,
+    ``on_activated()``, ``on_deactivated()``, ``active``); with the parameter ``autostart``
+    (default true) `NodeProcess` configures and activates it at once, as before.
     """
 
     role = 'node'
@@ -239,10 +232,12 @@ class NodeBase:
     def __init__(self, node_name: str):
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.clock import Clock, ClockType
-        from rclpy.node import Node
 
-        self.node = node = Node(node_name, namespace=c.NAMESPACE)
+        self.node = node = managed_node(self, node_name, c.NAMESPACE)
         self.log = node.get_logger()
+        self.autostart = declare(node, 'autostart', True, 'configure and activate at start (false: wait for '
+                                 'the lifecycle transitions, e.g. ros2 lifecycle set NODE configure)')
+        Managed.__init__(self)
         self.summary_file = declare(node, 'summary_file', '', 'end-of-episode summary JSON')
         self.diag_period = declare(node, 'diagnostics_period_s', 1.0,
                                    '/diagnostics period (wall seconds)', lo=0.01, hi=3600.0)
@@ -252,6 +247,7 @@ class NodeBase:
         self.done = False
         self.fatal: StartError | None = None
         self.finished = False
+        self.last_summary: dict = {}
         self.health_errors = 0              # failed health() calls (logged, see publish_diagnostics)
         self.diag_throttle = Throttle(REJECTION_DIAGNOSTICS_PERIOD_S)
         self.pub_diag = node.create_publisher(DiagnosticArray, c.DIAGNOSTICS, c.DIAGNOSTICS_QOS)
@@ -271,7 +267,8 @@ class NodeBase:
         ERROR status naming the exception, so /diagnostics goes on and says so. Only the publish
         itself may fail silently (the context is gone during shutdown)."""
         try:
-            health = self.health()
+            health = self.health() if self.ready() else c.Health(
+                name=self.node.get_fully_qualified_name(), message=f'lifecycle state {self.state_label()}')
         except Exception as exc:  # noqa: BLE001 - reported, never silent
             health = self._health_failed(exc)
         try:
@@ -320,12 +317,13 @@ class NodeBase:
     def finish(self, status: str = 'completed', error: str | None = None) -> dict:
         """The end of the episode: summary (with `error`), last /diagnostics, one log line, the
         summary file, then the publishers flushed. Once; returns the summary ({} later)."""
-        if self.finished:
+        if self.finished or not self.ready():
             return {}
         self.finished = True
         summ = self.summary(status)
         if error:
             summ['error'] = error
+        self.last_summary = summ            # kept past a cleanup (the lqg's process summary)
         self.publish_diagnostics()
         self.log.info(f'{self.finish_label()} {status}: ' + self.summary_line(summ))
         if self.summary_file:
@@ -349,3 +347,4 @@ class NodeBase:
 
     def destroy_node(self) -> None:
         self.node.destroy_node()
+

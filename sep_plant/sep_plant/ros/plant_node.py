@@ -40,7 +40,7 @@ import numpy as np
 from sep_plant.plant_episode import MODES, CommandTimeout, EpisodeError, PlantEpisode
 from sep_plant.noise import DEFAULT_SEED
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import EXIT_OK, NodeBase, StartError, declare, fmt_s, percentiles, steady
+from sep_plant.ros.base import EXIT_OK, NodeBase, Shutdown, StartError, declare, fmt_s, percentiles, steady
 from sep_plant.ros.process import NodeProcess, node_main, spin_once
 
 PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_plant)/share/sep_plant/config/plant.yaml):
@@ -54,6 +54,8 @@ PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file
   wait_for_field_subscribers (int, 0)  matched field subscribers needed before step 0
   start_timeout_s (float, 30)      give up (exit 3) if they do not appear in time
   start_delay_s (float, 0.2)       settle time after they appeared (endpoint matching)
+  autostart (bool, true)            configure and activate at start; false: wait unconfigured for the
+                                   lifecycle transitions (ros2 lifecycle set /sep/plant configure ...)
   diagnostics_period_s (float, 1)  /diagnostics period (also sent on a rejection, at most 5 Hz)
   summary_file (str, '')           write the end-of-episode summary as JSON
   trajectory_file (str, '')        write F (N+1,n_field), U (N,n_u), Y (N+1,n_y) as .npz (kept
@@ -144,12 +146,20 @@ class PlantNode(NodeBase):
     role = 'plant'
 
     def __init__(self, summary_json: str | None = None):
-        from sep_plant.scenario import scenario_payload
-
         super().__init__('plant')
-        self.p = p = declare_parameters(self.node)
         if summary_json:
             self.summary_file = summary_json
+        self.executor = None
+        self.episode_started = False
+
+    def configure(self) -> None:
+        """Load and check the scenario and its plant, build the episode, create the topics."""
+        from sep_plant.scenario import scenario_payload
+
+        if self.episode_started:
+            raise StartError('this process has run its episode (one episode per plant process): shut it down '
+                             'and start a new plant')
+        self.p = p = declare_parameters(self.node)
         self.scenario = scen = load_checked_scenario(p['scenario_file'])
         self.plant = plant = perturbed(scen.plant, declare_perturbation(self.node, int(scen.plant.n_u),
                                                                         int(scen.plant.n_y)))
@@ -163,8 +173,9 @@ class PlantNode(NodeBase):
         self.payload = scenario_payload(scen, info, self.perturbation)
         self.cloud = c.CloudBuilder(scen.plant.field_coordinates(), info.field_name, info.frame_id)
         self.input_names, self.sensors = list(info.input_names), list(info.output_names)
-        self.executor = None
         self.t_end: float | None = None
+        self.ignored_commands = 0           # commands that came while the plant was inactive
+        self.safe_steps: list[int] = []     # steps that got the safe input (deactivated mid-step)
         self._create_topics()
         self.log.info(
             f"plant: {scen.plant_type}, scenario {p['scenario_file'] or '<reference>'} (n_x={info.n_x}, "
@@ -190,6 +201,9 @@ class PlantNode(NodeBase):
     # ------------------------------------------------------------------ input
     def _on_command(self, msg) -> None:
         t = steady()
+        if not self.active:     # inactive: the actuators hold the safe input, commands are not taken
+            self.ignored_commands += 1
+            return
         rej = self.episode.command(c.time_ns(msg.header.stamp), msg.name, msg.effort, t)
         if rej is not None:
             self.report_rejection('command', rej, self.episode.rejections, self.episode.k)
@@ -257,9 +271,49 @@ class PlantNode(NodeBase):
                 f"the same ROS_DOMAIN_ID?)")
         self._spin_until(steady() + p['start_delay_s'])
 
+    # ------------------------------------------------------------- lifecycle
+    def _hold_while_inactive(self, where: str) -> float:
+        """Spin while the node is not active (Shutdown when it is shut down); the seconds held."""
+        if self.active:
+            return 0.0
+        t0 = steady()
+        self.log.info(f'inactive: holding {where} until activated')
+        while not self.active:
+            if self.shut_down:
+                raise Shutdown
+            spin_once(self.executor, 0.05)
+        return steady() - t0
+
+    def before_step(self, k: int) -> None:
+        """The episode's hold point before step k (`PlantEpisode.run`): while inactive the
+        simulation holds here (no time passes, the actuators hold the safe input); realtime: the
+        schedule is shifted by the time held."""
+        held = self._hold_while_inactive(f'before step {k}')
+        if held and self.episode.t_start is not None:
+            self.episode.t_start += held
+
+    def on_deactivated(self) -> None:
+        """Deactivated mid-episode: the step in progress gets the safe input (the last applied
+        input, zeros before the first command: the realtime deadline-miss hold) unless its
+        command already came; the episode then holds before the next step (`before_step`)."""
+        if not self.configured:
+            return
+        ep = self.episode
+        if ep.t_start is None or ep.k >= self.N or ep.has_command():
+            return
+        safe = ep.held.copy()
+        if ep.command(ep.k * ep.dt_ns, self.input_names, safe) is None:
+            ep.t_cmd[ep.k] = np.nan         # not a command: no measurement->command latency
+            self.safe_steps.append(ep.k)
+            self.log.warning(f'deactivated at step {ep.k}: applying the safe input (the last applied input) '
+                             f'{np.array2string(safe, precision=4)}; holding before step {ep.k + 1}')
+
     def run_episode(self, executor) -> int:
-        """Publish the scenario, wait for the peers, run the episode (NodeProcess's episode)."""
+        """Wait until active, publish the scenario, wait for the peers, run the episode
+        (NodeProcess's episode)."""
         self.executor = executor
+        self._hold_while_inactive('before the episode')
+        self.episode_started = True
         self.pub_scen.publish(c.scenario_msg(self.payload))
         self.publish_diagnostics()
         self._wait_for_peers()
@@ -302,7 +356,8 @@ class PlantNode(NodeBase):
                 'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'], 'latency_max_s': lat['max'],
                 'wall_s': self.t_end - ep.t_start if ep.t_start else None,
                 'scenario_file': p['scenario_file'], 'plant': self.scenario.plant_type,
-                'perturbation': self.perturbation, 'namespace': self.node.get_namespace()}
+                'perturbation': self.perturbation, 'namespace': self.node.get_namespace(),
+                'safe_input_steps': self.safe_steps, 'commands_while_inactive': self.ignored_commands}
 
     def finish_label(self) -> str:
         return 'episode'

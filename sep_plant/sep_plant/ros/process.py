@@ -11,8 +11,8 @@ import threading
 from typing import Any, Callable, Sequence
 
 from sep_plant.plant_episode import EXIT_TIMEOUT, EpisodeError
-from sep_plant.ros.base import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, NodeBase, StartError, StopError,
-                                limit_blas_threads, make_executor, parse_front, sim_time_default)
+from sep_plant.ros.base import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, NodeBase, Shutdown, StartError,
+                                StopError, limit_blas_threads, make_executor, parse_front, sim_time_default)
 
 
 #: seconds the start (rclpy.init and building the node: its DDS entities, the plant, the design
@@ -207,7 +207,12 @@ class NodeProcess:
 
     ``run()`` runs `episode(executor)` when given (a node that drives its own episode: the
     plant), else prepares the nodes and spins until every node's episode is done (those with
-    exit_at_end) or one reports a fatal error (raised); then it finishes the nodes."""
+    exit_at_end) or one reports a fatal error (raised); then it finishes the nodes.
+
+    Lifecycle: nodes with ``autostart`` are configured and activated here (a refusal raises its
+    StartError, as at start before); the others wait for their transitions (a node is prepared
+    once it is configured). When every node has been shut down (the shutdown transition), or an
+    episode raises `Shutdown`, the process finishes with status 'shutdown' and exit code 0."""
 
     def __init__(self, nodes: Sequence[NodeBase], executor: str = 'events',
                  episode: Callable[[Any], int] | None = None):
@@ -217,21 +222,31 @@ class NodeProcess:
             self.executor.add_node(n.node)
         self._episode = episode
         self.finished = False
+        for n in self.nodes:
+            if n.autostart:
+                n.start()
 
     def run(self) -> int:
-        rc = self._episode(self.executor) if self._episode is not None else self.spin()
+        try:
+            rc = self._episode(self.executor) if self._episode is not None else self.spin()
+        except Shutdown:
+            self.finish('shutdown')
+            return EXIT_OK
         self.finish('completed')
         return rc
 
     def spin(self) -> int:
-        for n in self.nodes:
-            n.prepare(self.executor)
         while True:
             for n in self.nodes:
+                if n.ready() and not n.prepared:
+                    n.prepared = True
+                    n.prepare(self.executor)
                 if n.fatal is not None:
                     raise n.fatal
             if all(n.done and n.exit_at_end for n in self.nodes):
                 return EXIT_OK
+            if all(n.shut_down for n in self.nodes):
+                raise Shutdown
             spin_once(self.executor, POLL_S)
 
     def finish(self, status: str, error: str | None = None) -> None:
