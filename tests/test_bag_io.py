@@ -377,22 +377,12 @@ def test_recorder_closes_its_bag_before_its_node_goes(tmp_path, monkeypatch):
     from sep_control.ros import record_node
 
     events = []
-
-    class FakeNode:
-        def __init__(self, sink, topics, namespace):
-            self.sink = sink
-
-        def qos_lookup(self, topic):
-            return []
-
-        def destroy_node(self):
-            events.append("node destroyed")
-
-    real_close = writer.BagSink.close
+    real_close, real_destroy = writer.BagSink.close, record_node.Recorder.destroy_node
     monkeypatch.setattr(writer.BagSink, "close", lambda self, *a, **k: (events.append("sink closed"),
                                                                         real_close(self, *a, **k))[1])
-    monkeypatch.setattr(record_node, "Recorder", FakeNode)
-    monkeypatch.setattr(record_node, "_record", lambda node, sink, args, stop: "test stop")
+    monkeypatch.setattr(record_node.Recorder, "destroy_node",
+                        lambda self: (events.append("node destroyed"), real_destroy(self))[1])
+    monkeypatch.setattr(record_node, "_record", lambda node, args, stop: "test stop")
     monkeypatch.setattr(record_node.signal, "signal", lambda *a: None)   # keep pytest's handlers
     assert record_node.main(["--out", str(tmp_path / "bag")]) == 0
     assert events == ["sink closed", "node destroyed"]

@@ -68,8 +68,9 @@ def _meta(npz) -> dict:
     meta = json.loads(npz["meta"].tobytes())
     meta.pop("timings", None)
     # Added or widened on purpose since 0.8.0 (CHANGELOG 0.9.0): the source record covers the sep
-    # version and the plant's code, and the design counts its run-steps. Neither enters an array.
-    for key in ("source", "source_digest", "run_steps"):
+    # version and the plant's code, the design counts its run-steps, the format is version 5 (new
+    # disturbance kinds and weighting keys). None of them enters an array.
+    for key in ("source", "source_digest", "run_steps", "version"):
         meta.pop(key, None)
     meta.get("settings", {}).pop("experiment_plan", None)   # new setting; its "0.8" is 0.8.0's plan
     meta.get("provenance", {}).pop("created_unix", None)
