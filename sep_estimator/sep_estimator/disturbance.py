@@ -18,7 +18,18 @@ and the LQR of the augmented ROM acts on them (docs/method.md):
 * ``output``: a bias of the sensors, F (n_y, n_d) (F = I: one bias per sensor), estimated and
   removed from the measurements, not acted on:
       a_{k+1} = A_k a_k + B_k du_k + B_w,k w_k,              dy_k = C_k a_k + F d_k + v_k.
-* both: d_{k+1} = d_k + eta_k, eta_k ~ N(0, diag(sigma_walk^2)); the prior d_0 ~ N(0,
+* combinations ``input+noise``, ``noise+output``, ``input+output``: the parts' states stacked,
+  d = [d_1; d_2] (the parts in the order input, noise, output), each part acting as its kind
+  does and with its own directions and priors. The map is block-diagonal over the parts'
+  channel spaces stacked in that order (rows n_u, n_w or n_y per part, columns n_d1, n_d2:
+  `part_views`). Budget (`split_dims`): n_d1 + n_d2 <= n_y; by default the first part takes
+  ceil(n_y / 2) (at most its channels) and the second the rest; `disturbance_dims` [n_1, n_2]
+  sets the split. Directions (`_combined`): the first part's as for its kind; the second's from
+  its step gain with the first part's output image Gamma_1 E_1 projected out,
+  (I - Q_1 Q_1') Gamma_2 (for an output part Gamma_2 = I: F spans the sensor-bias directions the
+  first part cannot explain), so the stacked step gain [Gamma_1 E_1, Gamma_2 E_2] has full
+  column rank (detectable together; recorded as "detectable", "rank_gamma_E").
+* all: d_{k+1} = d_k + eta_k, eta_k ~ N(0, diag(sigma_walk^2)); the prior d_0 ~ N(0,
   diag(sigma_0^2)) is not zero, so the filter starts from P_0 = blockdiag(0, diag(sigma_0^2))
   (`LTVModel.P0`), and so does every covariance recursion from k = 0.
 
@@ -57,7 +68,11 @@ import numpy as np
 from sep_estimator.ltv import DenseFieldMap, FieldMap, LTVModel, PODFieldMap
 
 #: the disturbance models a design can have (`DesignSettings.disturbance`)
-KINDS = ("none", "input", "output", "noise")
+#: the single kinds, in the order a combination stacks its parts
+SINGLE = ("input", "noise", "output")
+#: combinations of two single kinds (module docstring)
+COMBINED = ("input+noise", "noise+output", "input+output")
+KINDS = ("none", "input", "output", "noise") + COMBINED
 #: kinds whose states act through a channel matrix (B, or the noise channels B_w) along E
 ACTING = ("input", "noise")
 #: input directions kept: singular values of the step gain above this times the largest
@@ -99,6 +114,7 @@ class Disturbance:
     walk_std: np.ndarray
     directions: dict[str, Any] = field(default_factory=dict)
     std0_rule: str = ""
+    part_dims: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS[1:]:
@@ -113,18 +129,92 @@ class Disturbance:
                 raise DisturbanceError(f"{name} must be finite")
         if np.any(s0 < 0) or np.any(sw < 0):
             raise DisturbanceError("disturbance_std and disturbance_walk_std must be >= 0")
+        dims = tuple(int(v) for v in self.part_dims) or (E.shape[1],)
+        if len(dims) != len(parts(self.kind)) or min(dims) < 1 or sum(dims) != E.shape[1]:
+            raise DisturbanceError(f"disturbance part_dims {list(dims)} do not fit the kind {self.kind!r} "
+                                   f"with n_d = {E.shape[1]} (one n_d per part, >= 1, summing to n_d)")
         object.__setattr__(self, "map", E)
         object.__setattr__(self, "std0", s0)
         object.__setattr__(self, "walk_std", sw)
+        object.__setattr__(self, "part_dims", dims)
 
     @property
     def n_d(self) -> int:
         return int(self.map.shape[1])
 
     def record(self) -> dict[str, Any]:
-        """meta["disturbance"] of a design file: kind, n_d, directions, std0_rule."""
-        return {"kind": self.kind, "n_d": self.n_d, "directions": dict(self.directions),
-                "std0_rule": self.std0_rule}
+        """meta["disturbance"] of a design file: kind, n_d, directions, std0_rule (and part_dims
+        for a combination)."""
+        out = {"kind": self.kind, "n_d": self.n_d, "directions": dict(self.directions),
+               "std0_rule": self.std0_rule}
+        if len(self.part_dims) > 1:
+            out["part_dims"] = list(self.part_dims)
+        return out
+
+
+def parts(kind: str) -> tuple[str, ...]:
+    """The single kinds of `kind`: ('input', 'noise') of 'input+noise', ('output',) of 'output'."""
+    return tuple(kind.split("+"))
+
+
+def part_rows(kind: str, n_u: int, n_w: int, n_y: int) -> list[int]:
+    """The rows of each part's block of a map: n_u (input), n_w (noise), n_y (output)."""
+    return [{"input": n_u, "noise": n_w, "output": n_y}[p] for p in parts(kind)]
+
+
+def part_views(dist: Disturbance, rows: Sequence[int]) -> list[Disturbance]:
+    """The single-kind Disturbance of each part of `dist` (its block of the map, its stds), given
+    the rows of each part's block (`part_rows`); [dist] for a single kind."""
+    if len(dist.part_dims) == 1:
+        return [dist]
+    if sum(rows) != dist.map.shape[0]:
+        raise DisturbanceError(f"{dist.kind} disturbance map has {dist.map.shape[0]} rows, the parts' channels "
+                               f"{list(rows)} sum to {sum(rows)}")
+    r, c = np.cumsum([0, *rows]), np.cumsum([0, *dist.part_dims])
+    return [Disturbance(p, dist.map[r[i]:r[i + 1], c[i]:c[i + 1]], dist.std0[c[i]:c[i + 1]],
+                        dist.walk_std[c[i]:c[i + 1]], dist.directions.get("parts", [{}] * 2)[i], dist.std0_rule)
+            for i, p in enumerate(parts(dist.kind))]
+
+
+def model_part_views(rom: LTVModel, dist: Disturbance) -> list[Disturbance]:
+    """`part_views` with the rows of `rom` (its inputs, noise channels, outputs)."""
+    return part_views(dist, part_rows(dist.kind, rom.n_u, channels(rom, "noise").shape[2], rom.n_y))
+
+
+def stacked(kind: str, views: Sequence[Disturbance], note: dict[str, Any], rule: str) -> Disturbance:
+    """The combination `kind` of single-kind parts: the block-diagonal map, the stds stacked."""
+    rows = [v.map.shape[0] for v in views]
+    M = np.zeros((sum(rows), sum(v.n_d for v in views)))
+    r = c = 0
+    for v in views:
+        M[r:r + v.map.shape[0], c:c + v.n_d] = v.map
+        r, c = r + v.map.shape[0], c + v.n_d
+    return Disturbance(kind, M, np.concatenate([v.std0 for v in views]),
+                       np.concatenate([v.walk_std for v in views]), note, rule, tuple(v.n_d for v in views))
+
+
+def split_dims(kind: str, dims: int | Sequence[int] | None, n_y: int,
+               n_c: Sequence[int | None]) -> tuple[int, ...]:
+    """n_d per part of a combination (module docstring): `dims` as given ([n_1, n_2]), or the
+    default, the first part ceil(n_y / 2) and the second the rest, each at most its channels
+    n_c (None: unknown, not capped). Raises DisturbanceError naming what to change when the
+    parts do not fit n_1 + n_2 <= n_y."""
+    if dims is None:
+        n1 = (n_y + 1) // 2 if n_c[0] is None else min((n_y + 1) // 2, n_c[0])
+        n2 = n_y - n1 if n_c[1] is None else min(n_y - n1, n_c[1])
+        dims = (n1, n2)
+    elif np.ndim(dims) == 0:
+        raise DisturbanceError(f"disturbance_dims for the combination {kind} must be a list of two numbers, one "
+                               f"per part ({' then '.join(parts(kind))}), got {dims!r}")
+    dims = tuple(int(v) for v in dims)
+    if len(dims) != 2 or min(dims) < 1 or sum(dims) > n_y:
+        raise DisturbanceError(f"disturbance_dims {list(dims)} does not fit {kind} on {n_y} sensors: give two "
+                               f"numbers >= 1 (one per part: {', '.join(parts(kind))}) with n_1 + n_2 <= n_y = "
+                               f"{n_y} (at most n_y disturbances are detectable), or use a single kind")
+    for p, n, c in zip(parts(kind), dims, n_c):
+        if c is not None and n > c:
+            raise DisturbanceError(f"disturbance_dims: the {p} part has {c} channels, {n} directions asked")
+    return dims
 
 
 def summary(dist: Disturbance | None) -> str:
@@ -137,17 +227,26 @@ def summary(dist: Disturbance | None) -> str:
 
 
 def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names: Sequence[str],
-                     terms: int = 3) -> list[str]:
+                     terms: int = 3, first: int = 0) -> list[str]:
     """A name for each disturbance state: 'd_0 = bias of <output>' (output kind), or its input
     direction by its largest weights, 'd_0 along +0.71 heater_1 +0.71 heater_2' (input kind; at
-    most `terms` inputs, '...' when more carry weight; the noise kind names its channels noise_j)."""
+    most `terms` inputs, '...' when more carry weight; the noise kind names its channels noise_j;
+    a combination labels each part so, numbered on). `first`: the number of the first state."""
+    if len(dist.part_dims) > 1:
+        n_u, n_y = len(input_names), len(output_names)
+        n_w = dist.map.shape[0] - n_u * ("input" in parts(dist.kind)) - n_y * ("output" in parts(dist.kind))
+        out: list[str] = []
+        for v in part_views(dist, part_rows(dist.kind, n_u, n_w, n_y)):
+            out += direction_labels(v, input_names, output_names, terms, first + len(out))
+        return out
     if dist.kind == "output":
         out = []
         for i in range(dist.n_d):
             col = dist.map[:, i]
             j = int(np.argmax(np.abs(col)))
             single = np.count_nonzero(np.abs(col) > 1e-12) == 1
-            out.append(f"d_{i} = bias of {output_names[j]}" if single else f"d_{i} (sensor bias direction {i})")
+            out.append(f"d_{first + i} = bias of {output_names[j]}" if single
+                       else f"d_{first + i} (sensor bias direction {i})")
         return out
     labels = []
     input_names = channel_names(dist, input_names)
@@ -156,7 +255,7 @@ def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names
         order = np.argsort(-np.abs(col), kind="stable")
         big = [j for j in order if abs(col[j]) >= 0.1 * np.abs(col).max()]
         text = " ".join(f"{col[j]:+.2f} {input_names[j]}" for j in big[:terms])
-        labels.append(f"d_{i} along {text}" + (" ..." if len(big) > terms else ""))
+        labels.append(f"d_{first + i} along {text}" + (" ..." if len(big) > terms else ""))
     return labels
 
 
@@ -237,19 +336,13 @@ def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
     if dist is None:
         return rom
     N, n, n_u, n_d = rom.n_steps, rom.n, rom.n_u, dist.n_d
-    expect = rom.n_y if dist.kind == "output" else channels(rom, dist.kind).shape[2]
-    if dist.map.shape[0] != expect:
-        what = {"input": "inputs", "noise": "noise channels", "output": "outputs"}[dist.kind]
-        raise DisturbanceError(f"{dist.kind} disturbance map has {dist.map.shape[0]} rows, the ROM has {expect} {what}")
     nz = n + n_d
     A = np.zeros((N, nz, nz))
     A[:, :n, :n] = rom.A
     A[:, n:, n:] = np.eye(n_d)
     A[:, :n, n:] = cross_input(rom, dist)
     B = np.concatenate([rom.B, np.zeros((N, n_d, n_u))], axis=1)
-    C = np.concatenate([rom.C, np.zeros(rom.C.shape[:2] + (n_d,))], axis=2)
-    if dist.kind == "output":
-        C[:, :, n:] = dist.map
+    C = np.concatenate([rom.C, np.broadcast_to(output_map(rom, dist), rom.C.shape[:2] + (n_d,))], axis=2)
     Bw0 = rom.noise_input
     n_w = Bw0.shape[2]
     Bw = np.zeros((N, nz, n_w + n_d))
@@ -277,11 +370,30 @@ def channels(rom: LTVModel, kind: str) -> np.ndarray:
     return rom.noise_input if kind == "noise" else rom.B
 
 
+def _checked_views(rom: LTVModel, dist: Disturbance) -> list[Disturbance]:
+    """The parts of `dist` (`model_part_views`), each map's rows checked against `rom`."""
+    views = model_part_views(rom, dist)
+    for v in views:
+        expect = rom.n_y if v.kind == "output" else channels(rom, v.kind).shape[2]
+        if v.map.shape[0] != expect:
+            what = {"input": "inputs", "noise": "noise channels", "output": "outputs"}[v.kind]
+            raise DisturbanceError(f"{v.kind} disturbance map has {v.map.shape[0]} rows, the ROM has {expect} {what}")
+    return views
+
+
 def cross_input(rom: LTVModel, dist: Disturbance | None) -> np.ndarray:
-    """The a-d block of A_z, (N, n_r, n_d): B_k E (input), B_w,k E_w (noise) or 0 (output, none)."""
-    if dist is None or dist.kind == "output":
-        return np.zeros((rom.n_steps, rom.n, 0 if dist is None else dist.n_d))
-    return channels(rom, dist.kind) @ dist.map
+    """The a-d block of A_z, (N, n_r, n_d): B_k E (input), B_w,k E_w (noise) or 0 (output, none);
+    a combination: its parts' blocks side by side."""
+    if dist is None:
+        return np.zeros((rom.n_steps, rom.n, 0))
+    return np.concatenate([channels(rom, v.kind) @ v.map if v.kind in ACTING
+                           else np.zeros((rom.n_steps, rom.n, v.n_d)) for v in _checked_views(rom, dist)], axis=2)
+
+
+def output_map(rom: LTVModel, dist: Disturbance) -> np.ndarray:
+    """The d block of C_z, (n_y, n_d): F (output), 0 (input, noise); a combination: its parts'."""
+    return np.concatenate([v.map if v.kind == "output" else np.zeros((rom.n_y, v.n_d))
+                           for v in _checked_views(rom, dist)], axis=1)
 
 
 # ----------------------------------------------------------------- choosing d
@@ -305,17 +417,21 @@ def step_gain(rom: LTVModel, window: Sequence[int], K: np.ndarray | None = None,
 
 
 def input_directions(rom: LTVModel, window: Sequence[int], n_d: int | None = None,
-                     rtol: float = DIRECTION_RTOL, kind: str = "input"
+                     rtol: float = DIRECTION_RTOL, kind: str = "input", exclude: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """E (n_u, n_d'), the singular values S_1..S_nd' of Gamma E, and the record of the choice.
 
     The right singular vectors of `step_gain` with the largest singular values, n_d of them
     (default min(n_y, n_u)), less those whose singular value is at most `rtol` S_1 (not
     detectable at steady state). Raises DisturbanceError for n_d outside 1..min(n_y, n_u) or
-    when no direction is left. Kind 'noise': the same through the noise channels (n_w for n_u)."""
+    when no direction is left. Kind 'noise': the same through the noise channels (n_w for n_u).
+    `exclude` (n_y, m), orthonormal: output directions projected out of Gamma first,
+    (I - Q Q') Gamma (a combination's second part: at most n_y - m directions)."""
     G = step_gain(rom, window, kind=kind)
+    if exclude is not None:
+        G = G - exclude @ (exclude.T @ G)
     n_c = G.shape[1]
-    n_max = min(rom.n_y, n_c)
+    n_max = min(rom.n_y - (0 if exclude is None else exclude.shape[1]), n_c)
     n_d = n_max if n_d is None else int(n_d)
     if not 1 <= n_d <= n_max:
         what = "n_w" if kind == "noise" else "n_u"
@@ -354,8 +470,9 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
         The objective's band (output units), the scale of the prior std.
     window : (k0, k1)
         The band window: where the step gain is averaged.
-    dims : int, optional
-        n_d (default min(n_y, n_u) for input, n_y for output); at most n_y.
+    dims : int or (int, int), optional
+        n_d (default min(n_y, n_u) for input, n_y for output); at most n_y. A combination: n_d
+        per part (`split_dims`; default ceil(n_y / 2) for the first, the rest for the second).
     std : float or sequence of float, optional
         sigma_0 for every direction or per direction (overrides the rule).
     walk_std : float or sequence of float
@@ -386,12 +503,26 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     if kind == "none":
         return None
     asked = kind
-    if kind == "noise" and rom.Bw is None:      # B_w = B: the noise kind is the input kind
-        kind = "input"
-    E, S, S_cl, note = _directions(rom, kind, window, dims, K)
+    if rom.Bw is None and "noise" in kind:      # B_w = B: the noise kind is the input kind
+        kind = "+".join(dict.fromkeys(p.replace("noise", "input") for p in parts(kind)))
+        if "+" in asked and "+" not in kind and dims is not None:   # input+noise: one input part
+            dims = int(np.sum(dims))
+    if "+" in kind:
+        dist = _combined(rom, kind, band, window, dims, std, walk_std, bands, K, noise_std)
+    else:
+        dist = _single(rom, kind, band, window, dims, std, walk_std, bands, K, noise_std)
     if asked != kind:
-        note["asked_kind"] = asked
-        note["note"] = "the noise enters through the inputs (B_w = B): the noise kind is the input kind"
+        dist.directions["asked_kind"] = asked
+        dist.directions["note"] = "the noise enters through the inputs (B_w = B): the noise kind is the input kind"
+    return dist
+
+
+def _single(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | None,
+            std: float | Sequence[float] | None, walk_std: float | Sequence[float], bands: float,
+            K: np.ndarray | None, noise_std: np.ndarray | None, exclude: np.ndarray | None = None) -> Disturbance:
+    """`choose` for a single kind (the directions with the outputs' subspace `exclude` projected
+    out of the step gain, for a combination's second part)."""
+    E, S, S_cl, note = _directions(rom, kind, window, dims, K, exclude)
     n_d = E.shape[1]
     if std is None and kind == "noise" and noise_std is not None:
         std0, rule = _noise_prior_std(E, noise_std)
@@ -404,17 +535,63 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     return Disturbance(kind, E, std0, walk, note, rule)
 
 
-def _directions(rom: LTVModel, kind: str, window: Sequence[int], dims: int | None, K: np.ndarray | None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+def _combined(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | Sequence[int] | None,
+              std: float | Sequence[float] | None, walk_std: float | Sequence[float], bands: float,
+              K: np.ndarray | None, noise_std: np.ndarray | None) -> Disturbance:
+    """`choose` for a combination (module docstring): the parts chosen in order, the second with
+    the first's output image projected out, and the stacked step gain checked for rank n_d."""
+    n_c = [rom.n_y if p == "output" else channels(rom, p).shape[2] for p in parts(kind)]
+    n = split_dims(kind, dims, rom.n_y, n_c)
+    per = [None if v is None or np.ndim(v) == 0 else np.asarray(v, dtype=float) for v in (std, walk_std)]
+    for name, v in zip(("disturbance_std", "disturbance_walk_std"), per):
+        if v is not None and v.shape != (sum(n),):
+            raise DisturbanceError(f"{name} must be a number or a list of n_d = {sum(n)} numbers, got {v.tolist()}")
+    views: list[Disturbance] = []
+    Q = np.zeros((rom.n_y, 0))
+    for i, p in enumerate(parts(kind)):
+        sl = slice(sum(n[:i]), sum(n[:i + 1]))
+        s_i = std if per[0] is None else per[0][sl]
+        w_i = walk_std if per[1] is None else per[1][sl]
+        v = _single(rom, p, band, window, n[i], s_i, w_i, bands, K, noise_std, Q if i else None)
+        views.append(v)
+        Q = np.linalg.qr(np.hstack([Q, _image(rom, window, v)]))[0]
+    image = np.hstack([_image(rom, window, v) for v in views])
+    sv = np.linalg.svd(image, compute_uv=False)
+    rank = int(np.count_nonzero(sv > DIRECTION_RTOL * sv[0]))
+    note = {"rule": f"{kind}: the parts in order, each with the earlier parts' output images projected out of "
+                    "its band-window step gain", "split": list(n), "kept": [v.n_d for v in views],
+            "parts": [v.directions for v in views], "singular_values": [float(x) for x in sv],
+            "detectable": rank == image.shape[1], "rank_gamma_E": rank}
+    return stacked(kind, views, note, "; ".join(f"{v.kind}: {v.std0_rule}" for v in views))
+
+
+def _image(rom: LTVModel, window: Sequence[int], v: Disturbance) -> np.ndarray:
+    """Gamma E of a part (n_y, n_d): its band-window step gain along its directions (F: output)."""
+    return v.map if v.kind == "output" else step_gain(rom, window, kind=v.kind) @ v.map
+
+
+def _directions(rom: LTVModel, kind: str, window: Sequence[int], dims: int | None, K: np.ndarray | None,
+                exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """(E or F, the open-loop step gains S_i, the closed-loop ones S_cl,i, the record) of `kind`
-    (S_cl = S without K; both 1 for the output kind, F = I)."""
+    (S_cl = S without K; both 1 for the output kind, F = I). `exclude` (n_y, m), orthonormal:
+    output directions projected out of the step gain first (a combination's second part; the
+    output kind then has F spanning their complement, n_d <= n_y - m)."""
     if kind in ACTING:
-        E, S, note = input_directions(rom, window, dims, kind=kind)
+        E, S, note = input_directions(rom, window, dims, kind=kind, exclude=exclude)
         S_cl = S
         if K is not None:
             S_cl = np.linalg.norm(step_gain(rom, window, K, kind) @ E, axis=0)
             note["closed_loop_gains"] = [float(v) for v in S_cl]
         return E, S, S_cl, note
+    if exclude is not None:
+        U = np.linalg.svd(np.eye(rom.n_y) - exclude @ exclude.T)[0]
+        n_d = rom.n_y - exclude.shape[1] if dims is None else int(dims)
+        if not 1 <= n_d <= rom.n_y - exclude.shape[1]:
+            raise DisturbanceError(f"disturbance_dims: the output part can have 1..{rom.n_y - exclude.shape[1]} "
+                                   f"directions (n_y less the first part's), got {n_d}")
+        note = {"rule": "F: sensor-bias directions orthogonal to the first part's output image",
+                "singular_values": [1.0] * n_d, "detectable": True}
+        return U[:, :n_d], np.ones(n_d), np.ones(n_d), note
     n_d = rom.n_y if dims is None else int(dims)
     if n_d != rom.n_y:
         raise DisturbanceError(f"disturbance_dims must be n_y = {rom.n_y} for the output kind (one bias per "
@@ -461,6 +638,7 @@ def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.nda
     return np.broadcast_to(v, (n_d,)).astype(float)
 
 
-__all__ = ["KINDS", "ACTING", "channels", "channel_names", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
+__all__ = ["KINDS", "SINGLE", "COMBINED", "parts", "part_rows", "part_views", "model_part_views", "stacked",
+           "split_dims", "output_map", "ACTING", "channels", "channel_names", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
            "noise_covariance", "choose", "input_directions", "step_gain", "padded_field_map", "cross_input",
            "per_direction"]
