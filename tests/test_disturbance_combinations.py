@@ -164,3 +164,22 @@ def test_design_command_takes_a_combination_and_refuses_a_bad_split(tmp_path, ca
     assert d.disturbance.part_dims == (2, 3) and d.meta["settings"]["disturbance_dims"] == [2, 3]
     assert np.all(d.lqg.K[:, :, d.n_r + 2:] == 0.0)          # the sensor-bias part is not acted on
     assert dataclasses.asdict(DesignSettings.from_meta(d.meta))["disturbance"] == "input+output"
+
+
+def test_the_oracle_runs_the_same_combination(forced_design, one_blas_thread):
+    """Like for like: the oracle's augmented full-order model has the same parts (noise directions
+    through its full-order noise channels, the same sensor-bias directions) and the same priors."""
+    from sep_control.evaluation.oracle import oracle_lqg
+
+    d = forced_design
+    dist, plant = d.disturbance, d.scenario.plant
+    orc = oracle_lqg(d, plant)
+    full, (noise, output) = orc.rom, model_part_views(d.rom, dist)
+    n, n1 = full.n, dist.part_dims[0]
+    assert orc.disturbance is dist and orc.model.n == n + dist.n_d
+    np.testing.assert_allclose(orc.model.A[:, :n, n:n + n1], full.Bw @ noise.map)
+    np.testing.assert_array_equal(orc.model.A[:, :n, n + n1:], 0.0)
+    np.testing.assert_array_equal(orc.model.C[:, :, n:n + n1], 0.0)
+    np.testing.assert_array_equal(orc.model.C[:, :, n + n1:], np.broadcast_to(output.map, orc.model.C[:, :, n + n1:].shape))
+    np.testing.assert_array_equal(np.diag(orc.model.P0)[n:], dist.std0**2)
+    assert np.isfinite(simulate(plant, d, "oracle_lqg", 1, 3, oracle=orc).summary["cost_mean"])
