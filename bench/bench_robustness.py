@@ -8,7 +8,8 @@ its own). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/robustness
 
 * the forced slab: the model itself, and a constant source spread over the slab (source 0.1 and
   0.3 F/s), the forcing that enters neither through the inputs nor the sensors, a sensor bias of
-  a third of the band, and both (source 0.3 with that bias: the combinations' row); no other rows;
+  a third of the band, and both (source 0.3 with that bias, + and -: the combinations' rows); no
+  other rows;
 
 * the model itself (the shipped scenario unbiased);
 * a biased boundary temperature, 2 and 3 units of the band's unit off (slab t_right 148, 147;
@@ -127,7 +128,7 @@ def truths_of(case: str, scen, design, slab_shifts: list[float]) -> list[tuple[s
     if case == "forced":
         return rows + [(f"source {s:g}", {"source": s}, {}) for s in (0.1, 0.3)] + [
             (f"sensor_bias {bias:.3g}", {}, {"sensor_bias": bias}),
-            (f"source 0.3 + sensor_bias {bias:.3g}", {"source": 0.3}, {"sensor_bias": bias})]
+            *[(f"source 0.3 + sensor_bias {b:.3g}", {"source": 0.3}, {"sensor_bias": b}) for b in (bias, -bias)]]
     if case == "slab":
         rows += [(f"t_right {cfg['t_right'] - d:g}", {"t_right": cfg["t_right"] - d}, {}) for d in (2.0, 3.0)]
     elif case == "plate":
