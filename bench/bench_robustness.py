@@ -7,7 +7,9 @@ package installed) and the forced slab (sep_plant/scenarios/slab_forced.yaml: no
 its own). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/robustness.md):
 
 * the forced slab: the model itself, and a constant source spread over the slab (source 0.1 and
-  0.3 F/s), the forcing that enters neither through the inputs nor the sensors; no other rows;
+  0.3 F/s), the forcing that enters neither through the inputs nor the sensors, a sensor bias of
+  a third of the band, and both (source 0.3 with that bias, + and -: the combinations' rows); no
+  other rows;
 
 * the model itself (the shipped scenario unbiased);
 * a biased boundary temperature, 2 and 3 units of the band's unit off (slab t_right 148, 147;
@@ -22,7 +24,8 @@ its own). Truth plants, per case (`sep_plant.truth.truth_plant`, docs/robustness
 Columns, all ROM-LQG on the truth with the same Monte Carlo seeds (seed 1, runs 0..R-1):
 
 * the model's designs, one per value of the design setting ``disturbance`` (the default
-  first, then input, output, none; noise too where the plant's noise has channels of its own)
+  first, then input, output, the combinations input+output (and input+noise, noise+output), none;
+  noise too where the plant's noise has channels of its own)
   and per LQR weighting in --weightings (default: the default, output; the column says
   w=field for the field weighting);
 * matched: a design made on the truth itself (`run_design` on the truth plant; on the
@@ -74,7 +77,9 @@ def disturbance_settings(scen=None) -> list[str]:
     """The design setting `disturbance` values to compare, the default first (noise where the
     plant's noise has channels of its own: on the inputs it is the input kind)."""
     own = scen is not None and not scen.info.noise_on_inputs
-    return list(dict.fromkeys([DesignSettings().disturbance, "input", *(["noise"] if own else []), "output", "none"]))
+    combos = ["input+noise", "noise+output", "input+output"] if own else ["input+output"]
+    return list(dict.fromkeys([DesignSettings().disturbance, "input", *(["noise"] if own else []), "output",
+                               *combos, "none"]))
 
 
 def settings_for(scen, disturbance: str) -> DesignSettings:
@@ -121,7 +126,9 @@ def truths_of(case: str, scen, design, slab_shifts: list[float]) -> list[tuple[s
     bias = band / 3.0
     rows = [("model itself", {}, {})]
     if case == "forced":
-        return rows + [(f"source {s:g}", {"source": s}, {}) for s in (0.1, 0.3)]
+        return rows + [(f"source {s:g}", {"source": s}, {}) for s in (0.1, 0.3)] + [
+            (f"sensor_bias {bias:.3g}", {}, {"sensor_bias": bias}),
+            *[(f"source 0.3 + sensor_bias {b:.3g}", {"source": 0.3}, {"sensor_bias": b}) for b in (bias, -bias)]]
     if case == "slab":
         rows += [(f"t_right {cfg['t_right'] - d:g}", {"t_right": cfg["t_right"] - d}, {}) for d in (2.0, 3.0)]
     elif case == "plate":

@@ -2,8 +2,8 @@
 This test implements that page in plain numpy (np.load of the .npz, json of its meta; nothing of
 sep's filter, controller, model or design-file reader) and checks that it reproduces the offline
 Monte Carlo's ROM-LQG inputs to 1e-9, for designs without disturbance states, with input and with
-output disturbance states, with noise-kind ones and the field weighting on a slab whose noise has
-channels of its own (the page's recursion does not change with the weighting: it is in K), and
+output disturbance states, with noise-kind ones and the combinations input+noise, noise+output
+(stacked states) and the field weighting on a slab whose noise has channels of its own (the page's recursion does not change with the weighting: it is in K), and
 with input limits that bind. Only the plant and the noise (what
 the page's reader supplies: the real plant and its sensors) come from sep."""
 import dataclasses
@@ -23,6 +23,8 @@ from sep_plant.protocol import PlantInfo
 from sep_plant.scenario import Scenario
 
 RUNS = 6
+#: the disturbance kinds checked; the combinations on the slab with noise channels of its own
+KINDS = ["none", "input", "output", "noise", "input+noise", "noise+output"]
 
 
 def read(path):
@@ -57,12 +59,17 @@ def augmented(meta, a):
     Az[:, :n_r, :n_r] = A
     Az[:, n_r:, n_r:] = np.eye(n_d)
     Cz = np.concatenate([C, np.zeros(C.shape[:2] + (n_d,))], axis=2)
-    if kind == "input":
-        Az[:, :n_r, n_r:] = B @ M
-    elif kind == "noise":
-        Az[:, :n_r, n_r:] = a["Bw"] @ M
-    else:
-        Cz[:, :, n_r:] = M
+    rows = {"input": n_u, "noise": a["Bw"].shape[2] if "Bw" in a else n_u, "output": C.shape[1]}
+    r, c = 0, n_r                        # a combination: its parts' blocks of the map, in order
+    for part, m in zip(kind.split("+"), meta["disturbance"].get("part_dims", [n_d])):
+        block = M[r:r + rows[part], c - n_r:c - n_r + m]
+        if part == "input":
+            Az[:, :n_r, c:c + m] = B @ block
+        elif part == "noise":
+            Az[:, :n_r, c:c + m] = a["Bw"] @ block
+        else:
+            Cz[:, :, c:c + m] = block
+        r, c = r + rows[part], c + m
     Bz = np.concatenate([B, np.zeros((N, n_d, n_u))], axis=1)
     return Az, Bz, Cz
 
@@ -106,9 +113,9 @@ def designs(tmp_path_factory):
     scn = Scenario.from_dict({**base, "u_min": 0.0, "u_max": 0.6})     # limits that bind
     own = scn.with_plant(noise_centers=[0.25, 0.75], noise_sigma=0.2)
     own = dataclasses.replace(own, problem=own.problem.replace(lqr_weighting="field"))
-    for kind in ("none", "input", "output", "noise"):
+    for kind in KINDS:
         st = DesignSettings(p=5, q=5, n_r=10, ensemble=20, belief_iter=1, disturbance=kind)
-        sc = own if kind == "noise" else scn
+        sc = own if "noise" in kind else scn
         d = run_design(sc.plant, sc.problem, st, show_progress=False, log=lambda m: None)
         path = tmp_path_factory.mktemp("ref") / f"{kind}.npz"
         save_design(path, d)
@@ -116,7 +123,7 @@ def designs(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("kind", ["none", "input", "output", "noise"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_the_pages_recursion_reproduces_the_monte_carlo(designs, kind, one_blas_thread):
     d = load_design(designs[kind])
     plant = d.scenario.plant

@@ -4,7 +4,7 @@ trajectory, and its state estimates (the ROM state and the disturbance estimates
 filter's; plant + lqg (two processes) and plant + estimator + lqr (three processes), for designs
 with input disturbance states (the default), output ones, and none; and for the field-weighted
 LQR (lqr_weighting: field) with noise-kind disturbance states on a slab whose process noise has
-channels of its own."""
+channels of its own, and with the combination noise+output there (three processes)."""
 import json
 
 import numpy as np
@@ -135,5 +135,22 @@ def test_lockstep_equivalence_field_weighting_and_noise_kind(launcher, probe, fi
     assert case.design.disturbance.kind == 'noise' and case.design.problem.lqr_weighting == 'field'
     assert not case.design.info.noise_on_inputs
     pr, summary = run_episode(launcher, probe, case, tmp_path, three=False, seed=7, run=3)
+    assert summary['status'] == 'completed' and summary['steps'] == case.n_steps
+    check_equivalence(pr, case, 7, 3)
+
+
+@pytest.fixture(scope='session')
+def combined_case(tmp_path_factory):
+    """The small slab with its own noise channels and a combination of disturbance kinds:
+    noise+output (stacked states, the noise part acted on, the sensor-bias part not)."""
+    return _cached_case(tmp_path_factory, 'small_noise_output', yaml_text=FIELD_NOISE_YAML,
+                        settings={'disturbance': 'noise+output'})
+
+
+def test_lockstep_equivalence_combined_disturbance_kinds(launcher, probe, combined_case, tmp_path):
+    case = combined_case
+    dist = case.design.disturbance
+    assert dist.kind == 'noise+output' and dist.part_dims == (2, 1)
+    pr, summary = run_episode(launcher, probe, case, tmp_path, three=True, seed=7, run=3)
     assert summary['status'] == 'completed' and summary['steps'] == case.n_steps
     check_equivalence(pr, case, 7, 3)

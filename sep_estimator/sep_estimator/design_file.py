@@ -20,11 +20,14 @@ index conventions of `sep_estimator.ltv`):
     Bw (N, n_r, n_w)   only for plants whose noise does not enter through the inputs
     K (N, n_u, n_z)  L (N+1, n_z, n_y)  P_post (N+1, n_z, n_z)  field_std (N+1, n_field)
     hankel_sv (N+1, n_sv)
-    dist_map (n_u, n_d) E, (n_w, n_d) E_w or (n_y, n_d) F, dist_std0 (n_d,), dist_walk_std (n_d,)
+    dist_map (n_u, n_d) E, (n_w, n_d) E_w or (n_y, n_d) F (a combination: its parts' blocks),
+                       dist_std0 (n_d,), dist_walk_std (n_d,)
                        only with disturbance states (`sep_estimator.disturbance`)
 
 Version 5 adds the disturbance kind "noise" (dist_map (n_w, n_d): directions of the process
-noise's channels) and the LQR weighting keys of the problem (lqr_weighting, lqr_field_nodes,
+noise's channels) and the combinations "input+noise", "noise+output", "input+output" (dist_map
+block-diagonal over the parts' channels stacked in that order, (n_u + n_w, n_d), (n_w + n_y, n_d)
+or (n_u + n_y, n_d); meta["disturbance"]["part_dims"] = [n_d1, n_d2]) and the LQR weighting keys of the problem (lqr_weighting, lqr_field_nodes,
 lqr_field_time; the field weighting's gains are on the stored field map); files of versions 1-4
 read with the output weighting (their problem has no such key) and kinds none/input/output.
 Version 4 adds the disturbance states: meta["disturbance"] = {"kind": "none" | "input" |
@@ -65,6 +68,7 @@ from sep_plant.scenario import Scenario, ScenarioError, json_default, same_value
 from sep_estimator.design import Design, Nominal
 from sep_estimator.design_source import design_source, source_digest
 from sep_estimator.disturbance import KINDS as DISTURBANCE_KINDS
+from sep_estimator.disturbance import part_rows
 from sep_estimator.disturbance import Disturbance, DisturbanceError, augment, noise_covariance
 from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
@@ -116,7 +120,7 @@ def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
         "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
     }
     if kind != "none":
-        out["dist_map"] = ({"input": nu, "noise": info.noise_dim}.get(kind, ny), n_d)
+        out["dist_map"] = (sum(part_rows(kind, nu, info.noise_dim, ny)), n_d)
         out["dist_std0"], out["dist_walk_std"] = (n_d,), (n_d,)
     if field_rank is None:
         out["G"] = (N + 1, nf, n_r)
@@ -395,8 +399,10 @@ def _disturbance_kind(path: Path, meta: dict, version: int, info: PlantInfo) -> 
                               f"got {kind!r}")
     if kind == "none":
         return kind, 0
-    if kind == "noise" and version < 5:
-        raise DesignFileError(f"{path}: meta disturbance kind 'noise' needs format version 5, the file says {version}")
+    if "noise" in kind or "+" in kind:
+        if version < 5:
+            raise DesignFileError(f"{path}: meta disturbance kind {kind!r} needs format version 5, the file says "
+                                  f"{version}")
     if not isinstance(n_d, int) or isinstance(n_d, bool) or not 1 <= n_d <= info.n_y:
         raise DesignFileError(f"{path}: meta disturbance n_d must be an integer in 1..n_y = {info.n_y}, got {n_d!r}")
     return kind, n_d
@@ -412,7 +418,8 @@ def _assemble(path: Path, scenario: Scenario, info: PlantInfo, meta: dict, a: di
         rec = meta["disturbance"]
         try:
             dist = Disturbance(kind, a["dist_map"], a["dist_std0"], a["dist_walk_std"],
-                               dict(rec.get("directions") or {}), str(rec.get("std0_rule", "")))
+                               dict(rec.get("directions") or {}), str(rec.get("std0_rule", "")),
+                               tuple(rec.get("part_dims") or ()))
         except DisturbanceError as exc:
             raise DesignFileError(f"{path}: bad disturbance states: {exc}") from None
     model = augment(rom, dist)

@@ -18,7 +18,18 @@ and the LQR of the augmented ROM acts on them (docs/method.md):
 * ``output``: a bias of the sensors, F (n_y, n_d) (F = I: one bias per sensor), estimated and
   removed from the measurements, not acted on:
       a_{k+1} = A_k a_k + B_k du_k + B_w,k w_k,              dy_k = C_k a_k + F d_k + v_k.
-* both: d_{k+1} = d_k + eta_k, eta_k ~ N(0, diag(sigma_walk^2)); the prior d_0 ~ N(0,
+* combinations ``input+noise``, ``noise+output``, ``input+output``: the parts' states stacked,
+  d = [d_1; d_2] (the parts in the order input, noise, output), each part acting as its kind
+  does and with its own directions and priors. The map is block-diagonal over the parts'
+  channel spaces stacked in that order (rows n_u, n_w or n_y per part, columns n_d1, n_d2:
+  `part_views`). Budget (`split_dims`): n_d1 + n_d2 <= n_y; by default the first part takes
+  ceil(n_y / 2) (at most its channels) and the second the rest; `disturbance_dims` [n_1, n_2]
+  sets the split. Directions (`_combined`): the first part's as for its kind; the second's from
+  its step gain with the first part's output image Gamma_1 E_1 projected out,
+  (I - Q_1 Q_1') Gamma_2 (for an output part Gamma_2 = I: F spans the sensor-bias directions the
+  first part cannot explain), so the stacked step gain [Gamma_1 E_1, Gamma_2 E_2] has full
+  column rank (detectable together; recorded as "detectable", "rank_gamma_E").
+* all: d_{k+1} = d_k + eta_k, eta_k ~ N(0, diag(sigma_walk^2)); the prior d_0 ~ N(0,
   diag(sigma_0^2)) is not zero, so the filter starts from P_0 = blockdiag(0, diag(sigma_0^2))
   (`LTVModel.P0`), and so does every covariance recursion from k = 0.
 
@@ -45,21 +56,19 @@ weakly observed directions, where a boundary offset lives, too tight a prior (th
 K (`choose(..., K=None)`) the open-loop rule. The output kind: S_i = S_cl,i = 1 (F = I), a sensor
 bias of c bands. sigma_walk = `WALK_STD` = 0: a random walk only added cost for the same offset
 removal (measured).
+The model (`Disturbance`, `augment`): `sep_estimator.disturbance_model`, re-exported here.
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
-from sep_estimator.ltv import DenseFieldMap, FieldMap, LTVModel, PODFieldMap
+from sep_estimator.disturbance_model import *  # noqa: F401,F403  (the model; one API: sep_estimator.disturbance)
+from sep_estimator.disturbance_model import ACTING, KINDS, Disturbance, DisturbanceError, channels, parts, stacked
+from sep_estimator.ltv import LTVModel
 
-#: the disturbance models a design can have (`DesignSettings.disturbance`)
-KINDS = ("none", "input", "output", "noise")
-#: kinds whose states act through a channel matrix (B, or the noise channels B_w) along E
-ACTING = ("input", "noise")
 #: input directions kept: singular values of the step gain above this times the largest
 DIRECTION_RTOL = 1e-6
 #: default prior std: a bias that moves the outputs by STD0_BANDS bands (module docstring)
@@ -68,220 +77,28 @@ STD0_BANDS = 0.04
 WALK_STD = 0.0
 
 
-class DisturbanceError(ValueError):
-    """A disturbance setting that cannot be used (the message names the key to fix)."""
-
-
-@dataclass(frozen=True)
-class Disturbance:
-    """n_d disturbance states of the ROM filter (module docstring).
-
-    Parameters
-    ----------
-    kind : {"input", "noise", "output"}
-        Input bias (acts through B_k along E), forcing through the noise channels (B_w,k along
-        E_w) or sensor bias (adds F d_k to the outputs).
-    map : ndarray, shape (n_u, n_d), (n_w, n_d) or (n_y, n_d)
-        E (orthonormal input directions), E_w (noise-channel directions) or F (sensor directions).
-    std0 : ndarray, shape (n_d,)
-        Prior std sigma_0 of d_0 (mean zero).
-    walk_std : ndarray, shape (n_d,)
-        Random-walk std sigma_walk of d_{k+1} - d_k.
-    directions : dict
-        How the map was chosen (rule, the step gain's singular values, detectability).
-    std0_rule : str
-        How sigma_0 was chosen.
-    """
-
-    kind: str
-    map: np.ndarray
-    std0: np.ndarray
-    walk_std: np.ndarray
-    directions: dict[str, Any] = field(default_factory=dict)
-    std0_rule: str = ""
-
-    def __post_init__(self) -> None:
-        if self.kind not in KINDS[1:]:
-            raise DisturbanceError(f"disturbance kind must be one of {', '.join(KINDS[1:])}, got {self.kind!r}")
-        E = np.asarray(self.map, dtype=float)
-        s0, sw = np.asarray(self.std0, dtype=float), np.asarray(self.walk_std, dtype=float)
-        if E.ndim != 2 or E.shape[1] < 1 or s0.shape != (E.shape[1],) or sw.shape != (E.shape[1],):
-            raise DisturbanceError(f"disturbance map {E.shape}, std0 {s0.shape} and walk_std {sw.shape} do not "
-                                   "fit (map (n, n_d), stds (n_d,))")
-        for name, v in (("map", E), ("disturbance_std", s0), ("disturbance_walk_std", sw)):
-            if not np.all(np.isfinite(v)):
-                raise DisturbanceError(f"{name} must be finite")
-        if np.any(s0 < 0) or np.any(sw < 0):
-            raise DisturbanceError("disturbance_std and disturbance_walk_std must be >= 0")
-        object.__setattr__(self, "map", E)
-        object.__setattr__(self, "std0", s0)
-        object.__setattr__(self, "walk_std", sw)
-
-    @property
-    def n_d(self) -> int:
-        return int(self.map.shape[1])
-
-    def record(self) -> dict[str, Any]:
-        """meta["disturbance"] of a design file: kind, n_d, directions, std0_rule."""
-        return {"kind": self.kind, "n_d": self.n_d, "directions": dict(self.directions),
-                "std0_rule": self.std0_rule}
-
-
-def summary(dist: Disturbance | None) -> str:
-    """One phrase for logs and tables: 'none', 'input, n_d = 5', 'output, n_d = 3' (and
-    'NOT detectable' when the input directions' check failed)."""
-    if dist is None:
-        return "none"
-    bad = dist.directions.get("detectable") is False
-    return f"{dist.kind}, n_d = {dist.n_d}" + (" (NOT detectable)" if bad else "")
-
-
-def direction_labels(dist: Disturbance, input_names: Sequence[str], output_names: Sequence[str],
-                     terms: int = 3) -> list[str]:
-    """A name for each disturbance state: 'd_0 = bias of <output>' (output kind), or its input
-    direction by its largest weights, 'd_0 along +0.71 heater_1 +0.71 heater_2' (input kind; at
-    most `terms` inputs, '...' when more carry weight; the noise kind names its channels noise_j)."""
-    if dist.kind == "output":
-        out = []
-        for i in range(dist.n_d):
-            col = dist.map[:, i]
-            j = int(np.argmax(np.abs(col)))
-            single = np.count_nonzero(np.abs(col) > 1e-12) == 1
-            out.append(f"d_{i} = bias of {output_names[j]}" if single else f"d_{i} (sensor bias direction {i})")
-        return out
-    labels = []
-    input_names = channel_names(dist, input_names)
-    for i in range(dist.n_d):
-        col = dist.map[:, i]
-        order = np.argsort(-np.abs(col), kind="stable")
-        big = [j for j in order if abs(col[j]) >= 0.1 * np.abs(col).max()]
-        text = " ".join(f"{col[j]:+.2f} {input_names[j]}" for j in big[:terms])
-        labels.append(f"d_{i} along {text}" + (" ..." if len(big) > terms else ""))
-    return labels
-
-
-def channel_names(dist: Disturbance, input_names: Sequence[str]) -> list[str]:
-    """The names of the channels the map's rows stand for: the inputs (input kind), noise_0 ..
-    noise_{n_w-1} (noise kind)."""
-    if dist.kind == "noise":
-        return [f"noise_{j}" for j in range(dist.map.shape[0])]
-    return list(input_names)
-
-
-# --------------------------------------------------------------- the augmented model
-def padded_field_map(G: FieldMap, n_d: int) -> FieldMap:
-    """G_z = [G_k, 0] (n_field, n + n_d): the field does not depend on d. Same kind of map."""
-    if isinstance(G, PODFieldMap):
-        g = np.concatenate([G.g, np.zeros(G.g.shape[:2] + (n_d,))], axis=2)
-        return PODFieldMap(G.Phi, g)
-    if isinstance(G, DenseFieldMap):
-        return DenseFieldMap(np.concatenate([G.G, np.zeros(G.G.shape[:2] + (n_d,))], axis=2))
-    return PaddedFieldMap(G, n_d)
-
-
-class PaddedFieldMap:
-    """G_z = [G_k, 0] of any field map (the oracle's identity map of the full-order state) without
-    storing the padded matrices: every operation reads the first n columns."""
-
-    def __init__(self, G: FieldMap, n_d: int):
-        self.base, self.n_d = G, int(n_d)
-        self.n_field, self.n = int(G.n_field), int(G.n) + self.n_d
-
-    def apply(self, k: int, a: np.ndarray) -> np.ndarray:
-        return self.base.apply(k, a[..., :self.base.n])
-
-    def matrix(self, k: int) -> np.ndarray:
-        return np.concatenate([self.base.matrix(k), np.zeros((self.n_field, self.n_d))], axis=1)
-
-    def std(self, k: int, P: np.ndarray) -> np.ndarray:
-        return self.base.std(k, P[:self.base.n, :self.base.n])
-
-    def std_all(self, P: np.ndarray) -> np.ndarray:
-        n = self.base.n
-        return np.stack([self.base.std(k, P[k, :n, :n]) for k in range(P.shape[0])])
-
-    def gram(self, k: int) -> np.ndarray:
-        out = np.zeros((self.n, self.n))
-        out[:self.base.n, :self.base.n] = self.base.gram(k)
-        return out
-
-    def project(self, k: int, v: np.ndarray) -> np.ndarray:
-        p = self.base.project(k, v)
-        return np.concatenate([p, np.zeros(p.shape[:-1] + (self.n_d,))], axis=-1)
-
-
-def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
-    """The model on z = [a; d] (module docstring).
-
-    A_z = [[A, B E], [0, I]] (input), [[A, B_w E_w], [0, I]] (noise) or blockdiag(A, I) (output),
-    B_z = [B; 0], C_z = [C, 0] (input, noise) or [C, F] (output), G_z = [G, 0], B_w,z = blockdiag(B_w, I) (the walk's own
-    channels, `noise_covariance`), P0 = blockdiag(0, diag(sigma_0^2)).
-
-    Parameters
-    ----------
-    rom : LTVModel
-        The ROM on a (n_r states).
-    dist : Disturbance or None
-        The disturbance states; its map has n_u rows (input kind), n_w (noise) or n_y (output).
-
-    Returns
-    -------
-    LTVModel
-        The augmented model (n_r + n_d states, dims n_k + n_d); `rom` itself when `dist` is None.
-
-    Raises
-    ------
-    DisturbanceError
-        The disturbance map's rows do not match the ROM's inputs (input) or outputs (output).
-    """
-    if dist is None:
-        return rom
-    N, n, n_u, n_d = rom.n_steps, rom.n, rom.n_u, dist.n_d
-    expect = rom.n_y if dist.kind == "output" else channels(rom, dist.kind).shape[2]
-    if dist.map.shape[0] != expect:
-        what = {"input": "inputs", "noise": "noise channels", "output": "outputs"}[dist.kind]
-        raise DisturbanceError(f"{dist.kind} disturbance map has {dist.map.shape[0]} rows, the ROM has {expect} {what}")
-    nz = n + n_d
-    A = np.zeros((N, nz, nz))
-    A[:, :n, :n] = rom.A
-    A[:, n:, n:] = np.eye(n_d)
-    A[:, :n, n:] = cross_input(rom, dist)
-    B = np.concatenate([rom.B, np.zeros((N, n_d, n_u))], axis=1)
-    C = np.concatenate([rom.C, np.zeros(rom.C.shape[:2] + (n_d,))], axis=2)
-    if dist.kind == "output":
-        C[:, :, n:] = dist.map
-    Bw0 = rom.noise_input
-    n_w = Bw0.shape[2]
-    Bw = np.zeros((N, nz, n_w + n_d))
-    Bw[:, :n, :n_w] = Bw0
-    Bw[:, n:, n_w:] = np.eye(n_d)
-    P0 = np.zeros((nz, nz)) if rom.P0 is None else np.pad(rom.P0, (0, n_d))
-    P0[n:, n:] = np.diag(dist.std0**2)
-    return LTVModel(A=A, B=B, C=C, G=padded_field_map(rom.G, n_d), dims=np.asarray(rom.dims) + n_d, Bw=Bw, P0=P0)
-
-
-def noise_covariance(W: np.ndarray, dist: Disturbance | None) -> np.ndarray:
-    """W_z = blockdiag(W, diag(sigma_walk^2)): the process noise of the augmented model."""
-    if dist is None:
-        return W
-    n_w = W.shape[0]
-    out = np.zeros((n_w + dist.n_d,) * 2)
-    out[:n_w, :n_w] = W
-    out[n_w:, n_w:] = np.diag(dist.walk_std**2)
-    return out
-
-
-def channels(rom: LTVModel, kind: str) -> np.ndarray:
-    """The channel matrix a kind's states act through (N, n, n_c): B_k (input) or B_w,k (noise;
-    B_k for a model whose noise enters through the inputs, where the two kinds coincide)."""
-    return rom.noise_input if kind == "noise" else rom.B
-
-
-def cross_input(rom: LTVModel, dist: Disturbance | None) -> np.ndarray:
-    """The a-d block of A_z, (N, n_r, n_d): B_k E (input), B_w,k E_w (noise) or 0 (output, none)."""
-    if dist is None or dist.kind == "output":
-        return np.zeros((rom.n_steps, rom.n, 0 if dist is None else dist.n_d))
-    return channels(rom, dist.kind) @ dist.map
+def split_dims(kind: str, dims: int | Sequence[int] | None, n_y: int,
+               n_c: Sequence[int | None]) -> tuple[int, ...]:
+    """n_d per part of a combination (module docstring): `dims` as given ([n_1, n_2]), or the
+    default, the first part ceil(n_y / 2) and the second the rest, each at most its channels
+    n_c (None: unknown, not capped). Raises DisturbanceError naming what to change when the
+    parts do not fit n_1 + n_2 <= n_y."""
+    if dims is None:
+        n1 = (n_y + 1) // 2 if n_c[0] is None else min((n_y + 1) // 2, n_c[0])
+        n2 = n_y - n1 if n_c[1] is None else min(n_y - n1, n_c[1])
+        dims = (n1, n2)
+    elif np.ndim(dims) == 0:
+        raise DisturbanceError(f"disturbance_dims for the combination {kind} must be a list of two numbers, one "
+                               f"per part ({' then '.join(parts(kind))}), got {dims!r}")
+    dims = tuple(int(v) for v in dims)
+    if len(dims) != 2 or min(dims) < 1 or sum(dims) > n_y:
+        raise DisturbanceError(f"disturbance_dims {list(dims)} does not fit {kind} on {n_y} sensors: give two "
+                               f"numbers >= 1 (one per part: {', '.join(parts(kind))}) with n_1 + n_2 <= n_y = "
+                               f"{n_y} (at most n_y disturbances are detectable), or use a single kind")
+    for p, n, c in zip(parts(kind), dims, n_c):
+        if c is not None and n > c:
+            raise DisturbanceError(f"disturbance_dims: the {p} part has {c} channels, {n} directions asked")
+    return dims
 
 
 # ----------------------------------------------------------------- choosing d
@@ -305,17 +122,21 @@ def step_gain(rom: LTVModel, window: Sequence[int], K: np.ndarray | None = None,
 
 
 def input_directions(rom: LTVModel, window: Sequence[int], n_d: int | None = None,
-                     rtol: float = DIRECTION_RTOL, kind: str = "input"
+                     rtol: float = DIRECTION_RTOL, kind: str = "input", exclude: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """E (n_u, n_d'), the singular values S_1..S_nd' of Gamma E, and the record of the choice.
 
     The right singular vectors of `step_gain` with the largest singular values, n_d of them
     (default min(n_y, n_u)), less those whose singular value is at most `rtol` S_1 (not
     detectable at steady state). Raises DisturbanceError for n_d outside 1..min(n_y, n_u) or
-    when no direction is left. Kind 'noise': the same through the noise channels (n_w for n_u)."""
+    when no direction is left. Kind 'noise': the same through the noise channels (n_w for n_u).
+    `exclude` (n_y, m), orthonormal: output directions projected out of Gamma first,
+    (I - Q Q') Gamma (a combination's second part: at most n_y - m directions)."""
     G = step_gain(rom, window, kind=kind)
+    if exclude is not None:
+        G = G - exclude @ (exclude.T @ G)
     n_c = G.shape[1]
-    n_max = min(rom.n_y, n_c)
+    n_max = min(rom.n_y - (0 if exclude is None else exclude.shape[1]), n_c)
     n_d = n_max if n_d is None else int(n_d)
     if not 1 <= n_d <= n_max:
         what = "n_w" if kind == "noise" else "n_u"
@@ -354,8 +175,9 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
         The objective's band (output units), the scale of the prior std.
     window : (k0, k1)
         The band window: where the step gain is averaged.
-    dims : int, optional
-        n_d (default min(n_y, n_u) for input, n_y for output); at most n_y.
+    dims : int or (int, int), optional
+        n_d (default min(n_y, n_u) for input, n_y for output); at most n_y. A combination: n_d
+        per part (`split_dims`; default ceil(n_y / 2) for the first, the rest for the second).
     std : float or sequence of float, optional
         sigma_0 for every direction or per direction (overrides the rule).
     walk_std : float or sequence of float
@@ -386,12 +208,26 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     if kind == "none":
         return None
     asked = kind
-    if kind == "noise" and rom.Bw is None:      # B_w = B: the noise kind is the input kind
-        kind = "input"
-    E, S, S_cl, note = _directions(rom, kind, window, dims, K)
+    if rom.Bw is None and "noise" in kind:      # B_w = B: the noise kind is the input kind
+        kind = "+".join(dict.fromkeys(p.replace("noise", "input") for p in parts(kind)))
+        if "+" in asked and "+" not in kind and dims is not None:   # input+noise: one input part
+            dims = int(np.sum(dims))
+    if "+" in kind:
+        dist = _combined(rom, kind, band, window, dims, std, walk_std, bands, K, noise_std)
+    else:
+        dist = _single(rom, kind, band, window, dims, std, walk_std, bands, K, noise_std)
     if asked != kind:
-        note["asked_kind"] = asked
-        note["note"] = "the noise enters through the inputs (B_w = B): the noise kind is the input kind"
+        dist.directions["asked_kind"] = asked
+        dist.directions["note"] = "the noise enters through the inputs (B_w = B): the noise kind is the input kind"
+    return dist
+
+
+def _single(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | None,
+            std: float | Sequence[float] | None, walk_std: float | Sequence[float], bands: float,
+            K: np.ndarray | None, noise_std: np.ndarray | None, exclude: np.ndarray | None = None) -> Disturbance:
+    """`choose` for a single kind (the directions with the outputs' subspace `exclude` projected
+    out of the step gain, for a combination's second part)."""
+    E, S, S_cl, note = _directions(rom, kind, window, dims, K, exclude)
     n_d = E.shape[1]
     if std is None and kind == "noise" and noise_std is not None:
         std0, rule = _noise_prior_std(E, noise_std)
@@ -404,17 +240,63 @@ def choose(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: i
     return Disturbance(kind, E, std0, walk, note, rule)
 
 
-def _directions(rom: LTVModel, kind: str, window: Sequence[int], dims: int | None, K: np.ndarray | None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+def _combined(rom: LTVModel, kind: str, band: float, window: Sequence[int], dims: int | Sequence[int] | None,
+              std: float | Sequence[float] | None, walk_std: float | Sequence[float], bands: float,
+              K: np.ndarray | None, noise_std: np.ndarray | None) -> Disturbance:
+    """`choose` for a combination (module docstring): the parts chosen in order, the second with
+    the first's output image projected out, and the stacked step gain checked for rank n_d."""
+    n_c = [rom.n_y if p == "output" else channels(rom, p).shape[2] for p in parts(kind)]
+    n = split_dims(kind, dims, rom.n_y, n_c)
+    per = [None if v is None or np.ndim(v) == 0 else np.asarray(v, dtype=float) for v in (std, walk_std)]
+    for name, v in zip(("disturbance_std", "disturbance_walk_std"), per):
+        if v is not None and v.shape != (sum(n),):
+            raise DisturbanceError(f"{name} must be a number or a list of n_d = {sum(n)} numbers, got {v.tolist()}")
+    views: list[Disturbance] = []
+    Q = np.zeros((rom.n_y, 0))
+    for i, p in enumerate(parts(kind)):
+        sl = slice(sum(n[:i]), sum(n[:i + 1]))
+        s_i = std if per[0] is None else per[0][sl]
+        w_i = walk_std if per[1] is None else per[1][sl]
+        v = _single(rom, p, band, window, n[i], s_i, w_i, bands, K, noise_std, Q if i else None)
+        views.append(v)
+        Q = np.linalg.qr(np.hstack([Q, _image(rom, window, v)]))[0]
+    image = np.hstack([_image(rom, window, v) for v in views])
+    sv = np.linalg.svd(image, compute_uv=False)
+    rank = int(np.count_nonzero(sv > DIRECTION_RTOL * sv[0]))
+    note = {"rule": f"{kind}: the parts in order, each with the earlier parts' output images projected out of "
+                    "its band-window step gain", "split": list(n), "kept": [v.n_d for v in views],
+            "parts": [v.directions for v in views], "singular_values": [float(x) for x in sv],
+            "detectable": rank == image.shape[1], "rank_gamma_E": rank}
+    return stacked(kind, views, note, "; ".join(f"{v.kind}: {v.std0_rule}" for v in views))
+
+
+def _image(rom: LTVModel, window: Sequence[int], v: Disturbance) -> np.ndarray:
+    """Gamma E of a part (n_y, n_d): its band-window step gain along its directions (F: output)."""
+    return v.map if v.kind == "output" else step_gain(rom, window, kind=v.kind) @ v.map
+
+
+def _directions(rom: LTVModel, kind: str, window: Sequence[int], dims: int | None, K: np.ndarray | None,
+                exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """(E or F, the open-loop step gains S_i, the closed-loop ones S_cl,i, the record) of `kind`
-    (S_cl = S without K; both 1 for the output kind, F = I)."""
+    (S_cl = S without K; both 1 for the output kind, F = I). `exclude` (n_y, m), orthonormal:
+    output directions projected out of the step gain first (a combination's second part; the
+    output kind then has F spanning their complement, n_d <= n_y - m)."""
     if kind in ACTING:
-        E, S, note = input_directions(rom, window, dims, kind=kind)
+        E, S, note = input_directions(rom, window, dims, kind=kind, exclude=exclude)
         S_cl = S
         if K is not None:
             S_cl = np.linalg.norm(step_gain(rom, window, K, kind) @ E, axis=0)
             note["closed_loop_gains"] = [float(v) for v in S_cl]
         return E, S, S_cl, note
+    if exclude is not None:
+        U = np.linalg.svd(np.eye(rom.n_y) - exclude @ exclude.T)[0]
+        n_d = rom.n_y - exclude.shape[1] if dims is None else int(dims)
+        if not 1 <= n_d <= rom.n_y - exclude.shape[1]:
+            raise DisturbanceError(f"disturbance_dims: the output part can have 1..{rom.n_y - exclude.shape[1]} "
+                                   f"directions (n_y less the first part's), got {n_d}")
+        note = {"rule": "F: sensor-bias directions orthogonal to the first part's output image",
+                "singular_values": [1.0] * n_d, "detectable": True}
+        return U[:, :n_d], np.ones(n_d), np.ones(n_d), note
     n_d = rom.n_y if dims is None else int(dims)
     if n_d != rom.n_y:
         raise DisturbanceError(f"disturbance_dims must be n_y = {rom.n_y} for the output kind (one bias per "
@@ -461,6 +343,7 @@ def per_direction(name: str, value: float | Sequence[float], n_d: int) -> np.nda
     return np.broadcast_to(v, (n_d,)).astype(float)
 
 
-__all__ = ["KINDS", "ACTING", "channels", "channel_names", "Disturbance", "DisturbanceError", "summary", "direction_labels", "augment",
-           "noise_covariance", "choose", "input_directions", "step_gain", "padded_field_map", "cross_input",
-           "per_direction"]
+from sep_estimator.disturbance_model import __all__ as _model_all  # noqa: E402
+
+__all__ = [*_model_all, "DIRECTION_RTOL", "STD0_BANDS", "WALK_STD", "split_dims", "choose", "input_directions",
+           "step_gain", "per_direction"]

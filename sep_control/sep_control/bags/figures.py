@@ -36,6 +36,15 @@ from sep_plant import topics as T
 Reports = EpisodeReport | AggregateReport
 
 
+def disturbance_axis_label(kind: str | None) -> str:
+    """The disturbance figure's y label: 'input bias', 'forcing (noise channels)', 'sensor bias',
+    a combination's parts joined ('forcing (noise channels) / sensor bias'), 'd_hat' unknown."""
+    names = {"input": "input bias", "noise": "forcing (noise channels)", "output": "sensor bias"}
+    if kind is None or any(p not in names for p in kind.split("+")):
+        return "d_hat"
+    return " / ".join(names[p] for p in kind.split("+"))
+
+
 def unit_label(r: EpisodeReport) -> str:
     """' [unit]' of the plant's field ('' when the plant is not described or has no unit)."""
     info = r.info
@@ -246,7 +255,7 @@ def episode_disturbance_figure(rep: Reports, path: Path) -> Path | None:
     kind = r0.design.disturbance.kind if r0.design is not None and r0.design.disturbance is not None else None
     ax.axhline(0.0, color="0.5", lw=0.8)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel({"input": "input bias", "noise": "forcing (noise channels)", "output": "sensor bias"}.get(kind, "d_hat"))
+    ax.set_ylabel(disturbance_axis_label(kind))
     ax.set_title("disturbance estimates d_hat_k" + (" (mean over runs)" if len(reps) > 1 else ""))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")

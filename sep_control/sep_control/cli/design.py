@@ -9,6 +9,7 @@ from dataclasses import asdict
 from typing import Any
 
 from sep_estimator.design_file import save_design
+from sep_estimator.disturbance import KINDS as DISTURBANCE_KINDS
 from sep_estimator.disturbance import STD0_BANDS, DisturbanceError
 from sep_estimator.disturbance import summary as disturbance_summary
 
@@ -96,18 +97,21 @@ SETTINGS_OPTIONS = (
      "u in [0, 0.6] any c that binds costs the band (docs/robustness.md)", False),
     ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin", False),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude", False),
-    ("--disturbance", "disturbance", dict(choices=["input", "output", "noise", "none"]),
+    ("--disturbance", "disturbance", dict(choices=list(DISTURBANCE_KINDS[1:]) + ["none"]),
      "disturbance states of the ROM filter for offset-free tracking (docs/method.md): input = constant input "
      "biases along the input directions the sensors detect (the right singular vectors of the ROM's band-window "
      "step gain; a boundary, ambient or heater offset), removed by the LQR; noise = constant forcings where the "
      "process noise enters (its own channels: a distributed source; the input kind when the noise is on the "
-     "inputs); output = one bias per sensor, removed from the estimate; none = the plain LQG", True),
+     "inputs); output = one bias per sensor, removed from the estimate; input+noise, noise+output, input+output = "
+     "two kinds' states stacked, n_d <= n_y split between them (docs/robustness.md); none = the plain LQG", True),
     ("--disturbance-std", "disturbance_std", dict(type=float, nargs="+"),
      "prior std of the disturbances: one number, or one per direction (default: c band / sqrt(S_i S_cl,i), a bias "
      f"moving the outputs by c = {STD0_BANDS:g} bands along direction i, S_i and S_cl,i its open-loop and "
      "plain-LQR closed-loop step gains; output kind: c band)", False),
-    ("--disturbance-dims", "disturbance_dims", dict(type=int),
-     "number of disturbance states n_d, at most n_y (input default: min(n_y, n_u); output: n_y)", False),
+    ("--disturbance-dims", "disturbance_dims", dict(type=int, nargs="+"),
+     "number of disturbance states n_d, at most n_y (input default: min(n_y, n_u); output: n_y); a combination: "
+     "two numbers, n_d per part, n_1 + n_2 <= n_y (default ceil(n_y / 2) for the first part, the rest for the "
+     "second)", False),
     ("--disturbance-walk-std", "disturbance_walk_std", dict(type=float, nargs="+"),
      "random-walk std of the disturbances per step: one number, or one per direction (0: constant biases)",
      False),
@@ -163,6 +167,8 @@ def settings_from_args(args: argparse.Namespace, scenario) -> DesignSettings:
     for key in ("disturbance_std", "disturbance_walk_std"):      # one number: for every direction
         if isinstance(given.get(key), list) and len(given[key]) == 1:
             given[key] = given[key][0]
+    if isinstance(given.get("disturbance_dims"), list) and len(given["disturbance_dims"]) == 1:
+        given["disturbance_dims"] = given["disturbance_dims"][0]
     try:
         return DesignSettings.for_scenario(scenario, memory_budget=memory_budget_or_exit(args.memory_budget),
                                            **given)

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from sep_estimator.disturbance import ACTING, DisturbanceError, parts, split_dims
 from sep_estimator.disturbance import KINDS as DISTURBANCE_KINDS
 from sep_estimator.disturbance import WALK_STD, Disturbance, choose
 from sep_estimator.ltv import LTVModel
@@ -94,14 +95,16 @@ class DesignSettings:
         Keep this many closed-loop input stds inside u_min/u_max (0: none).
     margin_iterations : int
         Nominal + LQG redesigns with the tightened limits.
-    disturbance : {"input", "output", "noise", "none"}
+    disturbance : {"input", "output", "noise", "none", "input+noise", "noise+output", "input+output"}
         Disturbance states of the ROM filter for offset-free tracking (`sep_estimator.disturbance`):
-        input biases along the detectable input directions, one bias per sensor, or none.
+        input biases along the detectable input directions, forcings along the noise channels'
+        directions, one bias per sensor, a combination of two (stacked), or none.
     disturbance_std : float or list of float, optional
         Prior std sigma_0 of the disturbances, for all or per direction (None: the rule
         c band / sqrt(S_i S_cl,i), c = `sep_estimator.disturbance.STD0_BANDS`).
-    disturbance_dims : int, optional
-        n_d, at most n_y (None: min(n_y, n_u) for input, n_y for output).
+    disturbance_dims : int or [int, int], optional
+        n_d, at most n_y (None: min(n_y, n_u) for input, n_y for output); a combination: n_d per
+        part, n_1 + n_2 <= n_y (None: ceil(n_y / 2) for the first, the rest for the second).
     disturbance_walk_std : float or list of float
         Random-walk std of the disturbances per step (0: constant biases).
     """
@@ -132,7 +135,7 @@ class DesignSettings:
     margin_iterations: int = 2
     disturbance: str = "input"
     disturbance_std: float | list[float] | None = None
-    disturbance_dims: int | None = None
+    disturbance_dims: int | list[int] | None = None
     disturbance_walk_std: float | list[float] = WALK_STD
 
     def __post_init__(self) -> None:
@@ -177,7 +180,13 @@ class DesignSettings:
         if self.disturbance not in DISTURBANCE_KINDS:
             raise ValueError(f"disturbance must be one of {', '.join(DISTURBANCE_KINDS)}, got {self.disturbance!r}")
         dims = self.disturbance_dims
-        if dims is not None and (isinstance(dims, bool) or not isinstance(dims, (int, np.integer)) or dims < 1):
+        combined = "+" in self.disturbance
+        if combined and dims is not None and not (isinstance(dims, (list, tuple)) and len(dims) == 2 and all(
+                isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1 for v in dims)):
+            raise ValueError(f"disturbance_dims of the combination {self.disturbance} must be two integers >= 1 "
+                             f"(one per part: {', '.join(parts(self.disturbance))}), got {dims!r}")
+        if not combined and dims is not None and (isinstance(dims, bool) or not isinstance(dims, (int, np.integer))
+                                                  or dims < 1):
             raise ValueError(f"disturbance_dims must be an integer >= 1, got {dims!r}")
         for name in ("disturbance_std", "disturbance_walk_std"):
             v = getattr(self, name)
@@ -196,6 +205,13 @@ class DesignSettings:
         stds of another length than n_d."""
         if self.disturbance == "none":
             return
+        if "+" in self.disturbance:
+            try:
+                n_c = [{"input": n_u, "output": n_y}.get(p) for p in parts(self.disturbance)]
+                n_d = sum(split_dims(self.disturbance, self.disturbance_dims, n_y, n_c))
+            except DisturbanceError as exc:
+                raise ValueError(str(exc)) from None
+            return self._check_std_lengths(n_d)
         n_max = n_y if self.disturbance == "output" else n_y if self.disturbance == "noise" else min(n_y, n_u)
         n_d = n_max if self.disturbance_dims is None else int(self.disturbance_dims)
         if n_d > n_y:
@@ -205,6 +221,10 @@ class DesignSettings:
             raise ValueError(f"disturbance_dims = {n_d} does not fit the {self.disturbance} kind: "
                              + (f"at most n_u = {n_u} input directions" if self.disturbance == "input"
                                 else f"one bias per sensor, n_d = n_y = {n_y}"))
+        self._check_std_lengths(n_d)
+
+    def _check_std_lengths(self, n_d: int) -> None:
+        """ValueError when a list of disturbance stds has another length than n_d."""
         for name in ("disturbance_std", "disturbance_walk_std"):
             v = getattr(self, name)
             if v is not None and np.ndim(v) == 1 and len(v) != n_d:
@@ -216,9 +236,9 @@ class DesignSettings:
         gains); None for 'none'."""
         if self.disturbance == "none":
             return None
-        K = lqr_gains(rom, problem)[0] if self.disturbance in ("input", "noise") and self.disturbance_std is None \
-            else None
-        w = problem.channels("w_std", rom.noise_input.shape[2]) if self.disturbance == "noise" else None
+        acting = any(p in ACTING for p in parts(self.disturbance))
+        K = lqr_gains(rom, problem)[0] if acting and self.disturbance_std is None else None
+        w = problem.channels("w_std", rom.noise_input.shape[2]) if "noise" in parts(self.disturbance) else None
         return choose(rom, self.disturbance, float(problem.band), problem.window, dims=self.disturbance_dims,
                       std=self.disturbance_std, walk_std=self.disturbance_walk_std, K=K, noise_std=w)
 

@@ -242,18 +242,29 @@ def gains_stage(identified: IdentificationStage, problem: Problem, st: DesignSet
 
 
 def describe_disturbance(dist) -> str:
-    """One log line: the disturbance model, its directions and covariance, and how they were chosen."""
+    """One log line: the disturbance model, its directions and covariance, and how they were chosen
+    (a combination: each part's directions, and whether the stacked step gain has full rank)."""
     if dist is None:
         return "disturbance states: none (no offset-free tracking)"
     d = dist.directions
-    sv = ", ".join(f"{v:.3g}" for v in d.get("singular_values", []))
-    where = (f"input directions E: right singular vectors of the band-window step gain (singular values {sv}); "
-             f"kept {d.get('kept')} of {d.get('asked')}, detectable {'yes' if d.get('detectable') else 'NO'}"
-             if dist.kind in ("input", "noise") else "F = I (one bias per sensor)")
+    if len(dist.part_dims) > 1:
+        where = "; ".join(f"{p}: {_where(p, r)}" for p, r in zip(dist.kind.split("+"), d.get("parts", [{}, {}])))
+        where += f"; detectable together {'yes' if d.get('detectable') else 'NO'}"
+    else:
+        where = _where(dist.kind, d)
     std0 = ", ".join(f"{v:.3g}" for v in dist.std0)
     walk = ", ".join(f"{v:.3g}" for v in dist.walk_std) if np.any(dist.walk_std) else "0 (constant)"
     return (f"disturbance states: {dist.kind}, n_d = {dist.n_d}; {where}; prior std {std0} "
             f"({dist.std0_rule}); random-walk std {walk}")
+
+
+def _where(kind: str, d: dict) -> str:
+    """How a single kind's directions were chosen, for `describe_disturbance`."""
+    if kind not in ("input", "noise"):
+        return d.get("rule", "F = I (one bias per sensor)")
+    sv = ", ".join(f"{v:.3g}" for v in d.get("singular_values", []))
+    return (f"input directions E: right singular vectors of the band-window step gain (singular values {sv}); "
+            f"kept {d.get('kept')} of {d.get('asked')}, detectable {'yes' if d.get('detectable') else 'NO'}")
 
 
 def field_map_stage(gains: GainsResult, st: DesignSettings, ctx: StageContext) -> LQG:
