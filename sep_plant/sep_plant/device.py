@@ -29,6 +29,7 @@ import numpy as np
 
 from sep_plant.plants.backend import namespace, to_host
 from sep_plant.plants.blocks import step_in_blocks
+from sep_plant.wrapping import PlantWrapper
 
 DEVICES = ("cpu", "cuda")
 
@@ -130,7 +131,7 @@ def device_runs_per_batch(plant: Any, n_arrays: int = DEVICE_RUN_COPIES, share: 
     return max(1, (int(share * device_memory(xp)) - block) // per_run)
 
 
-class DevicePlant:
+class DevicePlant(PlantWrapper):
     """A device-capable plant whose batched steps run on the array module `xp` (host arrays in
     and out; see the module docstring). Every other attribute is the wrapped plant's."""
 
@@ -146,32 +147,19 @@ class DevicePlant:
         plant = copy.copy(plant)                    # its own block size; the caller's plant is untouched
         if hasattr(plant, "block_nodes"):
             plant.block_nodes = int(block_nodes)    # a device block is stepped whole
-        object.__setattr__(self, "_plant", plant)
+        super().__init__(plant)
         object.__setattr__(self, "xp", xp)
         object.__setattr__(self, "device", name)
         object.__setattr__(self, "block_nodes", int(block_nodes))
         object.__setattr__(self, "stats", TransferStats())
         object.__setattr__(self, "timing", False)
 
-    @property
-    def plant(self) -> Any:
-        """The wrapped plant (stepping numpy arrays on the CPU)."""
-        return self._plant
-
-    def __getattr__(self, name: str) -> Any:
-        if name.startswith("__") or name in self._OWN:
-            raise AttributeError(name)
-        return getattr(self._plant, name)
-
     def __setattr__(self, name: str, value: Any) -> None:
         """The wrapper's own names and methods (e.g. a timing wrapper of `step`) stay here; any
         other attribute (`solver`, ...) is the plant's."""
         if name == "block_nodes" and hasattr(self._plant, "block_nodes"):
             self._plant.block_nodes = int(value)    # a device block is stepped whole
-        if name in self._OWN or hasattr(type(self), name):
-            object.__setattr__(self, name, value)
-        else:
-            setattr(self._plant, name, value)
+        super().__setattr__(name, value)
 
     def __delattr__(self, name: str) -> None:
         if name in self.__dict__:
@@ -185,7 +173,6 @@ class DevicePlant:
     def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """x_{k+1} = f(x_k, u_k + w_k), stepped on the device a block of runs at a time; a new
         host array (the round trip: what a caller that keeps no state on the device pays)."""
-        xp = self.xp
         X = np.asarray(x, dtype=float)
         single = X.ndim == 1
         X = np.atleast_2d(X)

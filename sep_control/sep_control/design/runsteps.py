@@ -25,6 +25,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from sep_plant.wrapping import PlantWrapper
+
 #: the stages a design's run-steps are reported by (docs/reference/design-file.md)
 STAGES = ("nominal", "belief", "identification", "validation")
 
@@ -58,31 +60,15 @@ class RunStepMeter:
         return {**{k: int(v) for k, v in self.counts.items()}, "total": self.total}
 
 
-class MeteredPlant:
+class MeteredPlant(PlantWrapper):
     """A plant whose `step` counts its runs on a `RunStepMeter`; every other attribute is the
     wrapped plant's (its `plant`)."""
 
     _OWN = ("_plant", "meter")
 
     def __init__(self, plant: Any, meter: RunStepMeter):
-        object.__setattr__(self, "_plant", plant)
+        super().__init__(plant)
         object.__setattr__(self, "meter", meter)
-
-    @property
-    def plant(self) -> Any:
-        """The wrapped plant."""
-        return self._plant
-
-    def __getattr__(self, name: str) -> Any:
-        if name.startswith("__") or name in self._OWN:
-            raise AttributeError(name)
-        return getattr(self._plant, name)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if name in self._OWN:
-            object.__setattr__(self, name, value)
-        else:
-            setattr(self._plant, name, value)
 
     def step(self, x: Any, u: Any, w: Any = None) -> Any:
         """The plant's step of the runs x (one run for a 1-D x), counted."""

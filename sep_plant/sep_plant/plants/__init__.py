@@ -51,22 +51,24 @@ def available() -> dict[str, str]:
     return out
 
 
-def _import(target: str, what: str) -> type:
+def import_target(target: str, what: str, error: type[Exception] = PlantTypeError) -> Any:
+    """The callable named ``"package.module:attr"`` (a plant class or factory, an env factory);
+    `error` (naming `what`) when it cannot be imported or is not callable."""
     module, _, attr = target.partition(":")
     if not module or not attr:
-        raise PlantTypeError(f"{what}: expected 'package.module:ClassName', got {target!r}")
+        raise error(f"{what}: expected 'package.module:ClassName', got {target!r}")
     try:
         mod = importlib.import_module(module)
     except ImportError as exc:
-        raise PlantTypeError(f"{what}: cannot import module {module!r} ({exc}); install the package "
-                             "that provides it or put it on PYTHONPATH") from None
+        raise error(f"{what}: cannot import module {module!r} ({exc}); install the package "
+                    "that provides it or put it on PYTHONPATH") from None
     obj: Any = mod
     for part in attr.split("."):
         obj = getattr(obj, part, None)
         if obj is None:
-            raise PlantTypeError(f"{what}: module {module!r} has no {attr!r}")
+            raise error(f"{what}: module {module!r} has no {attr!r}")
     if not callable(obj):
-        raise PlantTypeError(f"{what}: {target!r} is not a class or factory")
+        raise error(f"{what}: {target!r} is not a class or factory")
     return obj
 
 
@@ -76,7 +78,7 @@ def resolve(type_name: str) -> type:
         raise PlantTypeError(f"plant type must be a non-empty string, got {type_name!r}")
     name = type_name.strip()
     if name in BUILTIN:
-        return _import(BUILTIN[name], f"built-in plant {name!r}")
+        return import_target(BUILTIN[name], f"built-in plant {name!r}")
     eps = _entry_points()
     if name in eps:
         try:
@@ -85,7 +87,7 @@ def resolve(type_name: str) -> type:
             raise PlantTypeError(f"plant {name!r} (entry point {eps[name].value!r} in group "
                                  f"{ENTRY_POINT_GROUP!r}) failed to load: {type(exc).__name__}: {exc}") from None
     if ":" in name:
-        return _import(name, f"plant {name!r}")
+        return import_target(name, f"plant {name!r}")
     known = ", ".join(sorted(available()))
     raise PlantTypeError(f"unknown plant type {name!r}: known types are {known}; or give "
                          "'package.module:ClassName', or register an entry point in group "
@@ -133,5 +135,5 @@ def _accepted(cls) -> str:
     return f" (accepted keys: {', '.join(params)})" if params else ""
 
 
-__all__ = ["BUILTIN", "ENTRY_POINT_GROUP", "PlantConfigError", "PlantTypeError", "available", "make_plant",
+__all__ = ["BUILTIN", "ENTRY_POINT_GROUP", "PlantConfigError", "PlantTypeError", "available", "import_target", "make_plant",
            "resolve", "type_name_of"]

@@ -33,7 +33,6 @@ Numpy only here; gymnasium is needed by the env itself.
 """
 from __future__ import annotations
 
-import importlib
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -45,20 +44,11 @@ __all__ = ["GymPlant", "fourier_noise_basis", "load_factory"]
 
 def load_factory(target: str) -> Callable[..., Any]:
     """The env factory named ``"package.module:callable"``."""
-    if not isinstance(target, str) or ":" not in target:
+    from sep_plant.plants import import_target    # the registry's own resolution (a plant error here)
+
+    if not isinstance(target, str):
         raise PlantConfigError(f"env must be 'package.module:callable', got {target!r}")
-    module, _, attr = target.partition(":")
-    try:
-        obj: Any = importlib.import_module(module)
-    except ImportError as exc:
-        raise PlantConfigError(f"env: cannot import {module!r} ({exc})") from None
-    for part in attr.split("."):
-        obj = getattr(obj, part, None)
-        if obj is None:
-            raise PlantConfigError(f"env: module {module!r} has no {attr!r}")
-    if not callable(obj):
-        raise PlantConfigError(f"env: {target!r} is not callable")
-    return obj
+    return import_target(target, "env", PlantConfigError)
 
 
 def fourier_noise_basis(n: int, k: int) -> np.ndarray:
