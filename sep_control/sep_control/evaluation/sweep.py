@@ -108,6 +108,7 @@ def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, se
     model, _ = tv_era(data, design.n_steps, p, q, n_r, sv_tol)
     m = simulate(plant, with_rom(design, model), "rom_lqg", seed, runs, keep_estimates=0,
                  keep_trajectories=0).metrics()
-    return {"n_r": n_r, "n_r_used": int(model.dims.max()), "markov_rel_error": markov_relative_error(model, data.Y),
+    return {"n_r": n_r, "n_r_used": int(model.dims.max()),
+            "markov_rel_error": markov_relative_error(model, data.Y, data.noise),
             "cost_mean": m["cost_mean"], "in_band": m["in_band"]}
 
