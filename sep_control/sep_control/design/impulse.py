@@ -97,7 +97,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
                         scheme: str = "central", chunks: int = 1, engine=None,
                         U_ext: np.ndarray | None = None, noise: NoiseSketch | None = None,
-                        start: int = 0) -> MarkovData:
+                        start: int = 0, inputs_only: bool = False) -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
@@ -121,6 +121,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     T_c = phi_c' Phi. The result depends on the chunk plan, never on which worker finished first.
     `noise`: impulses on the sketch's r_w combinations of the noise channels instead of on each
     (`sep_control.design.noise_sketch`; start step j uses the combinations of step start + j).
+    `inputs_only`: impulses on the n_u inputs only, none on the noise channels.
     """
     from sep_control.compute.engine import InProcess
 
@@ -133,7 +134,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     U_ext = extend_nominal(U, lags) if U_ext is None else U_ext[:N + lags]
     if Xbar_ext is None:
         Xbar_ext = nominal_states(plant, U_ext)
-    n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
+    n_w = 0 if inputs_only or getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
     if noise is not None:
         if noise.n_w != n_w:
             raise ValueError(f"a noise sketch of {noise.n_w} channels for a plant with {n_w}")

@@ -108,6 +108,16 @@ def sketch_for(n_w: int, w_std, probes: int | None = None) -> NoiseSketch | None
     return NoiseSketch(tuple(float(v) for v in std), r)
 
 
+def identified_noise_channels(plant, w_std) -> int:
+    """The noise channels a design's experiments step beside the inputs: none when the noise is
+    on the inputs, the sketch's r_w above SKETCH_FROM channels, else every one (n_w)."""
+    from sep_plant.protocol import noise_channels
+
+    n_w = 0 if getattr(plant, "noise_on_inputs", True) else int(noise_channels(plant))
+    sketch = sketch_for(n_w, w_std) if n_w else None
+    return n_w if sketch is None else sketch.rank
+
+
 def trace_std_error(Bs: np.ndarray, sketch: NoiseSketch, start: int = 0) -> float:
     """The median over start steps of the relative standard error of tr Q^_j from its r_w probes:
     std(t) / (mean(t) sqrt(r_w)), t_i = (c s_i)^2 |b~_i|^2 the probes' shares of the trace."""

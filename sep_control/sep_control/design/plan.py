@@ -15,7 +15,7 @@ from sep_plant.problem import Problem
 from sep_plant.protocol import Plant, noise_channels
 
 from sep_control.design.impulse import experiment_run_steps
-from sep_control.design.noise_sketch import sketch_for
+from sep_control.design.noise_sketch import identified_noise_channels
 from sep_control.design.runsteps import STAGES
 
 #: run-steps per horizon step and per channel above which the plan warns (the reference with
@@ -39,8 +39,7 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
     (resolved: `DesignSettings.for_plant`)."""
     N, lags = problem.n_steps, st.p + st.q
     n_u, n_w = channels(plant)
-    sketch = sketch_for(n_w, problem.w_std) if n_w else None    # many channels: r_w combinations
-    n_ch = n_u + (n_w if sketch is None else sketch.rank)
+    n_ch = n_u + identified_noise_channels(plant, problem.w_std)    # many channels: r_w combinations
     ident = experiment_run_steps(N, n_ch, lags, st.impulse_scheme) + N + lags
     jac = st.resolved_jacobian_for(plant, N)
     if jac == "rom":
