@@ -61,20 +61,24 @@ def main() -> None:
     args = ap.parse_args()
     problem = Problem(n_steps=args.steps, target=0.3, band=0.05, w_std=args.w_std, v_std=0.02, u_init=0.2, r_u=0.01)
     st = DesignSettings(experiment_plan=args.plan)
-    rows = [row("modes 8", ReactionDiffusionPlant(args.nodes, noise_modes=8), problem, st, args.runs)]
-    every = ReactionDiffusionPlant(args.nodes)
-    with mock.patch.object(noise_sketch, "SKETCH_PROBES", args.probes):
-        rows.append(row(f"every node, sketch {args.probes}", every, problem, st, args.runs))
-    if args.exact:
-        with mock.patch.object(noise_sketch, "SKETCH_FROM", 10**9):
-            rows.append(row("every node, exact", every, problem, st, args.runs))
     keys = ["row", "n_w", "hankel_cols", "run_steps", "design_s", "markov", "cost", "in_band", "cov2"]
     print(f"reaction-diffusion, {args.nodes} nodes, N = {args.steps}, w_std {args.w_std:g}, plan {args.plan}, "
           f"{args.runs} runs (seed 1)")
-    print(" | ".join(keys))
-    for r in rows:
+    print(" | ".join(keys), flush=True)
+    rows = []
+
+    def add(r: dict) -> None:
+        rows.append(r)
         print(" | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else f"{r[k]:,}" if isinstance(r[k], int)
-                         else str(r[k]) for k in keys))
+                         else str(r[k]) for k in keys), flush=True)
+
+    add(row("modes 8", ReactionDiffusionPlant(args.nodes, noise_modes=8), problem, st, args.runs))
+    every = ReactionDiffusionPlant(args.nodes)
+    with mock.patch.object(noise_sketch, "SKETCH_PROBES", args.probes):
+        add(row(f"every node, sketch {args.probes}", every, problem, st, args.runs))
+    if args.exact:
+        with mock.patch.object(noise_sketch, "SKETCH_FROM", 10**9):
+            add(row("every node, exact", every, problem, st, args.runs))
     base = rows[0]
     for r in rows[1:]:
         print(f"{r['row']} / modes 8: run-steps {r['run_steps'] / base['run_steps']:.2f}x, "
