@@ -3,11 +3,12 @@
     x_{k+1} = S(x_k, u_k) + Phi w_k,   S: m explicit Euler substeps of dt/m of
     dx/dt = D L x + a x - b x^3 + B u
 
-(m the fewest that keep D dt / (m h^2) <= 0.4) on n_x nodes of a rod of length 1 (L: the second difference, zero-flux ends), n_u Gaussian
-actuators, n_y point sensors, the field the state itself. The process noise is additive on
-the state, not on the inputs (`noise_on_inputs` False): `noise_modes` None puts one channel on
-every node (Phi = I, n_w = n_x); an integer k keeps the k slowest cosine modes of the rod
-(Phi = their orthonormal columns, n_w = k), the plant with a few channels.
+(m the fewest that keep D dt / (m h^2) <= 0.4) on n_x nodes of a rod of length 1 (L: the
+second difference, zero-flux ends), n_u Gaussian actuators, n_y point sensors, the field the
+state itself. The process noise is additive on the state, not on the inputs (`noise_on_inputs`
+False): `noise_modes` None puts one channel on every node (Phi = I, n_w = n_x); an integer k
+keeps the k slowest cosine modes of the rod (Phi = their orthonormal columns, n_w = k), the
+plant with a few channels.
 """
 from __future__ import annotations
 

@@ -293,8 +293,9 @@ class _Ring:
         if k < N:
             Uk[s * rows:(s + 1) * rows] += self.pert[:, :n_u]
             if n_w:
-                pw = self.pert[:, n_u:]
-                Wk[s * rows:(s + 1) * rows] += pw if self.noise is None else pw @ self.noise.directions(self.start + k).T
+                pw = self.pert[:, n_u:]            # a sketch's combination i: delta d_{start+k, i}
+                Wk[s * rows:(s + 1) * rows] += pw if self.noise is None else \
+                    pw @ self.noise.directions(self.start + k).T
             X[:used] = self.step(X[:used], Uk, Wk)
         else:   # ramp-down: step only the slots still in an experiment (one or two ring ranges)
             for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < self.lags))):
