@@ -51,6 +51,9 @@ def test_identification_of_every_node_uses_the_sketch_and_keeps_the_plant_channe
     assert ident.data.noise is not None and ident.data.Y.shape[-1] == plant.n_u + SKETCH_PROBES
     assert ident.model.Bw.shape == (30, 10, 81)
     assert markov_relative_error(ident.model, ident.data.Y, ident.data.noise) < 0.2
+    # the combinations belong to the start step, whatever chunk runs it
+    chunked = identify(plant, U, 5, 5, 10, noise_std=0.003, chunks=3)
+    np.testing.assert_array_equal(chunked.data.Y, ident.data.Y)
     few = identify(ReactionDiffusionPlant(n_x=81, noise_modes=SKETCH_FROM), U, 5, 5, 10)
     assert few.data.noise is None and few.data.Y.shape[-1] == plant.n_u + SKETCH_FROM   # at the threshold: exact
 
