@@ -50,14 +50,20 @@ def test_design_records_run_steps_per_stage_and_the_plan_estimates_them():
 
 def test_plan_warns_on_many_noise_channels_naming_them():
     class Noisy:
-        n_u, n_y, n_x, n_field, noise_on_inputs, n_w = 2, 3, 300, 300, False, 300
+        n_u, n_y, n_x, n_field, noise_on_inputs, n_w = 2, 3, 300, 300, False, 60
 
     problem = reference().problem
     st = DesignSettings()
     plan = design_plan(Noisy(), problem, st)
-    assert plan["matrices"]["hankel"] == (st.p * 3, st.q * 302)
+    assert plan["matrices"]["hankel"] == (st.p * 3, st.q * 62)
     warnings = plan_warnings(plan, problem.n_steps)
     assert any("process-noise channels" in w and "noise_on_inputs" in w for w in warnings)
+    Noisy.n_w = 300           # above SKETCH_FROM: identified on SKETCH_PROBES combinations, no warning
+    from sep_control.design.noise_sketch import SKETCH_PROBES
+
+    plan = design_plan(Noisy(), problem, st)
+    assert plan["matrices"]["hankel"] == (st.p * 3, st.q * (2 + SKETCH_PROBES))
+    assert plan_warnings(plan, problem.n_steps) == []
     few = design_plan(reference().plant, problem, st)
     assert plan_warnings(few, problem.n_steps) == []
 

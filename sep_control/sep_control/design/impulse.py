@@ -29,6 +29,7 @@ from sep_plant.protocol import Plant, noise_channels, nominal_states
 from sep_control.compute.budget import default_budget, runs_per_batch, worker_budget
 from sep_control.compute.progress import progress
 from sep_control.design.basis import IncrementalBasis
+from sep_control.design.noise_sketch import NoiseSketch
 from sep_control.design.runsteps import meter_of, unmetered
 
 #: relative tolerance of the field responses' basis (against the largest response) and of its
@@ -50,7 +51,8 @@ class MarkovData:
     field Markov parameters Yf_{j+l, j} (n_field, n_ch), lags 1..Lf, kept as coefficients on an
     orthonormal basis of the field responses: Yf[j, l] = basis @ Yc[j, l] (see `sep_control.design.basis`:
     memory n_field r + N Lf r n_ch instead of N Lf n_field n_ch).
-    Channels: the n_u inputs, then the noise channels (only when noise is not on the inputs).
+    Channels: the n_u inputs, then the noise channels (only when noise is not on the inputs), or
+    r_w random combinations of them per start step when `noise` is a sketch (`noise_sketch`).
     """
     Y: np.ndarray          # (N, L, n_y, n_ch)
     Yc: np.ndarray         # (N, Lf, r, n_ch) field responses on `basis`
@@ -58,6 +60,7 @@ class MarkovData:
     delta: float
     experiments: int
     n_u: int               # the first n_u channels are the inputs
+    noise: NoiseSketch | None = None   # the noise channels' probes when sketched (`noise_sketch`)
 
     @property
     def Y_inputs(self) -> np.ndarray:
@@ -93,7 +96,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                         Xbar_ext: np.ndarray | None = None, show_progress: bool = False,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
                         scheme: str = "central", chunks: int = 1, engine=None,
-                        U_ext: np.ndarray | None = None) -> MarkovData:
+                        U_ext: np.ndarray | None = None, noise: NoiseSketch | None = None,
+                        start: int = 0, inputs_only: bool = False) -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
@@ -115,6 +119,9 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     field_tol relative to the largest response of all chunks, so the merged basis is what one
     chunk would give (the same rank to +-2), and the coefficients become C_c' T_c with
     T_c = phi_c' Phi. The result depends on the chunk plan, never on which worker finished first.
+    `noise`: impulses on the sketch's r_w combinations of the noise channels instead of on each
+    (`sep_control.design.noise_sketch`; start step j uses the combinations of step start + j).
+    `inputs_only`: impulses on the n_u inputs only, none on the noise channels.
     """
     from sep_control.compute.engine import InProcess
 
@@ -127,7 +134,11 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     U_ext = extend_nominal(U, lags) if U_ext is None else U_ext[:N + lags]
     if Xbar_ext is None:
         Xbar_ext = nominal_states(plant, U_ext)
-    n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
+    n_w = 0 if inputs_only or getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
+    if noise is not None:
+        if noise.n_w != n_w:
+            raise ValueError(f"a noise sketch of {noise.n_w} channels for a plant with {n_w}")
+        n_w = noise.rank
     n_ch = n_u + n_w
     n_y, n_f = int(plant.n_y), int(plant.n_field)
     in_process = engine.local
@@ -139,7 +150,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     shared = dict(plant=engine.ship(plant if in_process else unmetered(plant)), U_ext=U_ext, lags=lags,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
-                  n_chunks=len(plan))
+                  n_chunks=len(plan), noise=noise, start=start)
     tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
     labels = [f"plant {type(base_plant(unmetered(plant))).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
               f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
@@ -148,7 +159,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     if meter is not None:
         meter.add(experiment_run_steps(N, n_ch, lags, scheme, len(groups)))
     Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
-    return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * N * n_ch, n_u)
+    return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * N * n_ch, n_u, noise)
 
 
 def experiment_run_steps(N: int, n_ch: int, lags: int, scheme: str = "central", groups: int = 1) -> int:
@@ -201,7 +212,8 @@ def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, in
 
 def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
                    groups: list[np.ndarray], n_u: int, n_w: int, scheme: str, field_tol: float,
-                   bar_desc: str | None = None, n_chunks: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   bar_desc: str | None = None, n_chunks: int = 1, noise: NoiseSketch | None = None,
+                   start: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One experiment chunk (start steps j0..j1-1, every channel group): returns its output
     Markov parameters Y (j1-j0, lags, n_y, n_ch), its field basis phi (n_f, r_c) and the field
     coefficients Yc (j1-j0, field_lags, r_c, n_ch) on it. `plant` is the plant or its
@@ -220,7 +232,7 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
     for chs in groups:
         _impulse_pass(plant, U_ext[j0:], Xbar, n, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
-                      scheme)
+                      scheme, noise, start + j0)
     if hasattr(bar, "close"):
         bar.close()
     r = basis.rank
@@ -234,10 +246,12 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
 
 def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
                   delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
-                  blocks: list, bar, scheme: str = "central") -> None:
+                  blocks: list, bar, scheme: str = "central", noise: NoiseSketch | None = None,
+                  start: int = 0) -> None:
     """One lockstep pass over the channels `chs` (see `impulse_experiments`); steps and start
-    steps are counted from the chunk's first start step (U_ext and Xbar_ext begin there)."""
-    ring = _Ring(plant, chs, n_u, n_w, lags, delta, scheme)
+    steps are counted from the chunk's first start step (U_ext and Xbar_ext begin there; it is
+    start step `start` of the horizon, which picks a sketch's combinations)."""
+    ring = _Ring(plant, chs, n_u, n_w, lags, delta, scheme, noise, start)
     for k in range(N + lags - 1):
         if hasattr(bar, "update"):
             bar.update(1)
@@ -248,10 +262,14 @@ def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int,
 class _Ring:
     """The runs of one pass: a ring of `lags` slots, start step j in slot j mod lags, each slot
     [+delta e_c ..., -delta e_c ...] (central) or [+delta e_c ..., 0] (forward) for c in `chs`,
-    stepped in place (no copy of the batch per step)."""
+    stepped in place (no copy of the batch per step). With a noise sketch the n_w channels are its
+    r_w combinations: the impulse on combination i at start step j is delta d_{start+j, i}."""
 
-    def __init__(self, plant: Plant, chs: np.ndarray, n_u: int, n_w: int, lags: int, delta: float, scheme: str):
+    def __init__(self, plant: Plant, chs: np.ndarray, n_u: int, n_w: int, lags: int, delta: float, scheme: str,
+                 noise: NoiseSketch | None = None, start: int = 0):
         self.plant, self.chs, self.n_u, self.n_w, self.lags, self.delta = plant, chs, n_u, n_w, lags, delta
+        self.noise, self.start = noise, start
+        self.n_w_plant = n_w if noise is None else noise.n_w
         self.m, self.sides = len(chs), SCHEMES[scheme]
         E = np.eye(n_u + n_w)[chs]
         self.pert = (np.vstack([E, -E]) if self.sides == 2 else np.vstack([E, np.zeros((1, E.shape[1]))])) * delta
@@ -271,11 +289,13 @@ class _Ring:
         used = min(k + 1, self.lags) * rows              # ramp-up: only the slots filled so far
         j_slot = self.slot_start[:used // rows]
         Uk = np.repeat(u_k[None], used, axis=0)
-        Wk = np.zeros((used, n_w)) if n_w else None
+        Wk = np.zeros((used, self.n_w_plant)) if n_w else None
         if k < N:
             Uk[s * rows:(s + 1) * rows] += self.pert[:, :n_u]
             if n_w:
-                Wk[s * rows:(s + 1) * rows] += self.pert[:, n_u:]
+                pw = self.pert[:, n_u:]            # a sketch's combination i: delta d_{start+k, i}
+                Wk[s * rows:(s + 1) * rows] += pw if self.noise is None else \
+                    pw @ self.noise.directions(self.start + k).T
             X[:used] = self.step(X[:used], Uk, Wk)
         else:   # ramp-down: step only the slots still in an experiment (one or two ring ranges)
             for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < self.lags))):

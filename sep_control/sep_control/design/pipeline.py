@@ -192,9 +192,10 @@ def tightened_limits(lo: np.ndarray, hi: np.ndarray, sigma: np.ndarray, c: float
 
 
 def identify_rom(plant: Plant, U: np.ndarray, st: DesignSettings, show_progress: bool = False,
-                 engine=None) -> Identification:
-    """`tvera.identify` with the design's settings."""
-    return st.rom(engine).identify(plant, U, show_progress)
+                 engine=None, problem: Problem | None = None) -> Identification:
+    """`tvera.identify` with the design's settings (and the problem's w_std, the weights of a
+    sketch of many noise channels)."""
+    return st.rom(engine, problem).identify(plant, U, show_progress)
 
 
 def with_rom(design: Design, model: LTVModel, hankel_sv: np.ndarray | None = None) -> Design:

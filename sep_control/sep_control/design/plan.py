@@ -15,6 +15,7 @@ from sep_plant.problem import Problem
 from sep_plant.protocol import Plant, noise_channels
 
 from sep_control.design.impulse import experiment_run_steps
+from sep_control.design.noise_sketch import identified_noise_channels
 from sep_control.design.runsteps import STAGES
 
 #: run-steps per horizon step and per channel above which the plan warns (the reference with
@@ -38,7 +39,7 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
     (resolved: `DesignSettings.for_plant`)."""
     N, lags = problem.n_steps, st.p + st.q
     n_u, n_w = channels(plant)
-    n_ch = n_u + n_w
+    n_ch = n_u + identified_noise_channels(plant, problem.w_std)    # many channels: r_w combinations
     ident = experiment_run_steps(N, n_ch, lags, st.impulse_scheme) + N + lags
     jac = st.resolved_jacobian_for(plant, N)
     if jac == "rom":
@@ -53,13 +54,13 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
                 "sensitivity_normal": (N * n_u, N * n_u) if jac == "sensitivity" else None,
                 "ensemble": (st.ensemble, int(plant.n_x)) if st.belief else None}
     return {"run_steps": {**steps, "total": sum(steps.values())}, "matrices": matrices, "n_u": n_u, "n_w": n_w,
-            "jacobian": jac}
+            "jacobian": jac, "n_w_identified": n_ch - n_u}
 
 
 def plan_warnings(plan: dict[str, Any], n_steps: int) -> list[str]:
     """Lines naming the key behind a cost far above the usual (none when all is usual)."""
     out = []
-    n_ch = plan["n_u"] + plan["n_w"]
+    n_ch = plan["n_u"] + plan.get("n_w_identified", plan["n_w"])
     rows, cols = plan["matrices"]["hankel"]
     if cols > WARN_HANKEL_COLUMNS:
         what = (f"{plan['n_w']} process-noise channels identified beside the {plan['n_u']} inputs (the plant's "

@@ -248,12 +248,13 @@ class DesignSettings:
         unset = {k: v for k, v in plan.items() if getattr(self, k) is None}
         return replace(self, **unset) if unset else self
 
-    def rom(self, engine=None) -> RomSettings:
-        """The TV-ERA settings of the design's identifications (experiments on `engine`)."""
+    def rom(self, engine=None, problem: Problem | None = None) -> RomSettings:
+        """The TV-ERA settings of the design's identifications (experiments on `engine`; the
+        problem's w_std weighs a sketch of many noise channels, `sep_control.design.noise_sketch`)."""
         self = self.resolved()
         return RomSettings(p=self.p, q=self.q, n_r=self.n_r, sv_tol=self.sv_tol, impulse=self.impulse,
                            scheme=self.impulse_scheme, memory_budget=self.memory_budget, chunks=self.chunks,
-                           engine=engine)
+                           engine=engine, noise_std=None if problem is None else problem.w_std)
 
     def resolved_jacobian(self, n_steps: int) -> str:
         """'auto': the Jacobian whose experiments take fewer plant steps per iteration. The

@@ -21,7 +21,7 @@ from sep_estimator.ltv import LTVModel
 from sep_plant.protocol import Plant, nominal_states
 
 from sep_control.design.impulse import extend_nominal, impulse_experiments
-from sep_control.design.tvera import Identification
+from sep_control.design.tvera import Identification, identified_noise_input
 
 #: blocks of start steps and start steps per block of the spot check
 SPOT_BLOCKS = 4
@@ -43,13 +43,15 @@ def spot_error(plant: Plant, ident: Identification, U: np.ndarray) -> float:
     U_ext = extend_nominal(U, lags)
     X_ext = nominal_states(plant, U_ext)
     m = ident.model
-    model = m if m.Bw is None else LTVModel(m.A, np.concatenate([m.B, m.Bw], axis=2), m.C, m.G, m.dims)
+    noise = ident.data.noise      # a sketch's combinations of the noise channels (`noise_sketch`)
+    model = m if m.Bw is None else LTVModel(m.A, np.concatenate([m.B, identified_noise_input(m, noise)], axis=2),
+                                            m.C, m.G, m.dims)
     Yr = model.markov_all(lags)
     num = den = 0.0
     for j0 in spot_starts(N, lags, ident.q):
         j1 = min(N, j0 + SPOT_STARTS)
         data = impulse_experiments(plant, U[j0:j1], lags, 1, ident.delta, X_ext[j0:j1 + lags],
-                                   scheme=ident.scheme, U_ext=U_ext[j0:])
+                                   scheme=ident.scheme, U_ext=U_ext[j0:], noise=noise, start=j0)
         valid = (np.arange(j0, j1)[:, None] + np.arange(1, lags + 1)[None, :]) <= N
         num += float(np.sum((Yr[j0:j1] - data.Y)[valid] ** 2))
         den += float(np.sum(data.Y[valid] ** 2))

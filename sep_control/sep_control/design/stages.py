@@ -27,6 +27,7 @@ from sep_control.design.gains import GainsResult, design_lqg
 from sep_control.design.jacobians import (AutoJacobian, Jacobian, KeptRomJacobian, RomJacobian,
                                           SensitivityJacobian)
 from sep_control.design.linearization import SAME_INPUT_RTOL, same_input
+from sep_control.design.noise_sketch import SKETCH_FROM, trace_std_error
 from sep_control.design.optimizer import OptimizationResult, Optimizer, OptimizerOptions
 from sep_control.design.runsteps import RunStepMeter
 from sep_control.design.settings import DesignSettings
@@ -122,10 +123,10 @@ class DesignPass:
     lqg: LQG                      # the design's LQG: its gains, the compressed field map
 
 
-def mean_only_jacobian(st: DesignSettings, kind: str, engine=None) -> Jacobian:
+def mean_only_jacobian(st: DesignSettings, kind: str, engine=None, problem: Problem | None = None) -> Jacobian:
     """The mean-only optimizer's strategy for the resolved Jacobian `kind`: "rom", or
     "sensitivity" (switching to the ROM near the optimum when `st.jacobian` is "auto")."""
-    rom = st.rom(engine)
+    rom = st.rom(engine, problem)
     if st.experiment_plan == "0.8":
         proposal = replace(rom, **PROPOSAL_ROM) if st.coarse_proposals else None
         rom_jacobian = RomJacobian(rom, proposal, relinearize_rtol=st.relinearize_rtol)
@@ -155,7 +156,7 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
     options = OptimizerOptions(method=st.method, max_iter=max_iter, tol=st.tol, step_size=st.step_size,
                                bounds=bounds, show_progress=ctx.show_progress, refresh_on_stall=planned)
     with ctx.meter.stage("nominal"):
-        opt = Optimizer(plant, problem, options, mean_only_jacobian(st, kind, ctx.engine)).run(U0)
+        opt = Optimizer(plant, problem, options, mean_only_jacobian(st, kind, ctx.engine, problem)).run(U0)
     ctx.log(f"mean-only {st.method} ({', '.join(opt.linearizations)} Jacobians): J = {opt.cost:.6g} after "
             f"{opt.iterations} iterations ({opt.experiments} experiments, {opt.seconds:.2f} s; stopped: {opt.stop})")
     refined = None
@@ -167,7 +168,7 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
         options = OptimizerOptions(objective="belief", max_iter=st.belief_iter, tol=st.tol, members=st.ensemble,
                                    enkf_seed=st.enkf_seed, max_trials=BELIEF_TRIALS, bounds=bounds,
                                    memory_budget=st.memory_budget, show_progress=ctx.show_progress)
-        chord = RomJacobian(st.rom(ctx.engine), chord=True, start=opt.identification)
+        chord = RomJacobian(st.rom(ctx.engine, problem), chord=True, start=opt.identification)
         with ctx.meter.stage("belief"):
             refined = Optimizer(plant, problem, options, chord).run(opt.U)
         ctx.log(f"belief-space gn: J_b = {refined.history[0]:.8g} -> {refined.cost:.8g} "
@@ -182,15 +183,15 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
 
 
 def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResult,
-                         ctx: StageContext) -> IdentificationStage:
+                         ctx: StageContext, problem: Problem | None = None) -> IdentificationStage:
     """Stage 2: TV-ERA around the nominal; the optimizer's last identification when it was made
     at this very input with the design's own settings (not a coarse proposal model)."""
     with ctx.meter.stage("identification"):
-        return _identification_stage(plant, st, nominal, ctx)
+        return _identification_stage(plant, st, nominal, ctx, problem)
 
 
 def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResult,
-                          ctx: StageContext) -> IdentificationStage:
+                          ctx: StageContext, problem: Problem | None = None) -> IdentificationStage:
     U, t0 = nominal.U, time.perf_counter()
     ident = nominal.last.identification
     # plan 0.9: the model made at the mean-only optimum also serves the belief-refined nominal,
@@ -209,16 +210,30 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
                 f"{SPOT_BLOCKS} x {SPOT_STARTS} start steps: Markov relative error {spot:.2e} "
                 f"({'<=' if reused else '>'} {SPOT_TOL:g}: {'reused' if reused else 'identified again'})")
     if not reused:
-        ident = st.rom(ctx.engine).identify(plant, U, ctx.show_progress)
+        ident = st.rom(ctx.engine, problem).identify(plant, U, ctx.show_progress)
     elif not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=nominal_states(plant, extend_nominal(U, st.p + st.q)),
                         U=U.copy())     # the same linear model; the nominal of the final input
     ctx.took("identify_s", t0)
-    err = markov_relative_error(ident.model, ident.data.Y)
+    err = markov_relative_error(ident.model, ident.data.Y, ident.data.noise)
+    if ident.data.noise is not None:
+        ctx.log(describe_sketch(ident))
     ctx.log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
             f"experiments{_reuse_note(ident.U, U) if reused else ''}, Markov relative "
             f"error {err:.2e}")
     return IdentificationStage(ident, reused, err, spot if reused else None)
+
+
+def describe_sketch(ident: Identification) -> str:
+    """One log line: the noise channels identified on random combinations (`noise_sketch`)."""
+    sk, m, q = ident.data.noise, ident.model, ident.q
+    n_u, n_y = m.B.shape[2], m.C.shape[1]
+    err = trace_std_error(sk.sketched(m.Bw), sk)
+    return (f"TV-ERA: {sk.n_w} process-noise channels (> {SKETCH_FROM}) identified on {sk.rank} random "
+            f"combinations per start step (B_w W B_w' estimated without bias); Hankel matrices "
+            f"{ident.p * n_y} x {q * (n_u + sk.rank)} instead of {ident.p * n_y} x {q * (n_u + sk.n_w)}; "
+            f"the ROM noise covariance's trace has a relative standard error of {err:.1%} per step "
+            f"(median), averaged over the steps by the filter")
 
 
 def _reuse_note(U_ident: np.ndarray, U: np.ndarray) -> str:
@@ -280,6 +295,6 @@ def design_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageCo
                 U0: np.ndarray | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DesignPass:
     """The four stages in order: nominal, identification, gains, field map."""
     nominal = nominal_stage(plant, problem, st, ctx, U0, bounds)
-    identified = identification_stage(plant, st, nominal, ctx)
+    identified = identification_stage(plant, st, nominal, ctx, problem)
     gains = gains_stage(identified, problem, st, ctx)
     return DesignPass(nominal, identified, field_map_stage(gains, st, ctx))

@@ -11,7 +11,9 @@ with n_k the ROM order (<= n_r, singular values below rel_tol * sigma_1 dropped)
 so A_k maps the coordinates of step k into those of step k+1 (consistent coordinates).
 Near k = 0 only k past inputs exist and n_k grows (0, n_u, 2 n_u, ...), A_k rectangular.
 The nominal is extended past N (last input held) so the last Hankel matrices are complete.
-Noise channels, when identified, are realized with the inputs and split off as B_w,k.
+Noise channels, when identified, are realized with the inputs and split off as B_w,k; above
+`noise_sketch.SKETCH_FROM` channels they are r_w random combinations per start step, lifted back
+to the plant's channels (`sep_control.design.noise_sketch`).
 
 The field output map G_k (df_k = G_k a_k) follows from the field Markov parameters of the
 same experiments (field snapshots): G_k = Hf_k V_n S_n^{-1/2}, Hf_k[0, m] = Yf_{k, k-1-m}, kept
@@ -26,10 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from sep_estimator.ltv import LTVModel, PODFieldMap
-from sep_plant.protocol import Plant, nominal_states
+from sep_plant.protocol import Plant, noise_channels, nominal_states
 
 from sep_control.compute.progress import progress
 from sep_control.design.basis import truncate
+from sep_control.design.noise_sketch import sketch_for
 # the experiments' names, also for the callers that take them from here
 from sep_control.design.impulse import (FIELD_TOL, SCHEMES, MarkovData, experiment_chunks,  # noqa: F401
                                         extend_nominal, impulse_experiments)
@@ -71,18 +74,21 @@ class RomSettings:
     memory_budget: int | None = None  # bytes for a batch of experiments (None: the default budget)
     chunks: int = 1                 # experiments in this many chunks of start steps
     engine: object = None           # `sep_control.compute.engine` running the chunks (None: in-process)
+    noise_std: object = None        # the problem's w_std (sketch weights W^{1/2}; None: 1 per channel)
+    noise_probes: int | None = None  # combinations of a sketch (`noise_sketch`; None: SKETCH_PROBES, 0: none)
 
     def identify(self, plant: Plant, U: np.ndarray, show_progress: bool = False) -> Identification:
         """`identify` around the nominal input U with these settings."""
         return identify(plant, U, self.p, self.q, self.n_r, self.sv_tol, self.impulse, show_progress,
                         field_tol=self.field_tol, memory_budget=self.memory_budget, scheme=self.scheme,
-                        chunks=self.chunks, engine=self.engine)
+                        chunks=self.chunks, engine=self.engine, noise_std=self.noise_std,
+                        noise_probes=self.noise_probes)
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
              memory_budget: int | None = None, scheme: str = "central", chunks: int = 1,
-             engine=None) -> Identification:
+             engine=None, noise_std=None, noise_probes: int | None = None) -> Identification:
     """TV-ERA around the nominal input U: impulse experiments, then the realization (`tv_era`).
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
@@ -114,6 +120,11 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
         Experiments in this many chunks of start steps (`experiment_chunks`).
     engine : optional
         The `sep_control.compute.engine` that runs the chunks (None: in-process).
+    noise_std : float or array, optional
+        The process-noise stds w_std of the noise channels (None: 1), the weights of a sketch.
+    noise_probes : int, optional
+        Combinations per start step when the noise channels are sketched (`noise_sketch.sketch_for`:
+        only above SKETCH_FROM channels; None: SKETCH_PROBES; 0: never).
 
     Returns
     -------
@@ -125,8 +136,11 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     X_ext = nominal_states(plant, extend_nominal(U, lags))
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     ftol = FIELD_TOL if field_tol is None else field_tol
+    noise = None if getattr(plant, "noise_on_inputs", True) else \
+        sketch_for(noise_channels(plant), noise_std, noise_probes)
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
-                               memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine)
+                               memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine,
+                               noise=noise)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float), scheme, ftol, p, q)
 
@@ -229,18 +243,27 @@ def _assemble(data: MarkovData, A: np.ndarray, B: np.ndarray, C: np.ndarray, g: 
     n_u, n_ch = data.n_u, B.shape[2]
     N1, r_f, n_r = g.shape
     Bw = B[:, :, n_u:].copy() if n_ch > n_u else None
+    if Bw is not None and data.noise is not None:
+        Bw = data.noise.lift(Bw)               # B^_j = B~_j L_j on the plant's n_w channels
     Phi, coef = truncate(data.basis, g.transpose(1, 0, 2).reshape(r_f, -1), field_tol)
     g = coef.reshape(Phi.shape[1], N1, n_r).transpose(1, 0, 2)
     return LTVModel(A=A, B=B[:, :, :n_u].copy() if Bw is not None else B, C=C,
                     G=PODFieldMap(np.ascontiguousarray(Phi), np.ascontiguousarray(g)), dims=dims, Bw=Bw)
 
 
-def markov_relative_error(model: LTVModel, Y: np.ndarray) -> float:
+def markov_relative_error(model: LTVModel, Y: np.ndarray, noise=None) -> float:
     """|Y_rom - Y_exp|_F / |Y_exp|_F over every recorded Markov parameter with j + lag <= N
-    (all channels: inputs, then noise channels when identified)."""
+    (all channels: inputs, then noise channels when identified, or the combinations of the
+    sketch `noise` they were identified on)."""
     N, L = Y.shape[:2]
-    m = model if model.Bw is None else LTVModel(model.A, np.concatenate([model.B, model.Bw], axis=2),
-                                                 model.C, model.G, model.dims)
+    m = model if model.Bw is None else LTVModel(model.A, np.concatenate([model.B, identified_noise_input(model, noise)],
+                                                                        axis=2), model.C, model.G, model.dims)
     Yr = m.markov_all(L)
     valid = (np.arange(N)[:, None] + np.arange(1, L + 1)[None, :]) <= N
     return float(np.linalg.norm((Yr - Y)[valid]) / np.linalg.norm(Y[valid]))
+
+
+def identified_noise_input(model: LTVModel, noise=None, start: int = 0) -> np.ndarray:
+    """The model's B_w on the channels its noise experiments used: B_w itself, or on a sketch's
+    combinations (`NoiseSketch.sketched`) when `noise` is one."""
+    return model.Bw if noise is None else noise.sketched(model.Bw, start)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 from sep_control.compute.progress import RunSteps
+from sep_control.design.noise_sketch import identified_noise_channels
 from sep_control.design.pipeline import DesignSettings, identify_rom, with_rom
 from sep_control.design.tvera import markov_relative_error, tv_era
 from sep_control.evaluation.montecarlo import portable, simulate
@@ -21,7 +22,8 @@ def sweep_run_steps(plant, design, orders: Sequence[int], runs: int, oracle: boo
     and `runs` runs per order, each of N steps."""
     st = DesignSettings.from_meta(design.meta)
     N = design.n_steps
-    return impulse_run_steps(plant, N, st.p + st.q, st.impulse_scheme) + (len(orders) + bool(oracle)) * runs * N
+    n_w = identified_noise_channels(plant, design.problem.w_std)
+    return impulse_run_steps(plant, N, st.p + st.q, st.impulse_scheme, n_w) + (len(orders) + bool(oracle)) * runs * N
 
 
 def rom_sweep(plant, design, oracle, orders: Sequence[int], runs: int, seed: int, engine=None,
@@ -61,8 +63,9 @@ def rom_sweep(plant, design, oracle, orders: Sequence[int], runs: int, seed: int
     settings = DesignSettings.from_meta(design.meta)
     settings.n_r = max(orders)
     N = design.n_steps
-    ident = identify_rom(plant, design.nominal.u, settings, engine=engine)
-    progress.add(impulse_run_steps(plant, N, settings.p + settings.q, settings.impulse_scheme))
+    ident = identify_rom(plant, design.nominal.u, settings, engine=engine, problem=design.problem)
+    progress.add(impulse_run_steps(plant, N, settings.p + settings.q, settings.impulse_scheme,
+                                   identified_noise_channels(plant, design.problem.w_std)))
     oracle_cost = None
     if oracle is not None:
         oracle_cost = simulate(plant, design, "oracle_lqg", seed, runs, oracle=oracle, keep_estimates=0,
@@ -108,6 +111,7 @@ def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, se
     model, _ = tv_era(data, design.n_steps, p, q, n_r, sv_tol)
     m = simulate(plant, with_rom(design, model), "rom_lqg", seed, runs, keep_estimates=0,
                  keep_trajectories=0).metrics()
-    return {"n_r": n_r, "n_r_used": int(model.dims.max()), "markov_rel_error": markov_relative_error(model, data.Y),
+    return {"n_r": n_r, "n_r_used": int(model.dims.max()),
+            "markov_rel_error": markov_relative_error(model, data.Y, data.noise),
             "cost_mean": m["cost_mean"], "in_band": m["in_band"]}
 

@@ -19,14 +19,23 @@ import numpy as np
 from sep_plant.protocol import Plant, fields, noise_channels, nominal_states, outputs
 
 from sep_control.compute.progress import RunSteps
+from sep_control.design.noise_sketch import SKETCH_FROM
 from sep_control.design.tvera import SCHEMES, impulse_experiments
 
 
-def impulse_run_steps(plant: Plant, n_steps: int, lags: int, scheme: str = "central") -> int:
+def validated_noise_channels(plant: Plant) -> int:
+    """The noise channels `validate`'s experiments step beside the inputs: those of a plant whose
+    noise is not on the inputs, none above SKETCH_FROM (the check compares the inputs' Markov
+    parameters only; many channels would multiply its experiments for nothing)."""
+    n_w = 0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant)
+    return 0 if n_w > SKETCH_FROM else n_w
+
+
+def impulse_run_steps(plant: Plant, n_steps: int, lags: int, scheme: str = "central", n_w: int | None = None) -> int:
     """Run-steps of `impulse_experiments` over N start steps with `lags` lags, with the nominal
     rollout over N + lags steps: central 2 N n_ch runs, forward N (n_ch + 1), of `lags` steps each
-    (n_ch: the inputs, and the noise channels of a plant whose noise is not on the inputs)."""
-    n_ch = int(plant.n_u) + (0 if getattr(plant, "noise_on_inputs", True) else noise_channels(plant))
+    (n_ch: the inputs and n_w noise channels, None: `validated_noise_channels`)."""
+    n_ch = int(plant.n_u) + (validated_noise_channels(plant) if n_w is None else int(n_w))
     runs = n_steps * (2 * n_ch if SCHEMES[scheme] == 2 else n_ch + 1)
     return runs * lags + n_steps + lags
 
@@ -70,7 +79,8 @@ def validate(plant: Plant, design, lags: int = 60, amplitude: float = 0.01, seed
     delta = float(design.meta.get("validation", {}).get("impulse_amplitude", 0.01 * rms_u))
 
     chunks = 4 if engine is None else max(4, 2 * engine.workers)
-    data = impulse_experiments(plant, U, lags, 1, delta, chunks=chunks, engine=engine)
+    data = impulse_experiments(plant, U, lags, 1, delta, chunks=chunks, engine=engine,
+                               inputs_only=validated_noise_channels(plant) == 0)
     progress.add(impulse_run_steps(plant, N, lags))
     Yr, Ye = rom.markov_all(lags), data.Y_inputs
     valid = (np.arange(N)[:, None] + np.arange(1, lags + 1)[None, :]) <= N
