@@ -34,6 +34,7 @@ def test_realtime_rtf10_reference_episode_on_schedule(launcher, probe, reference
     lqg = launcher.start('lqg', params={'design_file': case.design_file, 'wait_for_scenario_s': 20.0,
                                         'summary_file': tmp_path / 'lqg.json'})
     pr.wait_for(lambda: 'estimator: design file' in lqg.output(), 30, 'lqg start')
+    pr.wait_matched(subs=(c.COMMAND,))     # the probe counts every command: matched before the first
     plant = launcher.start('plant', params={'scenario_file': case.scenario_file, 'mode': 'realtime',
                                             'real_time_factor': 10.0, 'seed': 4, 'run': 2,
                                             'wait_for_field_subscribers': 1,
