@@ -43,6 +43,7 @@ import numpy as np
 
 from sep_control.control.policy import DesignPolicy
 from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.design.plan import format_run_steps
 from sep_plant.plants.controlgym import ControlgymPlant, controlgym_problem, envs_module, make_env
 
 #: the controlgym example notebook's PPO reward on its Burgers task (quoted, not measured)
@@ -146,7 +147,8 @@ def run_task(name: str, args) -> dict:
     env = make_env(env_id, **keys)
     env.set_target_state(plant.env.target_state if target is None else
                          np.asarray(problem.target_field(plant.field_coordinates()), dtype=float))
-    row = {"task": name, "n_state": plant.n_x, "steps": env.n_steps, "plant_steps": counter.n, "design_s": design_s}
+    row = {"task": name, "n_state": plant.n_x, "steps": env.n_steps, "plant_steps": counter.n, "design_s": design_s,
+           "stages": format_run_steps(design.meta["run_steps"]), "prior": design.meta.get("initial_prior")}
     zero = np.zeros(plant.n_u)
     row["zero"] = episodes(env, args.resets, lambda o, i: (lambda obs: zero))
     row["sep open"] = episodes(env, args.resets, policy_factory(DesignPolicy(design, "open_loop", 1)))
@@ -189,7 +191,10 @@ def main() -> None:
         row = run_task(name.strip(), args)
         rows.append(row)
         print(f"{row['task']}: n_state {row['n_state']}, {row['steps']} steps, design {row['plant_steps']} "
-              f"plant run-steps in {row['design_s']:.0f} s", flush=True)
+              f"plant run-steps in {row['design_s']:.0f} s; per stage {row['stages']}", flush=True)
+        if row["prior"]:
+            print(f"  initial-state prior at step {row['prior']['k0']}: the ROM explains {row['prior']['fit']:.0%} "
+                  f"of the free responses' output deviations", flush=True)
     print(f"\nmean ± std of the env's summed reward over {args.resets} seeded resets (higher is better); "
           f"weighting {args.weighting}, plan {args.plan}")
     print("| task | " + " | ".join(COLUMNS) + " | sep/zero | plant steps | design s |")
