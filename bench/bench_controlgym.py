@@ -19,12 +19,17 @@ own process and sensor noise, its own reward summed over its n_steps):
 
 Beside the rewards: the plant run-steps the design spent (every `plant.step` row, the
 conformance check's included) and the design's wall time (a shared machine: indicative only).
+The objective by default is the reward's (`--weighting field`): the LQR and the ROM-MPC weigh
+the whole field, Q = Q_weight I summed over the state nodes (`lqr_weighting: field`,
+`lqr_field_nodes: sum`, `lqr_q_early` = `lqr_q_late` = Q_weight) and R = R_weight I (`lqr_r`);
+`--weighting output` is the 0.8 weighting on the sensors (Q_y = I / n_y, R = r_u I). The experiment
+plan is `--plan` (default 0.9, the sample-efficient one; 0.8 is sep 0.8.0's).
 Tasks: `notebook_burgers` (make("burgers", n_state=64, process_noise_cov=1e-5,
 sensor_noise_cov=0.05), target 0.1 cos(2 pi x / L)) and any controlgym env at its defaults by
 name. No assertions.
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_controlgym.py [--tasks notebook_burgers,wave]
-        [--resets 100] [--noise-modes 8] [--n-r 20]
+        [--resets 100] [--noise-modes 8] [--n-r 20] [--weighting field|output] [--plan 0.9|0.8]
 """
 from __future__ import annotations
 
@@ -38,6 +43,7 @@ import numpy as np
 
 from sep_control.control.policy import DesignPolicy
 from sep_control.design.pipeline import DesignSettings, run_design
+from sep_control.design.plan import format_run_steps
 from sep_plant.plants.controlgym import ControlgymPlant, controlgym_problem, envs_module, make_env
 
 #: the controlgym example notebook's PPO reward on its Burgers task (quoted, not measured)
@@ -117,18 +123,32 @@ def lqg_factory(lqg, x0_mean: np.ndarray | None):
     return make
 
 
+def weighting_keys(plant: ControlgymPlant, weighting: str) -> dict:
+    """The LQR/MPC weights: `field` is the reward's own (Q = Q_weight I summed over the state,
+    R = R_weight I); `output` keeps `controlgym_problem`'s weights on the sensors."""
+    if weighting == "output":
+        return {}
+    qw, rw = float(plant.env.Q[0, 0]), float(plant.env.R[0, 0])
+    return {"lqr_weighting": "field", "lqr_field_nodes": "sum", "lqr_q_early": qw, "lqr_q_late": qw, "lqr_r": rw}
+
+
 def run_task(name: str, args) -> dict:
     env_id, keys, target = task(name)
     plant = ControlgymPlant(env=env_id, noise_modes=args.noise_modes, **keys)
     counter = Counting(plant)
-    problem = controlgym_problem(plant, **({"target": target} if target else {}))
+    overrides = weighting_keys(plant, args.weighting)
+    if target:
+        overrides["target"] = target
+    problem = controlgym_problem(plant, **overrides)
     t0 = time.perf_counter()
-    design = run_design(plant, problem, DesignSettings(n_r=args.n_r), show_progress=False, log=lambda m: None)
+    design = run_design(plant, problem, DesignSettings(n_r=args.n_r, experiment_plan=args.plan),
+                        show_progress=False, log=lambda m: None)
     design_s = time.perf_counter() - t0
     env = make_env(env_id, **keys)
     env.set_target_state(plant.env.target_state if target is None else
                          np.asarray(problem.target_field(plant.field_coordinates()), dtype=float))
-    row = {"task": name, "n_state": plant.n_x, "steps": env.n_steps, "plant_steps": counter.n, "design_s": design_s}
+    row = {"task": name, "n_state": plant.n_x, "steps": env.n_steps, "plant_steps": counter.n, "design_s": design_s,
+           "stages": format_run_steps(design.meta["run_steps"]), "prior": design.meta.get("initial_prior")}
     zero = np.zeros(plant.n_u)
     row["zero"] = episodes(env, args.resets, lambda o, i: (lambda obs: zero))
     row["sep open"] = episodes(env, args.resets, policy_factory(DesignPolicy(design, "open_loop", 1)))
@@ -162,14 +182,21 @@ def main() -> None:
     ap.add_argument("--resets", type=int, default=100, help="seeded env resets per controller")
     ap.add_argument("--noise-modes", type=int, default=8, help="process-noise channels of the plant (Fourier modes)")
     ap.add_argument("--n-r", type=int, default=20, help="ROM order")
+    ap.add_argument("--weighting", choices=("field", "output"), default="field",
+                    help="LQR/MPC state weight: the reward's on the whole field, or 0.8's on the sensors")
+    ap.add_argument("--plan", choices=("0.9", "0.8"), default="0.9", help="the design's experiment plan")
     args = ap.parse_args()
     rows = []
     for name in args.tasks.split(","):
         row = run_task(name.strip(), args)
         rows.append(row)
         print(f"{row['task']}: n_state {row['n_state']}, {row['steps']} steps, design {row['plant_steps']} "
-              f"plant run-steps in {row['design_s']:.0f} s", flush=True)
-    print(f"\nmean ± std of the env's summed reward over {args.resets} seeded resets (higher is better)")
+              f"plant run-steps in {row['design_s']:.0f} s; per stage {row['stages']}", flush=True)
+        if row["prior"]:
+            print(f"  initial-state prior at step {row['prior']['k0']}: the ROM explains {row['prior']['fit']:.0%} "
+                  f"of the free responses' output deviations", flush=True)
+    print(f"\nmean ± std of the env's summed reward over {args.resets} seeded resets (higher is better); "
+          f"weighting {args.weighting}, plan {args.plan}")
     print("| task | " + " | ".join(COLUMNS) + " | sep/zero | plant steps | design s |")
     print("|" + "---|" * (len(COLUMNS) + 4))
     for r in rows:
