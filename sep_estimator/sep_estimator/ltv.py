@@ -99,8 +99,16 @@ class PODFieldMap:
         self.n_field, self.n = int(Phi.shape[0]), int(g.shape[2])
         self.rank = int(Phi.shape[1])
 
+    def coefficients(self, k: int, a: np.ndarray) -> np.ndarray:
+        """c = a g_k': the field's coordinates in the basis, (..., n) -> (..., r)."""
+        return a @ self.g[k].T
+
+    def reconstruction_basis(self) -> np.ndarray:
+        """Phi' (r, n_field) in the precision `apply` reconstructs with: apply = c Phi'."""
+        return self.Phi.T
+
     def apply(self, k: int, a: np.ndarray) -> np.ndarray:
-        return (a @ self.g[k].T) @ self.Phi.T
+        return self.coefficients(k, a) @ self.Phi.T
 
     def matrix(self, k: int) -> np.ndarray:
         return self.Phi @ self.g[k]
@@ -131,8 +139,11 @@ class Float32Reconstruction(PODFieldMap):
         super().__init__(base.Phi, base.g)
         self._PhiT32 = np.ascontiguousarray(base.Phi.T, dtype=np.float32)    # (r, n_field)
 
+    def reconstruction_basis(self) -> np.ndarray:
+        return self._PhiT32
+
     def apply(self, k: int, a: np.ndarray) -> np.ndarray:
-        return ((a @ self.g[k].T).astype(np.float32) @ self._PhiT32).astype(np.float64)
+        return (self.coefficients(k, a).astype(np.float32) @ self._PhiT32).astype(np.float64)
 
 
 #: reconstruction precisions the online estimator offers (parameter field_precision)

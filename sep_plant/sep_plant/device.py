@@ -207,9 +207,9 @@ class DevicePlant(PlantWrapper):
         self.stats.run_steps += int(X.shape[0]) if X.ndim > 1 else 1
         return out
 
-    def to_device(self, A):
-        """A host array on the device (counted in `stats`)."""
-        A = np.ascontiguousarray(A, dtype=float)
+    def to_device(self, A, dtype=float):
+        """A host array on the device, as `dtype` (counted in `stats`)."""
+        A = np.ascontiguousarray(A, dtype=dtype)
         self.stats.to_device += A.nbytes
         return self.xp.asarray(A)
 
@@ -254,10 +254,10 @@ def step_resident(plant: Any):
     return plant.step if _device_of(plant) is None else plant.step_resident
 
 
-def to_device(plant: Any, A):
-    """A host array in `plant`'s array module (itself on the CPU)."""
+def to_device(plant: Any, A, dtype=float):
+    """A host array in `plant`'s array module, as `dtype` (itself on the CPU)."""
     device = _device_of(plant)
-    return A if device is None else device.to_device(A)
+    return A if device is None else device.to_device(A, dtype)
 
 
 def to_host_of(plant: Any, A) -> np.ndarray:

@@ -258,16 +258,16 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
 class _Resident:
     """Where a Monte Carlo batch's n_field-sized work happens: the host for a numpy plant (the
     0.8.0 operations), the device of a `DevicePlant` otherwise (f_nom, the field std and the
-    field map's Phi' uploaded once; the field map's float32 copy when it has one)."""
+    field map's Phi' uploaded once, in the precision the map reconstructs with)."""
 
     def __init__(self, plant: Plant, G, f_nom: np.ndarray, field_std: np.ndarray):
         self.plant, self.G, self.f_nom, self.field_std = plant, G, f_nom, field_std
         self.xp = xp = array_module_of(plant)
         if xp is not np:
             self.f_nom_d, self.two_std_d = to_device(plant, f_nom), to_device(plant, 2.0 * field_std)
-            PhiT32 = getattr(G, "_PhiT32", None)
-            self.PhiT = (None if not hasattr(G, "Phi") else
-                         xp.asarray(PhiT32) if PhiT32 is not None else to_device(plant, np.ascontiguousarray(G.Phi.T)))
+            basis = G.reconstruction_basis() if hasattr(G, "reconstruction_basis") else None
+            # None: a map without a basis (the oracle's identity) reconstructs through its own apply
+            self.PhiT = None if basis is None else to_device(plant, basis, dtype=basis.dtype)
 
     def up(self, A: np.ndarray):
         return A if self.xp is np else to_device(self.plant, A)
@@ -284,8 +284,7 @@ class _Resident:
             return self.f_nom[k] + self.G.apply(k, a)
         if self.PhiT is None:                        # a map without Phi (the oracle's): its own apply
             return self.f_nom_d[k] + to_device(self.plant, self.G.apply(k, a))
-        c = a @ self.G.g[k].T
-        c = to_device(self.plant, c).astype(self.PhiT.dtype)
+        c = to_device(self.plant, self.G.coefficients(k, a), dtype=self.PhiT.dtype)
         return self.f_nom_d[k] + (c @ self.PhiT).astype(np.float64)
 
     def covered(self, k: int, est, f) -> int:
