@@ -64,6 +64,10 @@ class OptimizerOptions:
     # one at this input (`Jacobian.relinearize`) and go on, instead of stopping there (a kept
     # model's fixed point is not the optimum: J_kept' r = 0, not J' r = 0)
     refresh_on_stall: bool = False
+    # settle stop (0: none): an accepted step that lowers the objective by less than this (relative)
+    # is taken and ends the run, when the strategy's model has its full settings
+    # (`KeptRomJacobian.full_model`; any model for a strategy without that test)
+    settle: float = 0.0
 
     def check(self) -> None:
         """Raise ValueError naming a bad method or objective."""
@@ -123,7 +127,8 @@ class Optimizer:
 
     A run stops after `max_iter` iterations, when an accepted trial lowers the objective by less
     than `tol` relative (such a step is not taken: it keeps the last linearization at the final
-    input), when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
+    input), with a settle stop (`settle` > 0) after an accepted step that lowered it by less than
+    `settle` on a full model (that step is taken; the last linearization was made before it), when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
     Gauss-Newton model predicts a decrease below `tol` relative for the next step (that trial,
     an EnKF run, is not evaluated); the result's `stop` says which. With a ROM strategy the
     result carries the last identification, made at the final input or within the strategy's
@@ -191,6 +196,9 @@ class Optimizer:
             result.iterations = it + 1
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(J=f"{at.J:.6g}")
+            if rel < o.settle and getattr(self.strategy, "full_model", lambda _: True)(lin):
+                result.stop = f"settled: the step lowered the objective by less than {o.settle:g} (taken)"
+                break
             if it == last and lin.identification is None:
                 result.stop = f"max_iter = {o.iterations}"
                 break
