@@ -82,6 +82,10 @@ SETTINGS_OPTIONS = (
      "impulse against an unperturbed copy in the same batch (about half the plant steps, a bias "
      "of O(amplitude): 4e-6 relative in the reference's Markov parameters at --impulse 0.01; a "
      "smaller amplitude trades the bias for round-off in the field map, see docs/method.md)", False),
+    ("--impulse-stride", "impulse_stride", dict(type=int),
+     "TV-ERA impulses at every stride-th start step (and the last); the Markov parameters of the start steps "
+     "between are interpolated linearly (about 1/stride of the identification's plant steps; default: the "
+     "plan's, 1 for 0.8, 2 for 0.9; the design logs the Markov error of its model)", False),
     ("--experiment-plan", "experiment_plan", dict(choices=["0.8", "0.9"]),
      "which experiments the design runs: 0.8 = sep 0.8.0's plan (its designs bit for bit; the default); 0.9 = "
      "a coarse first model kept while its steps pay, forward impulses, a spot check before the optimizer's "

@@ -228,7 +228,7 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     if ident.data.noise is not None:
         ctx.log(describe_sketch(ident))
     ctx.log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
-            f"experiments{_reuse_note(ident.U, U) if reused else ''}, Markov relative "
+            f"experiments{_stride_note(ident.stride)}{_reuse_note(ident.U, U) if reused else ''}, Markov relative "
             f"error {err:.2e}")
     return IdentificationStage(ident, reused, err, spot if reused else None)
 
@@ -243,6 +243,14 @@ def describe_sketch(ident: Identification) -> str:
             f"{ident.p * n_y} x {q * (n_u + sk.rank)} instead of {ident.p * n_y} x {q * (n_u + sk.n_w)}; "
             f"the ROM noise covariance's trace has a relative standard error of {err:.1%} per step "
             f"(median), averaged over the steps by the filter")
+
+
+def _stride_note(stride: int) -> str:
+    """The log's note on strided impulses (`impulse_stride`): accuracy traded for run-steps."""
+    if stride == 1:
+        return ""
+    return (f" at one start step in {stride} (impulse_stride; the Markov parameters between interpolated "
+            f"linearly: about 1/{stride} of the run-steps, the interpolation's error is in the Markov error below)")
 
 
 def _reuse_note(U_ident: np.ndarray, U: np.ndarray) -> str:
