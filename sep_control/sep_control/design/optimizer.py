@@ -128,7 +128,8 @@ class Optimizer:
     A run stops after `max_iter` iterations, when an accepted trial lowers the objective by less
     than `tol` relative (such a step is not taken: it keeps the last linearization at the final
     input), with a settle stop (`settle` > 0) after an accepted step that lowered it by less than
-    `settle` on a full model (that step is taken; the last linearization was made before it), when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
+    `settle` on a full model (that step is taken; the last linearization was made before it),
+    when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
     Gauss-Newton model predicts a decrease below `tol` relative for the next step (that trial,
     an EnKF run, is not evaluated); the result's `stop` says which. With a ROM strategy the
     result carries the last identification, made at the final input or within the strategy's
