@@ -42,9 +42,6 @@ METHODS = ("gn", "gd")
 #: ratio rho < 1/2: the kept model no longer describes the plant there)
 POOR_MODEL = 0.5
 OBJECTIVES = ("nominal", "belief")
-#: the largest damping of the settle stop's predicted step (`Optimizer._settled`): the first
-#: iteration's lambda
-SETTLE_DAMPING = 1e-3
 
 
 @dataclass(frozen=True)
@@ -67,9 +64,9 @@ class OptimizerOptions:
     # one at this input (`Jacobian.relinearize`) and go on, instead of stopping there (a kept
     # model's fixed point is not the optimum: J_kept' r = 0, not J' r = 0)
     refresh_on_stall: bool = False
-    # settle stop (0: none): after an accepted step, stop when the model there (with the
-    # strategy's full settings: `KeptRomJacobian.full_model`) predicts that its next step lowers
-    # the objective by less than this (relative); no plant run is made for the prediction
+    # settle stop (0: none): an accepted step that lowers the objective by less than this (relative)
+    # is taken and ends the run, when the strategy's model has its full settings
+    # (`KeptRomJacobian.full_model`; any model for a strategy without that test)
     settle: float = 0.0
 
     def check(self) -> None:
@@ -130,9 +127,9 @@ class Optimizer:
 
     A run stops after `max_iter` iterations, when an accepted trial lowers the objective by less
     than `tol` relative (such a step is not taken: it keeps the last linearization at the final
-    input), with a settle stop (`settle` > 0) when the full model at an accepted point predicts a
-    decrease below `settle` for the next step (`_settled`; the model may be a kept one made
-    before that step), when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
+    input), with a settle stop (`settle` > 0) after an accepted step that lowered it by less than
+    `settle` on a full model (that step is taken; the last linearization was made before it),
+    when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
     Gauss-Newton model predicts a decrease below `tol` relative for the next step (that trial,
     an EnKF run, is not evaluated); the result's `stop` says which. With a ROM strategy the
     result carries the last identification, made at the final input or within the strategy's
@@ -200,14 +197,14 @@ class Optimizer:
             result.iterations = it + 1
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(J=f"{at.J:.6g}")
+            if rel < o.settle and getattr(self.strategy, "full_model", lambda _: True)(lin):
+                result.stop = f"settled: the step lowered the objective by less than {o.settle:g} (taken)"
+                break
             if it == last and lin.identification is None:
                 result.stop = f"max_iter = {o.iterations}"
                 break
             fresh = self.strategy.refresh(self.plant, self.obj, at, lin, self._gram) if poor else None
             lin = self._linearize(fresh or self.strategy.linearize(self.plant, self.obj, at, self._gram), result)
-            if o.settle > 0 and self._settled(lin, at, lam):
-                result.stop = f"settled: the model predicts a decrease below {o.settle:g} (relative) for the next step"
-                break
             if it == last:
                 result.stop = f"max_iter = {o.iterations}"
         result.identification, result.belief = lin.identification, at.belief
@@ -215,19 +212,6 @@ class Optimizer:
         return result
 
     # ------------------------------------------------------------ internals
-    def _settled(self, lin: Linearization, at: Point, lam: float) -> bool:
-        """Settle stop: `lin` is a model with the strategy's full settings (`full_model`; any
-        model for a strategy without that test) and the step it proposes from `at`, damped by at
-        most the first iteration's `SETTLE_DAMPING` (a large `lam` left by earlier failed trials
-        shortens the step, not the distance to the optimum), is predicted to lower the objective
-        by less than `settle` (relative). A coarse model's small prediction says that model is
-        poor, not that the optimum is near."""
-        if not getattr(self.strategy, "full_model", lambda _: True)(lin):
-            return False
-        frozen = active_bounds(at.U, lin.gradient(), self.lo, self.hi) if self.bounded else None
-        U_try = np.clip(at.U + lin.step(min(lam, SETTLE_DAMPING), frozen), self.lo, self.hi)
-        return -lin.predicted_change(U_try - at.U) < self.options.settle * at.J
-
     @staticmethod
     def _poor_model(lin: Linearization, at: Point, new: Point) -> bool:
         """Whether the accepted step from `at` to `new` lowered the objective by less than
