@@ -82,6 +82,8 @@ def control_metrics(F: np.ndarray, U: np.ndarray, obj: Objective, F_nom: np.ndar
         out["rms"] = float(M.rms_in_window(F, obj))
     else:
         notes.append("in_band/rms not computed: field missing in the band window")
+    if obj.holds is not None and all(np.all(np.isfinite(F[a:b + 1])) for a, b, _ in obj.holds):
+        out["segments"] = M.segment_summary(M.segment_max_dev(F[None], obj), obj)   # a recipe: per hold
     if F_nom is not None:
         for key, k in (("mean_dev_start", k0), ("mean_dev_end", k1)):
             if np.all(np.isfinite(F[k])):
