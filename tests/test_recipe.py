@@ -10,9 +10,14 @@
 * the ROM-MPC's rate rows: its inputs never violate the rate limits (the plant clips nothing)
   and the vectorized feasibility test equals a row-by-row one;
 * design file version 6 stores the per-step target and reads it back; the shipped scenarios
-  still mean what they meant (no recipe, no rate limit, problem dicts unchanged).
+  still mean what they meant (no recipe, no rate limit, problem dicts unchanged);
+* a lockstep recipe episode over topics (plant, lqg, record) equals the offline Monte Carlo run
+  to 1e-9, and the bag report shows the per-hold results and the recipe figure.
 """
-import dataclasses
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +25,7 @@ import pytest
 import yaml
 
 from core_helpers import TINY_YAML, one_blas_thread  # noqa: F401
-from sep_control.control.controllers import LqrLaw, make_controller
+from sep_control.control.controllers import LqrLaw
 from sep_control.design.pipeline import run_design
 from sep_control.design.settings import DesignSettings
 from sep_control.evaluation.metrics import MetricsAccumulator, in_band, summarize
@@ -29,7 +34,7 @@ from sep_estimator.design_file import VERSION, load_design, save_design
 from sep_plant.plant_episode import PlantEpisode
 from sep_plant.problem import Objective, Problem, ProblemError
 from sep_plant.protocol import clip_rate, rate_clip_sequence, rate_feasible
-from sep_plant.scenario import Scenario, load_scenario
+from sep_plant.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIOS = REPO / "sep_plant" / "scenarios"
@@ -47,10 +52,11 @@ TINY_RECIPE = dict(
 FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1)
 
 
-def recipe_scenario() -> Scenario:
-    """The tiny slab scenario with `TINY_RECIPE`'s problem keys."""
-    sc = Scenario.from_dict(yaml.safe_load(TINY_YAML))
-    return dataclasses.replace(sc, problem=Problem.from_dict({**sc.problem.to_dict(), **TINY_RECIPE}))
+def recipe_yaml() -> str:
+    """The tiny slab scenario (`TINY_YAML`) with `TINY_RECIPE`'s problem keys, as a scenario file."""
+    base = yaml.safe_load(TINY_YAML)
+    return yaml.safe_dump({"plant": {"type": "slab", "n_x": base["n_x"], "dt": base["dt"]},
+                           "n_steps": base["n_steps"], "w_std": base["w_std"], "v_std": base["v_std"], **TINY_RECIPE})
 
 
 # ------------------------------------------------------------------ the problem
@@ -206,10 +212,12 @@ def test_plant_episode_enforces_and_counts_rate_clips():
 def recipe_design(tmp_path_factory):
     from threadpoolctl import threadpool_limits
 
-    sc = recipe_scenario()
+    root = tmp_path_factory.mktemp("recipe")
+    (root / "recipe.yaml").write_text(recipe_yaml())
+    sc = load_scenario(root / "recipe.yaml")
     with threadpool_limits(1):
         d = run_design(sc.plant, sc.problem, DesignSettings(**FAST), show_progress=False, log=lambda m: None)
-    path = tmp_path_factory.mktemp("recipe") / "recipe.npz"
+    path = root / "recipe.npz"
     save_design(path, d)
     return sc, d, path
 
@@ -284,3 +292,66 @@ def test_shipped_scenarios_without_a_recipe_mean_what_they_meant(path):
     assert "recipe" not in d and "du_max" not in d and not p.time_varying and not p.rate_limited
     o = Objective.of(p, np.asarray(sc.plant.field_coordinates()), sc.plant.dt)
     assert o.holds is None and o.target.ndim == 1 and o.segments == ((o.window[0], o.window[1], o.band),)
+
+
+# ----------------------------------------------------------- over topics, bag report
+SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep_control"))
+
+
+def _popen(args, cwd, name):
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
+    log = open(cwd / f"{name}.log", "w")
+    return subprocess.Popen([sys.executable, "-m", *args], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL)
+
+
+def _log(cwd, name):
+    return (cwd / f"{name}.log").read_text()
+
+
+@pytest.mark.ros
+def test_lockstep_recipe_over_topics_equals_offline_and_the_report_shows_the_holds(tmp_path, recipe_design, procs):
+    from sep_control.bags.analysis import analyze
+    from sep_control.bags.report import write_report
+    from sep_control.evaluation import metrics as M
+
+    sc, _, design_path = recipe_design
+    scen = design_path.parent / "recipe.yaml"
+    seed, run = 7, 2
+    rec = _popen(["sep_control.ros.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
+                  "--ready-topics", "command", "state_estimate", "field_estimate", "--max-duration", "120"],
+                 tmp_path, "record")
+    procs.append(rec)
+    lqg = _popen(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
+    procs.append(lqg)
+    t0 = time.monotonic()
+    while not (tmp_path / "ready").exists():
+        assert time.monotonic() - t0 < 60, _log(tmp_path, "record") + _log(tmp_path, "lqg")
+        assert rec.poll() is None and lqg.poll() is None, _log(tmp_path, "record") + _log(tmp_path, "lqg")
+        time.sleep(0.05)
+    plant = _popen(["sep_plant.ros.plant_node", "--ros-args", "-p", f"scenario_file:={scen}", "-p", f"seed:={seed}",
+                    "-p", f"run:={run}", "-p", "wait_for_subscribers:=2", "-p", "wait_for_field_subscribers:=1",
+                    "-p", "trajectory_file:=traj.npz", "-p", "summary_file:=plant.json"], tmp_path, "plant")
+    procs.append(plant)
+    assert plant.wait(120) == 0, _log(tmp_path, "plant")
+    assert rec.wait(60) == 0, _log(tmp_path, "record")
+    lqg.wait(30)
+    design = load_design(design_path)
+    ref = simulate(design.scenario.plant, design, "rom_lqg", seed, range(run, run + 1))
+    live = np.load(tmp_path / "traj.npz", allow_pickle=False)
+    assert np.max(np.abs(live["U"] - ref.U[0])) <= 1e-9
+    assert np.max(np.abs(live["F"] - ref.F[0])) <= 1e-9
+    assert np.any(np.abs(np.diff(live["U"], axis=0)) >= design.problem.channels("du_max", design.info.n_u) - 1e-12)
+    import json
+    assert json.loads((tmp_path / "plant.json").read_text())["rate_clips"] == 0     # the law clipped itself
+    rep = analyze(tmp_path / "bag", design)
+    assert np.max(np.abs(rep.episode.F - ref.F[0])) <= 1e-9
+    want = M.summarize(ref.F, ref.U, design.nominal.field, design.objective)["segments"]
+    assert len(want) == 2
+    for got, w in zip(rep.metrics["segments"], want):
+        assert got["k_start"] == w["k_start"] and got["in_band"] == w["in_band"]
+        assert got["max_dev"] == pytest.approx(w["max_dev"], abs=1e-9)
+    text = write_report(rep, tmp_path / "report").read_text()
+    assert "## Hold segments" in text and "recipe, hold segments" in text
+    assert f"{want[1]['max_dev']:.4g}" in text
+    assert (tmp_path / "report" / "recipe.png").exists()
