@@ -267,7 +267,7 @@ def recipe_figure(path: Path, info: PlantInfo, obj, F_nom: np.ndarray | None,
     a.legend(fontsize=7, loc="lower right")
     a.grid(alpha=0.3)
     b.set(xlabel="t [s]", ylabel="max |f - f*|" + unit)
-    b.set_ylim(0, max(3 * max(band for _, _, band in obj.segments), 1e-12))
+    b.set_ylim(bottom=0)
     b.legend(fontsize=7, loc="upper right")
     b.grid(alpha=0.3)
     return save_figure(fig, path)
