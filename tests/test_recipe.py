@@ -234,6 +234,13 @@ def test_the_nominal_is_rate_feasible_and_the_file_round_trips(recipe_design):
     np.testing.assert_array_equal(back.objective.target, d.objective.target)
     assert back.objective.holds == d.objective.holds and back.problem == d.problem
     np.testing.assert_array_equal(back.objective.q, d.objective.q)
+    # the design summary gives the nominal's worst deviation per hold
+    from sep_control.cli.design import design_summary, format_summary
+    from sep_control.evaluation.metrics import segment_max_dev
+
+    per_hold = segment_max_dev(d.nominal.field[None], d.objective)[:, 0]
+    np.testing.assert_allclose(d.meta["validation"]["max_dev_per_hold"], per_hold, rtol=1e-12)
+    assert "per hold: " + f"{per_hold[0]:.3g} (band 3)" in format_summary(design_summary(back), "x")
 
 
 def test_monte_carlo_rate_counts_and_mpc_rate_rows(recipe_design, one_blas_thread):
