@@ -108,6 +108,13 @@ def test_bad_recipes_are_refused(recipe, message):
         Problem.from_dict({"recipe": recipe})
 
 
+def test_recipe_with_the_objectives_schedule_for_the_field_weighting_is_refused():
+    rec = [{"start": 0, "end": 1, "target": 1, "band": 1}]
+    with pytest.raises(ProblemError, match="lqr_field_time: objective is not available with a recipe"):
+        Problem.from_dict({"recipe": rec, "lqr_weighting": "field", "lqr_field_time": "objective"})
+    assert Problem.from_dict({"recipe": rec, "lqr_weighting": "field"}).lqr_field_time == "lqr"
+
+
 def test_recipe_that_does_not_fit_the_horizon_or_the_grid_is_refused():
     p = Problem.from_dict({"n_steps": 10, "recipe": [{"start": 0, "end": 8, "target": 1, "band": 1}]})
     with pytest.raises(ProblemError, match="past the horizon"):

@@ -657,3 +657,6 @@ def _problems(p: Problem):
                        f"{p.recipe[i].start:g} s, before segment {i - 1} ends at {p.recipe[i - 1].end:g} s)")
         if all(seg.band is None for seg in p.recipe):
             yield "a recipe needs at least one hold segment (a segment with a band)"
+        if p.lqr_weighting == "field" and p.lqr_field_time == "objective":
+            yield ("lqr_field_time: objective is not available with a recipe (its weights are in seconds, "
+                   "the LQR's schedule in steps); use lqr_field_time: lqr")
