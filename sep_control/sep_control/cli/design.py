@@ -238,6 +238,8 @@ def design_summary(design) -> dict:
         "mean_only_cost": m["optimizer"]["mean_only_cost"],
         "belief_history": m["optimizer"]["belief_history"],
         "max_dev_in_band_window": m["validation"]["max_dev_in_band_window"],
+        "max_dev_per_hold": m["validation"].get("max_dev_per_hold"),     # a recipe's holds
+        "hold_bands": [b for _, _, b in design.objective.holds] if design.objective.holds else None,
         "markov_rel_error": m["validation"]["markov_rel_error"],
         "timings": m["timings"],
         "run_steps": m.get("run_steps"),              # plant run-steps per stage (None: files before 0.9)
@@ -252,6 +254,9 @@ def format_summary(sm: dict, path: str) -> str:
         f"design written to {path}",
         f"  nominal cost J           {sm['nominal_cost']:.6g}  (mean-only optimum {sm['mean_only_cost']:.6g})",
         f"  nominal max |f - f*|     {sm['max_dev_in_band_window']:.3g} over the band window",
+        *([f"  nominal max |f - f*|     per hold: " + ", ".join(
+            f"{d:.3g} (band {b:g})" for d, b in zip(sm["max_dev_per_hold"], sm["hold_bands"]))]
+          if sm.get("max_dev_per_hold") else []),
         f"  ROM order                n_r = {sm['n_r']}",
         f"  disturbance states       {sm['disturbance']}",
         f"  Markov relative error    {sm['markov_rel_error']:.2e}",

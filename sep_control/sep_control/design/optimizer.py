@@ -28,7 +28,7 @@ import numpy as np
 
 from sep_estimator.enkf import EnKFResult
 from sep_plant.problem import Problem
-from sep_plant.protocol import Plant, fields, nominal_states
+from sep_plant.protocol import Plant, fields, nominal_states, rate_clip_sequence
 
 from sep_control.compute.progress import progress
 from sep_control.design.belief import belief_cost, objective_of, run_belief
@@ -123,7 +123,8 @@ class Optimizer:
     Every step is accepted on the true objective, whichever model proposed it. Input limits:
     the problem's u_min/u_max or `options.bounds`; inputs at an active bound (`active_bounds`)
     are held, the others step, and the trial point is projected onto the box before the true
-    objective accepts it.
+    objective accepts it. Rate limits (du_max): the projected trial is then clipped forward in
+    time to |u_k - u_{k-1}| <= du_max (a feasible point, not the exact projection).
 
     A run stops after `max_iter` iterations, when an accepted trial lowers the objective by less
     than `tol` relative (such a step is not taken: it keeps the last linearization at the final
@@ -164,7 +165,7 @@ class Optimizer:
         o, t0 = self.options, time.perf_counter()
         U = self.problem.u_start(int(self.plant.n_u)) if U0 is None else np.array(U0, dtype=float)
         self._box(U.shape)
-        at = self._evaluate(np.clip(U, self.lo, self.hi))
+        at = self._evaluate(self._project(U))
         result = OptimizationResult(at.U, at.J, [at.J], method=o.method, objective=o.objective)
         lin = self._linearize(self.strategy.linearize(self.plant, self.obj, at, self._gram), result)
         lam, alpha, last = 1e-3, o.step_size, o.iterations - 1
@@ -229,6 +230,13 @@ class Optimizer:
         self.lo = np.broadcast_to(np.asarray(lo, dtype=float), shape)
         self.hi = np.broadcast_to(np.asarray(hi, dtype=float), shape)
         self.bounded = bool(np.any(np.isfinite(self.lo)) or np.any(np.isfinite(self.hi)))
+        self.du_max = self.problem.channels("du_max", int(self.plant.n_u))
+
+    def _project(self, U: np.ndarray) -> np.ndarray:
+        """U clipped into the box, then made rate-feasible forward in time (u_k = clip(u_k,
+        u_{k-1} -+ du_max), k = 1..N-1; `sep_plant.protocol.rate_clip_sequence`): every trial
+        the true objective accepts is a feasible nominal."""
+        return rate_clip_sequence(np.clip(U, self.lo, self.hi), self.du_max)
 
     def _evaluate(self, U: np.ndarray) -> Point:
         """The objective at U (a rollout, and for the belief objective an EnKF run)."""
@@ -272,7 +280,7 @@ class Optimizer:
                 dU = -alpha * grad
                 if frozen is not None:
                     dU[frozen] = 0.0
-            U_try = np.clip(at.U + dU, self.lo, self.hi)
+            U_try = self._project(at.U + dU)
             if self.predict_stop and 0.0 <= -lin.predicted_change(U_try - at.U) < o.tol * at.J:
                 return Attempt("converged", lam, alpha)
             trial = self._evaluate(U_try)

@@ -342,7 +342,12 @@ class PlantNode(NodeBase):
                             'rejected_by_reason': ep.rejections.as_dict(),
                             'last_rejection': str(ep.rejections.last or ''),
                             'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'],
-                            'seed': self.p['seed'], 'run': self.p['run'], 'perturbation': self.perturbation})
+                            'seed': self.p['seed'], 'run': self.p['run'], 'perturbation': self.perturbation,
+                            **self._rate_values()})
+
+    def _rate_values(self) -> dict:
+        """rate_clips (channel-steps the rate limit clipped), only for a rate-limited problem."""
+        return {'rate_clips': self.episode.rate_clips} if self.episode.problem.rate_limited else {}
 
     def summary(self, status: str) -> dict:
         ep, p = self.episode, self.p
@@ -357,7 +362,8 @@ class PlantNode(NodeBase):
                 'wall_s': self.t_end - ep.t_start if ep.t_start else None,
                 'scenario_file': p['scenario_file'], 'plant': self.scenario.plant_type,
                 'perturbation': self.perturbation, 'namespace': self.node.get_namespace(),
-                'safe_input_steps': self.safe_steps, 'commands_while_inactive': self.ignored_commands}
+                'safe_input_steps': self.safe_steps, 'commands_while_inactive': self.ignored_commands,
+                **self._rate_values()}
 
     def finish_label(self) -> str:
         return 'episode'
