@@ -46,7 +46,7 @@ def test_design_runs_as_a_policy_on_the_env(design):
     from sep_plant.plants.controlgym import make_env
 
     plant, d = design
-    assert d.meta["initial_prior"]["run_steps"] > 0 and d.meta["initial_prior"]["k0"] >= 1
+    assert d.meta["initial_prior"]["run_steps"] > 0 and d.meta["initial_prior"]["n_c"] >= 1
     env = make_env("burgers", **KEYS)
     env.set_target_state(d.problem.target_field(plant.field_coordinates()))
     seeds = range(5)

@@ -18,6 +18,8 @@ index conventions of `sep_estimator.ltv`):
     field_basis (n_field, r_f)  field_coef (N+1, r_f, n_r)   the field map G_k = field_basis field_coef_k
     (or G (N+1, n_field, n_r) dense, as version 1 stored it)
     Bw (N, n_r, n_w)   only for plants whose noise does not enter through the inputs
+    rom_P0 (n_r, n_r)  only for a ROM with initial-condition states (an uncertain initial state,
+                       `sep_control.design.initial_prior`): the prior P_0 = blockdiag(0, cov(c))
     K (N, n_u, n_z)  L (N+1, n_z, n_y)  P_post (N+1, n_z, n_z)  field_std (N+1, n_field)
     hankel_sv (N+1, n_sv)
     dist_map (n_u, n_d) E, (n_w, n_d) E_w or (n_y, n_d) F (a combination: its parts' blocks),
@@ -28,7 +30,8 @@ Version 5 adds the disturbance kind "noise" (dist_map (n_w, n_d): directions of 
 noise's channels) and the combinations "input+noise", "noise+output", "input+output" (dist_map
 block-diagonal over the parts' channels stacked in that order, (n_u + n_w, n_d), (n_w + n_y, n_d)
 or (n_u + n_y, n_d); meta["disturbance"]["part_dims"] = [n_d1, n_d2]) and the LQR weighting keys of the problem (lqr_weighting, lqr_field_nodes,
-lqr_field_time; the field weighting's gains are on the stored field map); files of versions 1-4
+lqr_field_time; the field weighting's gains are on the stored field map) and the ROM's prior
+rom_P0 (initial-condition states); files of versions 1-4
 read with the output weighting (their problem has no such key) and kinds none/input/output.
 Version 4 adds the disturbance states: meta["disturbance"] = {"kind": "none" | "input" |
 "output", "n_d", "directions" (how chosen, singular values), "std0_rule"}; A, B, C, rom_dims
@@ -107,10 +110,12 @@ class DesignFileError(ValueError):
 
 def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
             field_rank: int | None, kind: str = "none", n_d: int = 0,
-            with_belief: bool = True, per_step_target: bool = False) -> dict[str, tuple[int, ...]]:
+            with_belief: bool = True, per_step_target: bool = False,
+            with_p0: bool = False) -> dict[str, tuple[int, ...]]:
     """Expected member shapes; field_rank None: the dense field map G; `kind`, `n_d`: the
     disturbance states; `with_belief`: the EnKF belief statistics are stored; `per_step_target`:
-    f* is stored per step (version 6, a time-varying target)."""
+    f* is stored per step (version 6, a time-varying target); `with_p0`: the ROM's prior
+    (initial-condition states)."""
     nf, nu, ny = info.n_field, info.n_u, info.n_y
     nz = n_r + n_d
     out = {
@@ -130,6 +135,8 @@ def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
         out["field_basis"], out["field_coef"] = (nf, field_rank), (N + 1, field_rank, n_r)
     if with_bw:
         out["Bw"] = (N, n_r, info.noise_dim)
+    if with_p0:
+        out["rom_P0"] = (n_r, n_r)
     return out
 
 
@@ -152,6 +159,8 @@ def arrays_of(d: Design) -> dict[str, np.ndarray]:
         out["belief_mean"], out["belief_std"] = nom.belief_mean, nom.belief_std
     if m.Bw is not None:
         out["Bw"] = m.Bw
+    if m.P0 is not None:
+        out["rom_P0"] = m.P0
     dist = d.disturbance
     if dist is not None:
         out.update(dist_map=dist.map, dist_std0=dist.std0, dist_walk_std=dist.walk_std)
@@ -196,7 +205,7 @@ def save_design(path: str | Path, d: Design) -> Path:
     belief = d.nominal.belief_kind
     expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays),
                      "none" if dist is None else dist.kind, d.lqg.n_d, belief == "ensemble",
-                     d.scenario.problem.time_varying)
+                     d.scenario.problem.time_varying, "rom_P0" in arrays)
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
@@ -352,8 +361,10 @@ def _check_arrays(path: Path, raw: dict[str, np.ndarray], meta: dict, version: i
         raise DesignFileError(f"{path}: field_basis must be a matrix (n_field, r_f)")
     kind, n_d = _disturbance_kind(path, meta, version, info)
     belief = _belief_kind(path, meta, raw)
+    if "rom_P0" in raw and version < 5:
+        raise DesignFileError(f"{path}: member rom_P0 needs format version 5, the file says {version}")
     expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw), kind, n_d, belief == "ensemble",
-                     version >= 6 and scenario.problem.time_varying)
+                     version >= 6 and scenario.problem.time_varying, "rom_P0" in raw)
     missing = sorted(set(expect) - set(raw))
     if missing:
         raise DesignFileError(f"{path}: missing arrays {missing}")
@@ -416,7 +427,7 @@ def _assemble(path: Path, scenario: Scenario, info: PlantInfo, meta: dict, a: di
               kind: str) -> Design:
     p = scenario.problem
     G = DenseFieldMap(a["G"]) if "field_basis" not in a else PODFieldMap(a["field_basis"], a["field_coef"])
-    rom = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=G, dims=a["rom_dims"], Bw=a.get("Bw"))
+    rom = LTVModel(A=a["A"], B=a["B"], C=a["C"], G=G, dims=a["rom_dims"], Bw=a.get("Bw"), P0=a.get("rom_P0"))
     dist = None
     if kind != "none":
         rec = meta["disturbance"]

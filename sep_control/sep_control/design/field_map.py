@@ -3,7 +3,8 @@
 The identification's field map G_k = Phi g_k spans every field response of the experiments.
 With the LQG running (and without it) the ROM state a_k spreads as X_k (`state_spread`);
 directions of Phi that X_k moves by less than `FIELD_MAP_TOL` times the largest spread are
-dropped (`compress_field_map`). The filter (it reads the outputs) does not use G, nor does the
+dropped (`compress_field_map`), unless the LQR weighs the field (lqr_weighting: field: the
+identification's map is kept, `compressed_lqg`). The filter (it reads the outputs) does not use G, nor does the
 LQR weighting the outputs, so those gains do not change; an LQR weighting the field
 (lqr_weighting: field) is redesigned on the compressed map (`gains.regained`), so that its gains
 and the MPC's weights read the same map. The field std `LQG.field_std` is that of the compressed map.
@@ -56,9 +57,13 @@ def compressed_lqg(gains: GainsResult, tol: float = FIELD_MAP_TOL, name: str = "
     compressed at `tol` against the state spread these gains give (`state_spread`,
     `compress_field_map`), and `LQG.field_std` computed for that map. A map that is not a POD
     one (the oracle's) is kept as it is. With disturbance states the ROM's map is compressed
-    against the a-block of the spread of z (d does not move the field)."""
+    against the a-block of the spread of z (d does not move the field). Under the field weighting
+    (lqr_weighting: field) the identification's map is kept: the LQR weighs the field through it,
+    and a map compressed against the filter's spread (rank 1 where the spread is) would drop the
+    field directions the cost reads (measured on controlgym's envs, docs/benchmarks.md)."""
     rom = gains.model if gains.rom is None else gains.rom
-    if isinstance(rom.G, PODFieldMap):
+    field_weighted = gains.problem is not None and gains.problem.lqr_weighting == "field"
+    if isinstance(rom.G, PODFieldMap) and not field_weighted:
         X = state_spread(gains.model, gains.K, gains.kf, gains.V)[:, :rom.n, :rom.n]
         rom = replace(rom, G=compress_field_map(rom.G, X, tol))
         gains = regained(gains, rom)

@@ -6,7 +6,11 @@
    nominal (forward differences on request), with the field output map;
 3. disturbance states for offset-free tracking (`sep_estimator.disturbance`), time-varying LQR
    (weights on the outputs) and Kalman filter on the ROM augmented with them;
-4. the field map compressed to the directions the ROM state reaches with those gains.
+4. the field map compressed to the directions the ROM state reaches with those gains (kept as
+   identified when the LQR weighs the field);
+5. a plant with an uncertain initial state: initial-condition states appended to the ROM from the
+   free responses of sampled initial states, the filter's prior P_0 = blockdiag(0, cov(c)), and
+   steps 3-4 again on it (`sep_control.design.initial_prior`).
 
     design = run_design(plant, problem, DesignSettings())
 
@@ -114,24 +118,30 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     nominal = Nominal(U, outputs(plant, X_nom), F_nom, *((belief.mean, belief.std) if belief is not None else ()))
     meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind}
     with meter.stage("identification"):            # the free responses of sampled initial states
-        lqg = _initial_prior_hook(counted, final.lqg, nominal, meta, log)
+        lqg = _initial_prior_hook(counted, final, problem, st, nominal, meta, log)
     meta["run_steps"] = meter.as_dict()
     return Design(scenario, PlantInfo.of(plant), obj, np.asarray(plant.field_coordinates(), dtype=float), nominal,
                   lqg, ident.hankel_sv, meta)
 
 
-def _initial_prior_hook(plant: Plant, lqg, nominal: Nominal, meta: dict[str, Any], log: Callable[[str], None]):
-    """The filter's prior P_0 from sampled initial states (`sep_control.design.initial_prior`);
-    the LQG unchanged for a plant whose initial state is known."""
-    from sep_control.design.initial_prior import fit_initial_prior, with_initial_prior
+def _initial_prior_hook(plant: Plant, final: DesignPass, problem: Problem, st: DesignSettings, nominal: Nominal,
+                        meta: dict[str, Any], log: Callable[[str], None]):
+    """The design's LQG on the ROM with initial-condition states (`sep_control.design.initial_prior`:
+    the free responses of sampled initial states, P_0 = blockdiag(0, cov(c))): the gains and
+    the field map redesigned on it with the final pass's disturbance states; the final pass's
+    LQG itself, bit for bit, for a plant whose initial state is known."""
+    from sep_control.design.field_map import compressed_lqg
+    from sep_control.design.initial_prior import fit_initial_prior, with_initial_states
 
-    prior = fit_initial_prior(plant, lqg.rom, nominal.u, nominal.y)
-    if prior is not None:
-        meta["initial_prior"] = {"k0": prior.k0, "fit": prior.fit, "run_steps": prior.run_steps,
-                                 "trace": float(np.trace(prior.delta))}
-        log(f"initial state uncertain: the filter's prior at step {prior.k0} from {prior.run_steps} "
-            f"free-response run-steps (the ROM explains {prior.fit:.0%} of their output deviations)")
-    return with_initial_prior(lqg, prior)
+    prior = fit_initial_prior(plant, nominal.u, nominal.y, nominal.field)
+    if prior is None:
+        return final.lqg
+    meta["initial_prior"] = {"n_c": prior.n_c, "fit": prior.fit, "run_steps": prior.run_steps,
+                             "trace": float(np.trace(prior.cov))}
+    log(f"initial state uncertain: {prior.n_c} initial-condition states on the ROM from {prior.run_steps} "
+        f"free-response run-steps (they hold {prior.fit:.1%} of the sampled deviations)")
+    rom = with_initial_states(final.identification.identification.model, prior)
+    return compressed_lqg(design_lqg(rom, problem, final.lqg.disturbance), st.field_map_tol)
 
 
 def _with_limit_margin(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext,
