@@ -38,6 +38,7 @@ class LqgProcess(NodeProcess):
         lqr = LqrNode(peer=est, standalone=False)
         est.on_estimate = lqr.on_estimate
         lqr.on_command = est.note_command
+        est.followers.append(lqr)          # a new episode (and a swapped design) reaches the LQR through the estimator
         self.est, self.lqr = est, lqr
         # one summary file for the process (a -p summary_file:=X applies to both nodes)
         self.summary_file = est.summary_file or lqr.summary_file

@@ -1,0 +1,156 @@
+"""Episode after episode in one graph (issue 30): a plant with ``episodes`` K plays runs run..run+K-1
+one after the other, announcing each with a scenario message carrying an "episode" entry; the lqg
+resets its filter and controller per episode without a restart, and every episode equals the
+offline closed loop of its seed and run to 1e-9. A design swap through ``next_design_file`` is
+checked at once (a refused one says why and leaves the design in use) and used from the next
+episode. One bag holds all episodes; `sep analyze` reports each and the pooled metrics.
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from node_harness import SMALL, _cached_case, launcher, probe, small_case  # noqa: F401
+from sep_control.evaluation.montecarlo import simulate
+
+pytestmark = pytest.mark.ros
+
+SEED, RUN = 7, 2
+
+
+def start_graph(launcher, case, tmp_path, episodes: int, *, record: bool = False, design_file=None, **plant):
+    """lqg (+ recorder) first, then the plant with `episodes` (its trajectories per episode)."""
+    ctl = {'design_file': design_file or case.design_file, 'wait_for_scenario_s': 30.0,
+           'episode_log_file': tmp_path / 'lqg_episodes.jsonl', 'summary_file': tmp_path / 'lqg.json'}
+    lqg = launcher.start('lqg', params=ctl)
+    rec = None
+    subscribers = 1
+    if record:
+        rec = launcher.start('record', '--out', str(tmp_path / 'bag'), '--ready-file', str(tmp_path / 'ready'),
+                             '--topics', 'scenario', 'measurements', 'applied_input', 'command', 'field',
+                             'field_estimate', 'state_estimate')
+        subscribers = 2
+        t_end = time.monotonic() + 60
+        while not (tmp_path / 'ready').exists():
+            assert time.monotonic() < t_end, rec.output()
+            time.sleep(0.1)
+    params = {'scenario_file': case.scenario_file, 'seed': SEED, 'run': RUN, 'episodes': episodes,
+              'wait_for_subscribers': subscribers, 'summary_file': tmp_path / 'plant.json',
+              'episode_log_file': tmp_path / 'plant_episodes.jsonl', 'trajectory_file': tmp_path / 'traj.npz',
+              'command_timeout_s': 20.0, **plant}
+    return lqg, rec, launcher.start('plant', params=params)
+
+
+def read_lines(path):
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def assert_offline(case, tmp_path, episodes: int, design=None):
+    """Each episode's trajectory equals the offline closed loop of run RUN + i to 1e-9."""
+    ref = simulate(case.plant, design or case.design, 'rom_lqg', SEED, range(RUN, RUN + episodes))
+    for i in range(episodes):
+        tr = np.load(tmp_path / f'traj.e{i}.npz')
+        assert int(tr['run']) == RUN + i
+        assert np.max(np.abs(tr['U'] - ref.U[i])) <= 1e-9, i
+        assert np.max(np.abs(tr['F'] - ref.F[i])) <= 1e-9, i
+
+
+def test_three_episodes_equal_offline_one_bag_analyzed(launcher, small_case, tmp_path):
+    from sep_control.bags.episodes import analyze_episodes, read_episodes
+
+    lqg, rec, plant = start_graph(launcher, small_case, tmp_path, 3, record=True)
+    assert plant.wait(120) == 0, plant.output()
+    assert lqg.wait(30) == 0, lqg.output()           # the last episode announced: the lqg exits after it
+    assert rec.wait(30) == 0, rec.output()           # the recorder stops after the last episode's step N
+    summ = json.loads((tmp_path / 'plant.json').read_text())
+    assert summ['episodes'] == {'played': 3, 'by_status': {'completed': 3}, 'deadline_misses': 0,
+                                'rejected_messages': 0}
+    recs = read_lines(tmp_path / 'plant_episodes.jsonl')
+    assert [(r['episode'], r['run'], r['status'], r['steps']) for r in recs] == [
+        (i, RUN + i, 'completed', small_case.n_steps) for i in range(3)]
+    assert 'restart' not in lqg.output().lower() or 'restarts' in lqg.output()
+    assert_offline(small_case, tmp_path, 3)
+    ctl = read_lines(tmp_path / 'lqg_episodes.jsonl')      # episodes 0 and 1 (2 ends the process)
+    assert [(r['node'], r['episode'], r['status']) for r in ctl] == [
+        ('estimator', 0, 'completed'), ('lqr', 0, 'completed'), ('estimator', 1, 'completed'), ('lqr', 1, 'completed')]
+    assert json.loads((tmp_path / 'lqg.json').read_text())['estimator']['episodes_played'] == 3
+    # one bag, split per episode: each episode's applied inputs are the trajectory's
+    eps = read_episodes(tmp_path / 'bag')
+    assert [e.index for e in eps] == [0, 1, 2]
+    for e in eps:
+        U = np.load(tmp_path / f'traj.e{e.index}.npz')['U']
+        np.testing.assert_array_equal(e.episode.u_applied, U)
+    rows = analyze_episodes(tmp_path / 'bag', small_case.design_file)
+    assert [r['name'] for r in rows] == ['bag.e0', 'bag.e1', 'bag.e2', 'pooled']
+    assert all(r['steps'] == small_case.n_steps for r in rows[:3])
+
+
+def test_default_is_one_episode_without_episode_entry(launcher, small_case, tmp_path):
+    lqg, _, plant = start_graph(launcher, small_case, tmp_path, 1)
+    assert plant.wait(120) == 0 and lqg.wait(30) == 0
+    summ = json.loads((tmp_path / 'plant.json').read_text())
+    assert 'episodes' not in summ and summ['status'] == 'completed'
+    assert not (tmp_path / 'plant_episodes.jsonl').exists()
+    tr = np.load(tmp_path / 'traj.npz')                    # one file, as before
+    ref = simulate(small_case.plant, small_case.design, 'rom_lqg', SEED, range(RUN, RUN + 1))
+    assert np.max(np.abs(tr['U'] - ref.U[0])) <= 1e-9
+
+
+@pytest.fixture(scope='session')
+def other_design(tmp_path_factory):
+    """The small scenario designed with another LQR weight: a second design for swaps."""
+    return _cached_case(tmp_path_factory, 'small_r2', settings={'n_r': 6}, **SMALL)
+
+
+def set_param(probe_node, node: str, name: str, value: str):
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    cli = probe_node.node.create_client(SetParameters, f'{node}/set_parameters')
+    assert cli.wait_for_service(timeout_sec=30.0)
+    time.sleep(0.5)
+    req = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
+        type=ParameterType.PARAMETER_STRING, string_value=str(value)))])
+    fut = cli.call_async(req)
+    t_end = time.monotonic() + 20
+    while not fut.done():
+        assert time.monotonic() < t_end
+        time.sleep(0.01)
+    return fut.result().results[0]
+
+
+def test_design_swap_refused_then_accepted(launcher, probe, small_case, other_design, tmp_path, tmp_path_factory):
+    """A swap set on the running lqg: a design for another plant is refused at once (the result and
+    the log say why; set on the LQR, which uses the estimator's design, refused too); an accepted one
+    is used from the next episode: episode 0 runs the start design, episode 1 the new one, each equal
+    to its offline closed loop."""
+    bad = _cached_case(tmp_path_factory, 'small_n30', n_x=30, n_steps=40, k_band=24, lqr_k_switch=20)
+    pr = probe()
+    ctl = {'design_file': small_case.design_file, 'scenario_file': small_case.scenario_file,
+           'wait_for_scenario_s': 30.0, 'episode_log_file': tmp_path / 'lqg_episodes.jsonl',
+           'summary_file': tmp_path / 'lqg.json'}
+    lqg = launcher.start('lqg', params=ctl)
+    refused = set_param(pr, '/sep/estimator', 'next_design_file', bad.design_file)
+    assert not refused.successful and 'refused' in refused.reason and 'n_x' in refused.reason, refused.reason
+    assert not set_param(pr, '/sep/lqr', 'next_design_file', other_design.design_file).successful
+    ok = set_param(pr, '/sep/estimator', 'next_design_file', other_design.design_file)
+    assert ok.successful, ok.reason
+    plant = launcher.start('plant', params={
+        'scenario_file': small_case.scenario_file, 'seed': SEED, 'run': RUN, 'episodes': 2,
+        'summary_file': tmp_path / 'plant.json', 'trajectory_file': tmp_path / 'traj.npz', 'command_timeout_s': 20.0})
+    assert plant.wait(120) == 0, plant.output()
+    assert lqg.wait(30) == 0, lqg.output()
+    assert 'next_design_file' in lqg.output() and 'refused' in lqg.output()
+    ctl = read_lines(tmp_path / 'lqg_episodes.jsonl')
+    assert [(r['node'], r['design_file']) for r in ctl] == [('estimator', str(small_case.design_file)),
+                                                           ('lqr', str(small_case.design_file))]
+    summ = json.loads((tmp_path / 'lqg.json').read_text())
+    assert summ['estimator']['design_file'] == str(other_design.design_file)
+    assert summ['lqr']['design_file'] == str(other_design.design_file)
+    for i, case in enumerate((small_case, other_design)):
+        ref = simulate(small_case.plant, case.design, 'rom_lqg', SEED, range(RUN + i, RUN + i + 1))
+        tr = np.load(tmp_path / f'traj.e{i}.npz')
+        assert np.max(np.abs(tr['U'] - ref.U[0])) <= 1e-9, i
