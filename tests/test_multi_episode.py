@@ -8,6 +8,8 @@ episode. One bag holds all episodes; `sep analyze` reports each and the pooled m
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -31,8 +33,9 @@ def start_graph(launcher, case, tmp_path, episodes: int, *, record: bool = False
     if record:
         rec = launcher.start('record', '--out', str(tmp_path / 'bag'), '--ready-file', str(tmp_path / 'ready'),
                              '--topics', 'scenario', 'measurements', 'applied_input', 'command', 'field',
-                             'field_estimate', 'state_estimate')
+                             'field_estimate', 'state_estimate', '--ready-topics', 'command', 'state_estimate')
         subscribers = 2
+        plant.setdefault('wait_for_field_subscribers', 1)
         t_end = time.monotonic() + 60
         while not (tmp_path / 'ready').exists():
             assert time.monotonic() < t_end, rec.output()
@@ -60,6 +63,7 @@ def assert_offline(case, tmp_path, episodes: int, design=None):
 
 def test_three_episodes_equal_offline_one_bag_analyzed(launcher, small_case, tmp_path):
     from sep_control.bags.episodes import analyze_episodes, read_episodes
+    from sep_control.bags.report import metrics_rows
 
     lqg, rec, plant = start_graph(launcher, small_case, tmp_path, 3, record=True)
     assert plant.wait(120) == 0, plant.output()
@@ -73,19 +77,32 @@ def test_three_episodes_equal_offline_one_bag_analyzed(launcher, small_case, tmp
         (i, RUN + i, 'completed', small_case.n_steps) for i in range(3)]
     assert 'restart' not in lqg.output().lower() or 'restarts' in lqg.output()
     assert_offline(small_case, tmp_path, 3)
-    ctl = read_lines(tmp_path / 'lqg_episodes.jsonl')      # episodes 0 and 1 (2 ends the process)
+    ctl = read_lines(tmp_path / 'lqg_episodes.jsonl')      # one record per node and episode
     assert [(r['node'], r['episode'], r['status']) for r in ctl] == [
-        ('estimator', 0, 'completed'), ('lqr', 0, 'completed'), ('estimator', 1, 'completed'), ('lqr', 1, 'completed')]
+        (node, i, 'completed') for i in range(3) for node in ('estimator', 'lqr')]
+    assert all(r['commands'] == small_case.n_steps for r in ctl if r['node'] == 'lqr')
     assert json.loads((tmp_path / 'lqg.json').read_text())['estimator']['episodes_played'] == 3
     # one bag, split per episode: each episode's applied inputs are the trajectory's
     eps = read_episodes(tmp_path / 'bag')
-    assert [e.index for e in eps] == [0, 1, 2]
+    assert [(e.index, e.run) for e in eps] == [(0, RUN), (1, RUN + 1), (2, RUN + 2)]
     for e in eps:
-        U = np.load(tmp_path / f'traj.e{e.index}.npz')['U']
-        np.testing.assert_array_equal(e.episode.u_applied, U)
-    rows = analyze_episodes(tmp_path / 'bag', small_case.design_file)
-    assert [r['name'] for r in rows] == ['bag.e0', 'bag.e1', 'bag.e2', 'pooled']
-    assert all(r['steps'] == small_case.n_steps for r in rows[:3])
+        tr = np.load(tmp_path / f'traj.e{e.index}.npz')
+        np.testing.assert_array_equal(e.episode.u, tr['U'])
+        np.testing.assert_array_equal(e.episode.F, tr['F'])
+    rep = analyze_episodes(tmp_path / 'bag', small_case.design_file)
+    rows = metrics_rows(rep)
+    assert list(rows) == ['bag.e0', 'bag.e1', 'bag.e2', 'all episodes']
+    for i in range(3):     # each row is that episode's: the offline Monte Carlo of its one run
+        ref = simulate(small_case.plant, small_case.design, 'rom_lqg', SEED, range(RUN + i, RUN + i + 1)).summary
+        assert rows[f'bag.e{i}']['cost_mean'] == pytest.approx(ref['cost_mean'], rel=1e-5)
+        assert rows[f'bag.e{i}']['in_band'] == ref['in_band']
+    assert rows['all episodes']['n_runs'] == 3
+    # `sep analyze BAG` prints the same rows
+    out = subprocess.run([sys.executable, '-m', 'sep_control.cli.main', 'analyze', str(tmp_path / 'bag'), '--design',
+                          str(small_case.design_file), '--no-figures', '--quiet', '--out', str(tmp_path / 'rep')],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert all(name in out.stdout for name in rows), out.stdout
 
 
 def test_default_is_one_episode_without_episode_entry(launcher, small_case, tmp_path):
@@ -145,8 +162,9 @@ def test_design_swap_refused_then_accepted(launcher, probe, small_case, other_de
     assert lqg.wait(30) == 0, lqg.output()
     assert 'next_design_file' in lqg.output() and 'refused' in lqg.output()
     ctl = read_lines(tmp_path / 'lqg_episodes.jsonl')
-    assert [(r['node'], r['design_file']) for r in ctl] == [('estimator', str(small_case.design_file)),
-                                                           ('lqr', str(small_case.design_file))]
+    assert [(r['node'], r['episode'], r['design_file']) for r in ctl] == [
+        ('estimator', 0, str(small_case.design_file)), ('lqr', 0, str(small_case.design_file)),
+        ('estimator', 1, str(other_design.design_file)), ('lqr', 1, str(other_design.design_file))]
     summ = json.loads((tmp_path / 'lqg.json').read_text())
     assert summ['estimator']['design_file'] == str(other_design.design_file)
     assert summ['lqr']['design_file'] == str(other_design.design_file)

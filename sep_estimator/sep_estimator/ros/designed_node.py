@@ -105,6 +105,7 @@ class DesignedNode(NodeBase):
         self.next_design = None                  # an accepted next_design_file, used from the next episode
         self.plant_scenario: tuple | None = None  # (scenario, info, perturbation) last published by the plant
         self.episodes_played = 0
+        self.serving: int | None = None           # the episode the filter / controller state belongs to
         self.episode_over = False                # the episode's last step N is handled
         self.node.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -177,9 +178,13 @@ class DesignedNode(NodeBase):
         if not self.plant_scenario_checked and not diffs:
             self.log.info(f'plant scenario on {self.sub_scenario.topic_name} matches the design')
         self.plant_scenario_checked = True
-        if episode is not None and self.peer is None and self.switch.announce(
-                episode['index'], episode['of'], busy=self.last_k >= 0 and not self.episode_over):
-            self.start_episode()
+        if episode is not None and self.peer is None:
+            if self.switch.announce(episode['index'], episode['of'], busy=self.last_k >= 0 and not self.episode_over):
+                self.start_episode()
+            elif self.serving is None:
+                self.serving = self.switch.index
+                for f in self.followers:
+                    f.serving = self.serving
 
     # ----------------------------------------------------------- episodes
     def end_of_episode(self) -> None:
@@ -198,11 +203,12 @@ class DesignedNode(NodeBase):
         if k <= last and self.peer is None and self.switch.take_pending():
             self.start_episode()
 
-    def start_episode(self) -> None:
+    def start_episode(self, ended: int | None = None) -> None:
         """Reset for the episode `switch.index`: the old one's record to episode_log_file, the
         accepted next design adopted, the filter / controller anew (`reset_episode`); then the
         nodes that follow this one's design (the lqg's LQR)."""
-        self.log_episode()
+        ended = self.serving if ended is None else ended
+        self.log_episode(ended)
         if self.next_design is not None and self.peer is None:
             (self.design_file, design), self.next_design = self.next_design, None
             self.adopt_design(design)
@@ -212,16 +218,21 @@ class DesignedNode(NodeBase):
         self.reset_episode()
         self.last_k, self.episode_over, self.done = -1, False, False
         self.episodes_played += 1
-        self.log.info(f'episode {self.switch.index}: {self.role} reset (design file {self.design_file})',
-                      throttle_duration_sec=1.0)
+        self.serving = self.switch.index
+        self.log.info(f'episode {self.switch.index}: {self.role} reset (design file {self.design_file})')
         for f in self.followers:
-            f.start_episode()
+            f.start_episode(ended)
 
-    def log_episode(self) -> None:
-        """Append the record of the episode that ends to episode_log_file (when set)."""
+    def on_finish(self, summ: dict) -> None:
+        """The record of the episode the process ends in (a multi-episode plant)."""
+        if self.switch.multi:
+            self.log_episode(self.serving)
+
+    def log_episode(self, index: int | None) -> None:
+        """Append the record of the episode `index` that ends to episode_log_file (when set)."""
         if not self.episode_log_file:
             return
-        rec = {'node': self.role, 'episode': self.switch.index, 'design_file': self.design_file,
+        rec = {'node': self.role, 'episode': index, 'design_file': self.design_file,
                'status': 'completed' if self.episode_over else ('cut_off' if self.last_k >= 0 else 'no_steps'),
                'last_step': self.last_k, 'pid': os.getpid(), **self.episode_counters()}
         with open(self.episode_log_file, 'a') as fh:
