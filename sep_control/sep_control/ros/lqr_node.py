@@ -186,7 +186,7 @@ class LqrNode(DesignedNode):
 
     # ---------------------------------------------------- standalone inputs
     def _on_estimate_msg(self, msg) -> None:
-        if not self.active:
+        if not self.taking():
             return
         t = steady()
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
@@ -202,7 +202,7 @@ class LqrNode(DesignedNode):
         self.on_estimate(k, a, t)
 
     def _on_measurement(self, msg) -> None:
-        if not self.active:
+        if not self.taking():
             return
         k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if rej is None:

@@ -187,6 +187,12 @@ class DesignedNode(NodeBase):
                     f.serving = self.serving
 
     # ----------------------------------------------------------- episodes
+    def taking(self) -> bool:
+        """Whether the node takes its inputs: active, and, with wait_for_scenario_s > 0, the plant's
+        scenario received and checked (a node started while a multi-episode plant runs learns from it
+        which episode it joins before it takes a step)."""
+        return self.active and (self.plant_scenario_checked or self.wait_for_scenario_s <= 0)
+
     def end_of_episode(self) -> None:
         """The episode's last step N is handled: the node is done (it exits with exit_at_end) unless
         the plant plays more episodes; then it resets for the next one if it was announced already."""
