@@ -172,3 +172,53 @@ def test_design_swap_refused_then_accepted(launcher, probe, small_case, other_de
         ref = simulate(small_case.plant, case.design, 'rom_lqg', SEED, range(RUN + i, RUN + i + 1))
         tr = np.load(tmp_path / f'traj.e{i}.npz')
         assert np.max(np.abs(tr['U'] - ref.U[0])) <= 1e-9, i
+
+
+# ---------------------------------------------------------------------------- pure parts
+@pytest.mark.parametrize('busy', [False, True])
+def test_episode_switch(busy):
+    """The first announcement is the episode joined; a later one resets at once between episodes,
+    else once step N is handled or a stale stamp shows the old episode was cut off."""
+    from sep_estimator.episode_switch import EpisodeSwitch
+
+    sw = EpisodeSwitch()
+    assert not sw.multi and sw.last_episode()                  # a single-episode plant: done after N
+    assert sw.announce(0, 3, busy=True) is False and sw.index == 0 and sw.multi and not sw.last_episode()
+    assert sw.announce(0, 3, busy=False) is False               # the latched copy again
+    assert sw.announce(1, 3, busy=busy) is (not busy)
+    assert sw.index == (0 if busy else 1) and sw.pending == (1 if busy else None)
+    assert sw.take_pending() is busy and sw.index == 1 and sw.take_pending() is False
+    sw.announce(2, 3, busy=False)
+    assert sw.last_episode()
+    forever = EpisodeSwitch()
+    forever.announce(5, 0, busy=False)
+    assert not forever.last_episode()                            # episodes 0: until stopped
+
+
+def test_episode_entry_round_trip_and_refusals():
+    from sep_plant.scenario import (ScenarioError, episode_entry, load_scenario, scenario_message_parts,
+                                    scenario_payload)
+
+    scen = load_scenario(None)
+    plain = scenario_payload(scen, scen.info)
+    assert '"episode"' not in plain and scenario_message_parts(plain)[3] is None
+    text = scenario_payload(scen, scen.info, episode=episode_entry(2, 5, 7, 9))
+    assert scenario_message_parts(text)[3] == {'index': 2, 'of': 5, 'seed': 7, 'run': 9}
+    for bad in ({'index': 5, 'of': 5, 'seed': 0, 'run': 0}, {'index': -1, 'of': 0, 'seed': 0, 'run': 0},
+                {'index': 'x', 'of': 0, 'seed': 0, 'run': 0}):
+        with pytest.raises(ScenarioError, match='episode'):
+            scenario_message_parts(text.replace('"episode": {"index": 2, "of": 5, "run": 9, "seed": 7}',
+                                                '"episode": ' + json.dumps(bad)))
+
+
+def test_cut_off_episodes_go_on(launcher, small_case, tmp_path):
+    """Lockstep without a controller: each episode is cut off after command_timeout_s (status
+    timeout, logged) and the next one starts; the plant then exits 0 (a single episode exits 3)."""
+    plant = launcher.start('plant', params={
+        'scenario_file': small_case.scenario_file, 'episodes': 2, 'wait_for_subscribers': 0,
+        'command_timeout_s': 0.3, 'episode_log_file': tmp_path / 'eps.jsonl', 'summary_file': tmp_path / 'plant.json'})
+    assert plant.wait(60) == 0, plant.output()
+    assert [(r['episode'], r['status'], r['steps']) for r in read_lines(tmp_path / 'eps.jsonl')] == [
+        (0, 'timeout', 0), (1, 'timeout', 0)]
+    assert json.loads((tmp_path / 'plant.json').read_text())['episodes']['by_status'] == {'timeout': 2}
+    assert 'cut off at step 0' in plant.output()
