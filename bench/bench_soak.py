@@ -324,6 +324,7 @@ class Soak:
     usage: dict[int, dict] = field(default_factory=dict)
     faults_done: list[dict] = field(default_factory=list)
     hangs: list[dict] = field(default_factory=list)
+    load: dict[int, float] = field(default_factory=dict)     # 1-minute load average at each episode's start
 
     # ------------------------------------------------------------ nodes
     def ctl_params(self, role: str) -> dict:
@@ -347,7 +348,7 @@ class Soak:
         bag, ready = self.out / f'bag{n}', self.out / f'ready{n}'
         self.procs.start('recorder', '--out', str(bag), '--ready-file', str(ready), '--no-stop-at-end',
                          '--topics', 'scenario', 'measurements', 'command', 'applied_input',
-                         '--ready-topics', 'measurements', 'command' if self.relay_on else 'measurements')
+                         '--ready-topics', *(('measurements', 'command') if self.relay_on else ('command',)))
         self.bags.append({'bag': str(bag), 'ready_file': str(ready), 't_start': time.time()})
 
     @property
@@ -379,6 +380,7 @@ class Soak:
 
     # ------------------------------------------------------------ events
     def on_episode(self, e: int, t: float) -> None:
+        self.load[e] = os.getloadavg()[0]
         if e % 50 == 0 or e == self.args.episodes - 1:
             self.usage[e] = self.procs.usage()
         if e == self.three_from and self.relay_on:
@@ -540,13 +542,16 @@ def summarize(soak: Soak, wall_s: float) -> dict:
     by_status: dict[str, int] = {}
     for r in plant_eps.values():
         by_status[r['status']] = by_status.get(r['status'], 0) + 1
+    walls = [r['t_end'] - r['t_start'] for r in plant_eps.values()]
     rep = {'episodes_asked': a.episodes, 'episodes_played': len(plant_eps), 'by_status': by_status,
-           'wall_s': wall_s, 'hangs': soak.hangs, 'plant_rc': soak.procs.history[0].get('rc'),
+           'episode_wall_s_max': max(walls, default=None),
+           'wall_s': wall_s, 'hangs': soak.hangs,
+           'plant_rc': next(h.get('rc') for h in soak.procs.history if h['role'] == 'plant'),
            'swaps': soak.swaps, 'faults_injected': len(soak.faults_done) + sum(
                1 for f in soak.plan.values() if f.topic and f.done),
            'usage': soak.usage, 'processes': soak.procs.history}
     if a.real_time_factor is not None:
-        rep['realtime'] = realtime_report(plant_eps)
+        rep['realtime'] = realtime_report(plant_eps, soak.load)
         return rep
     designs = design_of_episodes(out, files)
     free = [e for e, r in plant_eps.items() if e not in soak.plan]
@@ -593,14 +598,21 @@ def fault_j(plan, out, files, seed, designs, plant_eps) -> dict:
     return res
 
 
-def realtime_report(plant_eps: dict[int, dict]) -> dict:
-    misses = np.array([r['deadline_misses'] for r in plant_eps.values()])
-    p99 = np.array([r['latency_p99_s'] or np.nan for r in plant_eps.values()])
+def realtime_report(plant_eps: dict[int, dict], load: dict[int, float]) -> dict:
+    """Deadline misses, and what tells their cause: the measurement->command latency (p99) and the
+    machine's load average in the episodes with misses and in those without."""
+    eps = sorted(plant_eps)
+    misses = np.array([plant_eps[e]['deadline_misses'] for e in eps])
+    p99 = np.array([plant_eps[e]['latency_p99_s'] or np.nan for e in eps])
+    la = np.array([load.get(e, np.nan) for e in eps])
     hit = misses > 0
+
+    def med(a, m):
+        return float(np.nanmedian(a[m])) if m.any() else None
     return {'deadline_misses': int(misses.sum()), 'episodes_with_misses': int(hit.sum()),
-            'latency_p99_s_median_with_misses': float(np.nanmedian(p99[hit])) if hit.any() else None,
-            'latency_p99_s_median_without': float(np.nanmedian(p99[~hit])) if (~hit).any() else None,
-            'loadavg_end': os.getloadavg()}
+            'latency_p99_s_median': {'with_misses': med(p99, hit), 'without': med(p99, ~hit)},
+            'loadavg_median': {'with_misses': med(la, hit), 'without': med(la, ~hit)},
+            'cpus': os.cpu_count()}
 
 
 def growth(usage: dict[int, dict]) -> dict:
@@ -678,7 +690,8 @@ def main(argv=None) -> int:
 
 def print_report(rep: dict) -> None:
     print(f"episodes played {rep['episodes_played']}/{rep['episodes_asked']} in {rep['wall_s']:.0f} s: "
-          f"{rep['by_status']}; hangs {len(rep['hangs'])}; plant exit code {rep['plant_rc']}")
+          f"{rep['by_status']}; hangs {len(rep['hangs'])}; plant exit code {rep['plant_rc']}; longest episode "
+          f"{rep['episode_wall_s_max']:.2f} s")
     if 'realtime' in rep:
         print('real time:', json.dumps(rep['realtime']))
     else:

@@ -57,7 +57,10 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    this long (steady clock) after measurement k  (0 = never)
   autostart (bool, true)           configure and activate at start; false: a managed node that waits
                                    for its lifecycle transitions (docs/reference/parameters.md)
-  exit_at_end (bool, true)         exit 0 after the last step (k = N)
+  exit_at_end (bool, true)         exit 0 after the last step (k = N; of the plant's last episode)
+  next_design_file (str, '')       set at run time: the design for the next episode, checked at once
+                                   as design_file at start (a refused one is reported, the old kept)
+  episode_log_file (str, '')       append one JSON line per episode served
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
   use_sim_time (bool, true)        time from the plant's /clock"""
