@@ -491,6 +491,7 @@ def check_bags(soak: Soak) -> list[dict]:
     """Each bag readable, with every measurement the relay forwarded while it recorded (from its
     ready file + 0.5 s to its stop - 0.05 s) in it."""
     from sep_control.bags.episodes import read_episodes
+    from sep_control.bags.storage import read_raw
     from sep_plant import topics as T
 
     out = []
@@ -498,8 +499,13 @@ def check_bags(soak: Soak) -> list[dict]:
     for b in soak.bags:
         row = {'bag': Path(b['bag']).name}
         t0 = time.perf_counter()
+        ready = Path(b['ready_file'])
+        lo = (ready.stat().st_mtime if ready.exists() else float('inf')) + 0.5
+        hi = b.get('t_stop', float('inf')) - 0.05
+        want = {(int(x[0]), int(x[1])) for x in fwd if lo <= x[2] <= hi}
         try:
-            eps = read_episodes(b['bag'], allow_truncated=False)
+            raw = read_raw(b['bag'])
+            eps = read_episodes(b['bag'], allow_truncated=False) if len(raw) else []
         except Exception as exc:  # noqa: BLE001 - reported
             row.update(readable=False, error=f'{type(exc).__name__}: {exc}')
             out.append(row)
@@ -509,11 +515,9 @@ def check_bags(soak: Soak) -> list[dict]:
             stamps = e.episode.times[T.MEASUREMENTS].stamp_ns if T.MEASUREMENTS in e.episode.times else []
             have |= {(e.index, int(round(s / (e.episode.dt * 1e9)))) for s in stamps}
         ready = Path(b['ready_file'])
-        lo = (ready.stat().st_mtime if ready.exists() else float('inf')) + 0.5
-        hi = b.get('t_stop', float('inf')) - 0.05
-        want = {(int(x[0]), int(x[1])) for x in fwd if lo <= x[2] <= hi}
         missing = sorted(want - have)
-        row.update(readable=True, read_s=time.perf_counter() - t0, episodes=len(eps), stopped_by_fault='t_stop' in b,
+        row.update(readable=raw.complete, messages=len(raw), read_s=time.perf_counter() - t0, episodes=len(eps),
+                   stopped_by_fault='t_stop' in b,
                    forwarded_while_recording=len(want), missing=len(missing), missing_first=missing[:5])
         out.append(row)
     return out
@@ -559,7 +563,8 @@ def summarize(soak: Soak, wall_s: float) -> dict:
     cmp = compare_offline(out, files, a.seed, done, designs)
     equal = [e for e, (band, du, _, _) in cmp.items() if band and du <= 1e-9]
     rep['fault_free'] = {'episodes': len(free), 'completed': len(done), 'equal_offline': len(equal),
-                         'not_completed': {e: cause_of(e, soak, designs) for e in sorted(set(free) - set(done))},
+                         'not_completed': {e: cause_of(e, plant_eps[e], soak, designs)
+                                           for e in sorted(set(free) - set(done))},
                          'not_equal': sorted((e, cmp[e][1]) for e in set(cmp) - set(equal))[:20],
                          'mixed_designs': sorted(e for e in free if designs.get(e) == 'mixed')}
     rep['fault_costs'] = fault_costs(plant_eps, soak.faults_done, cmp, soak.plan)
@@ -568,16 +573,24 @@ def summarize(soak: Soak, wall_s: float) -> dict:
     return rep
 
 
-def cause_of(e: int, soak: Soak, designs: dict[int, str]) -> str:
-    """Why a fault-free episode was not completed: no controller served it (one was starting after
-    the last event before it), or unexplained."""
+def cause_of(e: int, rec: dict, soak: Soak, designs: dict[int, str]) -> str:
+    """Why a fault-free episode was not completed: no controller took a step of it, or a controller
+    process had started shortly before it ended (its first command sent before its writer matched
+    the relay's reader: lost to discovery), or unexplained; with the last event before it."""
     events = [(f.episode, f"{f.kind}{':' + f.topic if f.topic else ''}") for f in soak.plan.values() if f.episode < e]
     if soak.three_from <= e:
         events.append((soak.three_from, 'switch to estimator + lqr'))
     last = max(events) if events else None
+    after = f' (after {last[1]} in episode {last[0]})' if last else ''
     if e not in designs:
-        return f'no controller took a step (starting after {last[1]} in episode {last[0]})' if last else 'no controller'
-    return f'unexplained (last event: {last})'
+        return 'no controller took a step' + after
+    started = [h for h in soak.procs.history if h['role'] in ('lqg', 'estimator', 'lqr')
+               and 0 <= rec['t_end'] - h['start'] <= 10.0]
+    if started:
+        h = max(started, key=lambda h: h['start'])
+        return (f"{h['role']} process started {rec['t_start'] - h['start']:.1f} s before the episode: a command "
+                f"sent before its writer matched" + after)
+    return 'unexplained' + after
 
 
 def fault_j(plan, out, files, seed, designs, plant_eps) -> dict:
@@ -616,18 +629,17 @@ def realtime_report(plant_eps: dict[int, dict], load: dict[int, float]) -> dict:
 
 
 def growth(usage: dict[int, dict]) -> dict:
-    """RSS and fds per role from episode 100 (or the first sample after it) to the last sample."""
+    """RSS and fds of every node process (role, pid) from its first sample at episode >= 100 to its
+    last (samples at every 50th episode and the last): the processes that lived through the soak
+    and the restarted ones alike."""
     out = {}
-    keys = sorted(usage)
-    for role in {r for u in usage.values() for r in u}:
-        samples = [(e, usage[e][role]) for e in keys if role in usage[e] and e >= 100]
-        if len(samples) < 2:
-            continue
-        (e0, u0), (e1, u1) = samples[0], samples[-1]
-        out[role] = {'from_episode': e0, 'to_episode': e1, 'same_process': u0['pid'] == u1['pid'],
-                     'rss_kb': (u0['rss_kb'], u1['rss_kb']), 'rss_growth_pct': 100.0 * (u1['rss_kb'] / u0['rss_kb'] - 1),
-                     'fds': (u0['fds'], u1['fds'])}
-    return out
+    for e in sorted(int(k) for k in usage):
+        for role, u in usage[e if e in usage else str(e)].items():
+            if e >= 100:
+                out.setdefault(f"{role}[{u['pid']}]", []).append((e, u['rss_kb'], u['fds']))
+    return {key: {'episodes': (s[0][0], s[-1][0]), 'rss_kb': (s[0][1], s[-1][1]),
+                  'rss_growth_pct': 100.0 * (s[-1][1] / s[0][1] - 1), 'fds': (s[0][2], s[-1][2])}
+            for key, s in out.items() if len(s) >= 2}
 
 
 # ------------------------------------------------------------------------------ main

@@ -268,8 +268,11 @@ class DesignedNode(NodeBase):
         from rcl_interfaces.msg import SetParametersResult
 
         for prm in params:
-            if prm.name != 'next_design_file' or not self.configured or not prm.value:
+            if prm.name != 'next_design_file' or not prm.value:
                 continue
+            if not self.configured:
+                return SetParametersResult(successful=False, reason='next_design_file: the node is not configured '
+                                           '(configure it with its design_file first)')
             try:
                 self.next_design = (str(prm.value), self.check_next_design(str(prm.value)))
             except StartError as exc:
