@@ -12,13 +12,14 @@ A bag without episode entries is one episode (index None): `read_episodes` then 
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sep_control.bags.messages import open_bag
+from sep_control.bags.messages import cdr_string, open_bag
 from sep_control.bags.reader import Episode, episode_of_raw
 from sep_control.bags.storage import RawBag
 from sep_plant import topics as T
@@ -35,12 +36,6 @@ class RecordedEpisode:
     episode: Episode
 
 
-def _scenario_text(data: bytes) -> str:
-    """The text of a CDR std_msgs/String (uint32 length with the terminating NUL, then the text)."""
-    n = int(np.frombuffer(data[4:8], dtype='<u4')[0])
-    return data[8:8 + n - 1].decode()
-
-
 def announcements(raw: RawBag, namespace: str) -> list[tuple[int, dict[str, int]]]:
     """(message position in receive-time order, episode entry) of every scenario message that
     announces an episode other than the one before it."""
@@ -51,8 +46,8 @@ def announcements(raw: RawBag, namespace: str) -> list[tuple[int, dict[str, int]
         if int(raw.conn_ids[i]) not in scen_ids:
             continue
         try:
-            entry = scenario_message_parts(_scenario_text(raw.data[i]))[3]
-        except (ScenarioError, ValueError, IndexError, UnicodeDecodeError):
+            entry = scenario_message_parts(cdr_string(raw.data[i]))[3]
+        except (ScenarioError, ValueError, IndexError, UnicodeDecodeError, struct.error):
             continue
         if entry is not None and (not out or out[-1][1]['index'] != entry['index']):
             out.append((pos, entry))

@@ -17,13 +17,12 @@ the plant's last episode, when the scenario messages announce several: one bag h
 from __future__ import annotations
 
 import queue
-import struct
 import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-from sep_control.bags.messages import cdr_stamp_ns
+from sep_control.bags.messages import cdr_stamp_ns, cdr_string
 from sep_plant import topics as T
 
 _STOP = object()
@@ -245,13 +244,12 @@ class BagSink:
             self.final_seen = now
 
     def _note_scenario(self, data: bytes) -> None:
-        """N and dt from the scenario topic's payload (CDR std_msgs/String: uint32 length with
-        the terminating NUL, then the text)."""
+        """N and dt from the scenario topic's payload (`messages.cdr_string`); with an episode
+        entry, the end is the last episode's."""
         try:
             from sep_plant.scenario import scenario_message_parts
 
-            (n,) = struct.unpack_from("<I", data, 4)
-            scenario, info, _, episode = scenario_message_parts(data[8:8 + n - 1].decode())
+            scenario, info, _, episode = scenario_message_parts(cdr_string(data))
         except Exception:  # noqa: BLE001 - then only idle/signal/duration stop the recording
             return
         self.n_steps, self.dt_ns = scenario.problem.n_steps, T.dt_ns(info.dt)
