@@ -18,8 +18,6 @@ import pytest
 from node_harness import SMALL, _cached_case, launcher, probe, small_case  # noqa: F401
 from sep_control.evaluation.montecarlo import simulate
 
-pytestmark = pytest.mark.ros
-
 SEED, RUN = 7, 2
 
 
@@ -61,6 +59,7 @@ def assert_offline(case, tmp_path, episodes: int, design=None):
         assert np.max(np.abs(tr['F'] - ref.F[i])) <= 1e-9, i
 
 
+@pytest.mark.ros
 def test_three_episodes_equal_offline_one_bag_analyzed(launcher, small_case, tmp_path):
     from sep_control.bags.episodes import analyze_episodes, read_episodes
     from sep_control.bags.report import metrics_rows
@@ -105,6 +104,7 @@ def test_three_episodes_equal_offline_one_bag_analyzed(launcher, small_case, tmp
     assert all(name in out.stdout for name in rows), out.stdout
 
 
+@pytest.mark.ros
 def test_default_is_one_episode_without_episode_entry(launcher, small_case, tmp_path):
     lqg, _, plant = start_graph(launcher, small_case, tmp_path, 1)
     assert plant.wait(120) == 0 and lqg.wait(30) == 0
@@ -139,6 +139,7 @@ def set_param(probe_node, node: str, name: str, value: str):
     return fut.result().results[0]
 
 
+@pytest.mark.ros
 def test_design_swap_refused_then_accepted(launcher, probe, small_case, other_design, tmp_path, tmp_path_factory):
     """A swap set on the running lqg: a design for another plant is refused at once (the result and
     the log say why; set on the LQR, which uses the estimator's design, refused too); an accepted one
@@ -211,6 +212,7 @@ def test_episode_entry_round_trip_and_refusals():
                                                 '"episode": ' + json.dumps(bad)))
 
 
+@pytest.mark.ros
 def test_cut_off_episodes_go_on(launcher, small_case, tmp_path):
     """Lockstep without a controller: each episode is cut off after command_timeout_s (status
     timeout, logged) and the next one starts; the plant then exits 0 (a single episode exits 3)."""
@@ -222,3 +224,33 @@ def test_cut_off_episodes_go_on(launcher, small_case, tmp_path):
         (0, 'timeout', 0), (1, 'timeout', 0)]
     assert json.loads((tmp_path / 'plant.json').read_text())['episodes']['by_status'] == {'timeout': 2}
     assert 'cut off at step 0' in plant.output()
+
+
+def test_split_a_bag_of_three_synthetic_episodes(tmp_path):
+    """A bag of three episodes (each announced by its scenario message, receive times one after
+    the other): read_episodes gives each with its index and run, analyze_episodes a row each and the
+    pooled row; a bag without episode entries is one episode (index None), as before."""
+    import dataclasses
+
+    from bag_synth import episode_messages, synthetic_episode, write_bag, write_messages
+    from sep_control.bags.episodes import analyze_episodes, read_episodes
+    from sep_control.bags.report import metrics_rows
+    from sep_plant.scenario import episode_entry, scenario_payload
+
+    msgs = []
+    eps = [synthetic_episode(seed=i) for i in range(3)]
+    for i, ep in enumerate(eps):
+        ep = dataclasses.replace(ep, payload=scenario_payload(ep.scenario, ep.info, episode=episode_entry(i, 3, 4, 10 + i)))
+        shift = i * 10**12                         # episode i received after episode i-1
+        msgs += [(t, ns + shift, d) for t, ns, d in episode_messages(ep)]
+    bag = write_messages(tmp_path / 'three', msgs)
+    got = read_episodes(bag)
+    assert [(e.index, e.seed, e.run) for e in got] == [(0, 4, 10), (1, 4, 11), (2, 4, 12)]
+    for e, ep in zip(got, eps):
+        np.testing.assert_array_equal(e.episode.u, ep.u)
+        np.testing.assert_array_equal(e.episode.y, ep.y)
+        assert not e.episode.notes or all('off the step grid' not in n for n in e.episode.notes)
+    rows = metrics_rows(analyze_episodes(bag))
+    assert list(rows) == ['three.e0', 'three.e1', 'three.e2', 'all episodes'] and rows['all episodes']['n_runs'] == 3
+    one = read_episodes(write_bag(tmp_path / 'one', eps[0]))
+    assert len(one) == 1 and one[0].index is None
