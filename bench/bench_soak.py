@@ -523,8 +523,8 @@ def check_bags(soak: Soak) -> list[dict]:
     return out
 
 
-def fault_costs(plant_eps: dict[int, dict], faults: list[dict], cmp: dict, soak_plan: dict[int, Fault]) -> dict:
-    """Per fault kind: episodes, cut off, completed, equal offline (U 1e-9), wall time mean."""
+def fault_costs(plant_eps: dict[int, dict], soak_plan: dict[int, Fault]) -> dict:
+    """Per fault kind: episodes, cut off, mean wall time of the episode."""
     out: dict[str, dict] = {}
     for e, f in soak_plan.items():
         key = f'{f.kind}:{f.topic}' if f.topic else f.kind
@@ -567,7 +567,7 @@ def summarize(soak: Soak, wall_s: float) -> dict:
                                            for e in sorted(set(free) - set(done))},
                          'not_equal': sorted((e, cmp[e][1]) for e in set(cmp) - set(equal))[:20],
                          'mixed_designs': sorted(e for e in free if designs.get(e) == 'mixed')}
-    rep['fault_costs'] = fault_costs(plant_eps, soak.faults_done, cmp, soak.plan)
+    rep['fault_costs'] = fault_costs(plant_eps, soak.plan)
     rep['fault_cost_J'] = fault_j(soak.plan, out, files, a.seed, designs, plant_eps)
     rep['bags'] = check_bags(soak)
     return rep
@@ -654,7 +654,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help='real-time soak at this factor (no relay, no faults)')
     p.add_argument('--swap-every', type=int, default=100, help='a design swap every this many episodes')
     p.add_argument('--hang-s', type=float, default=30.0, help='no progress this long is a hang')
-    p.add_argument('--out', type=Path, default=ROOT / 'out' / 'soak')
+    p.add_argument('--out', type=Path, default=ROOT / 'out' / time.strftime('soak-%Y%m%d-%H%M%S'),
+                   help='a new folder for the logs, bags and report.json (default out/soak-<time>)')
     return p.parse_args(argv)
 
 
