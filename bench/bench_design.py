@@ -53,6 +53,36 @@ def linearization_times(plant, problem, U: np.ndarray, p: int = 15, q: int = 15)
     return t1 - t0, time.perf_counter() - t1
 
 
+def prototype_table(threads: int) -> None:
+    """The reference design (plans 0.8 and 0.9) against the independent numpy prototype of the
+    paper's pipeline (bench/prototype_pipeline.py), run alternately in this process, and the
+    ratio of their times. The prototype's nominal is the paper's gradient descent, stopped by the
+    same settle rule as plan 0.9 or after 10 iterations: its nominal cost is printed beside sep's;
+    a prototype run to sep's nominal cost would take longer, so the ratio is an upper bound."""
+    from prototype_pipeline import prototype_design
+
+    sim, s = reference().plant, reference().problem
+    out = {}
+    with threadpool_limits(threads):
+        for rnd in (1, 2):
+            for plan in ("0.8", "0.9"):
+                d, t = timed(run_design, sim, s, DesignSettings(experiment_plan=plan), False, lambda m: None)
+                out[f"sep plan {plan} #{rnd}"] = {"design_s": t, "J_nominal": d.meta["optimizer"]["mean_only_cost"],
+                                                  "run_steps_k": d.meta["run_steps"]["total"] / 1e3}
+            p = prototype_design(sim, s)
+            out[f"prototype #{rnd}"] = {"design_s": p["total_s"], "J_nominal": p["J"], "nominal_s": p["nominal_s"],
+                                        "enkf_s": p["enkf_s"], "tvera_s": p["tvera_s"], "lqg_s": p["lqg_s"],
+                                        "iterations": p["iterations"]}
+    for rnd in (1, 2):
+        for plan in ("0.8", "0.9"):
+            r = out[f"sep plan {plan} #{rnd}"]
+            r["/prototype"] = r["design_s"] / out[f"prototype #{rnd}"]["design_s"]
+    print("\nReference design against the numpy prototype of the paper's pipeline (same run, alternating; "
+          "the ratio to the same round's prototype)")
+    print(format_table(out, ["design_s", "/prototype", "J_nominal", "run_steps_k", "iterations", "nominal_s",
+                             "enkf_s", "tvera_s", "lqg_s"]))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--grids", type=int, nargs="+", default=[100, 400, 1600])
@@ -66,9 +96,14 @@ def main() -> None:
                     help="skip the whole design with the sensitivity Jacobian (slow on large grids)")
     ap.add_argument("--crossover-n", type=int, nargs="+", default=[30, 60, 90, 120, 180, 250],
                     help="horizons N of the crossover table")
+    ap.add_argument("--prototype-only", action="store_true",
+                    help="only the design time against the numpy prototype of the paper's pipeline (n_x = 100)")
     ap.add_argument("--crossover", action="store_true",
                     help="one linearization + step by each Jacobian over the horizon N (n_x = the first grid)")
     args = ap.parse_args()
+    if args.prototype_only:
+        prototype_table(args.threads)
+        return
 
     rows = {}
     for n_x in args.grids:
@@ -164,6 +199,7 @@ def main() -> None:
         print(format_table(opt_rows, ["iterations", "experiments", "cost", "cost/gn_cost", "seconds"]))
 
     if 100 in args.grids:
+        prototype_table(args.threads)
         sim, s = reference().plant, reference().problem
         tt = {}
         for th in (1, 2):

@@ -214,7 +214,9 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
             clock = StageClock(plant, echo)
         sampler = Sampler(stats=plant.stats if on_gpu else None) if echo else None
         t0 = time.perf_counter()
-        settings = DesignSettings.for_scenario(scen, **({"experiment_plan": plan} if plan else {}))
+        # a tree older than the key (0.8.0 with --against) runs its own plan, which plan 0.8 reproduces
+        known = plan and "experiment_plan" in DesignSettings.__dataclass_fields__
+        settings = DesignSettings.for_scenario(scen, **({"experiment_plan": plan} if known else {}))
         design = run_design(plant, problem, settings, show_progress=False,
                             log=clock.log if clock else (lambda m: None), engine=engine)
         t_design = time.perf_counter() - t0

@@ -279,8 +279,10 @@ def test_shipped_scenarios_load_and_their_plants_conform(path):
     scen = load_scenario(path)
     plant, problem = scen.plant, scen.problem
     check_plant(plant, problem.u_start(plant.n_u)[0], batch=2, steps=2)
-    obj = Objective.of(problem, plant.field_coordinates())
-    assert obj.target.shape == (plant.n_field,) and np.isfinite(obj.target).all()
+    obj = Objective.of(problem, plant.field_coordinates(), plant.dt)
+    per_step = (problem.n_steps + 1, plant.n_field)      # a recipe's target (plate_anneal)
+    assert obj.target.shape == (per_step if problem.time_varying else (plant.n_field,))
+    assert np.isfinite(obj.target).all()
     assert 0 <= obj.window[0] < obj.window[1] == problem.n_steps
     assert Scenario.from_json(scen.to_json(), canonical=True) == scen.canonical()
     st = DesignSettings.for_scenario(scen)

@@ -4,7 +4,8 @@ sep's filter, controller, model or design-file reader) and checks that it reprod
 Monte Carlo's ROM-LQG inputs to 1e-9, for designs without disturbance states, with input and with
 output disturbance states, with noise-kind ones and the combinations input+noise, noise+output
 (stacked states) and the field weighting on a slab whose noise has channels of its own (the page's recursion does not change with the weighting: it is in K), and
-with input limits that bind. Only the plant and the noise (what
+with input limits that bind; and for a recipe (a time-varying target, format version 6) with
+rate limits that bind (the page's rate clip after the box clip). Only the plant and the noise (what
 the page's reader supplies: the real plant and its sensors) come from sep."""
 import dataclasses
 import json
@@ -39,11 +40,12 @@ def read(path):
 
 
 def limits(meta, n_u):
-    """u_min, u_max from the file's scenario (a number, a list, or "inf"/"-inf")."""
+    """u_min, u_max, du_max from the file's scenario (a number, a list, or "inf"/"-inf"; du_max
+    absent: no rate limit)."""
     def vec(v):
         return np.broadcast_to(np.asarray([float(x) for x in v] if isinstance(v, list) else float(v)), (n_u,))
     s = meta["scenario"]
-    return vec(s["u_min"]), vec(s["u_max"])
+    return vec(s["u_min"]), vec(s["u_max"]), vec(s.get("du_max", "inf"))
 
 
 def augmented(meta, a):
@@ -84,7 +86,7 @@ def closed_loop(path, plant, seed, runs):
     Phi, g = a["field_basis"], a["field_coef"]
     N, n_u = u_nom.shape
     n_r = a["A"].shape[1]
-    lo, hi = limits(meta, n_u)
+    lo, hi, du = limits(meta, n_u)
     # the noise of run i of the Monte Carlo with this seed (the plant node's seed/run parameters)
     w, v = noise_sequences(Scenario.from_dict(meta["scenario"], canonical=False).problem,
                            PlantInfo.from_dict(meta["plant_info"]), seed, runs)
@@ -100,6 +102,8 @@ def closed_loop(path, plant, seed, runs):
             if k == N:
                 break
             u = np.clip(u_nom[k] + K[k] @ z, lo, hi)                   # command of step k
+            if k > 0:
+                u = np.clip(u, U[i, k - 1] - du, U[i, k - 1] + du)     # rate limit after the box
             U[i, k] = u
             x = plant.step(x, u[None], w[i, k][None])                 # the plant applies u (+ w)
             z = Az[k] @ z + Bz[k] @ (u - u_nom[k])                     # predict: z_{k+1|k}
@@ -120,7 +124,34 @@ def designs(tmp_path_factory):
         path = tmp_path_factory.mktemp("ref") / f"{kind}.npz"
         save_design(path, d)
         out[kind] = path
+    rec = dataclasses.replace(scn, problem=scn.problem.replace(**RECIPE))
+    d = run_design(rec.plant, rec.problem, DesignSettings(p=5, q=5, n_r=10, ensemble=20, belief_iter=1,
+                                                          disturbance="input"), show_progress=False, log=lambda m: None)
+    out["recipe"] = tmp_path_factory.mktemp("ref") / "recipe.npz"
+    save_design(out["recipe"], d)
     return out
+
+
+#: a recipe on the tiny slab (N = 40, dt = 1.5625 s) with rate limits that bind
+RECIPE = dict(recipe=({"start": 0, "end": 20, "target": "100 + 50 * t / 20 + 2 * x", "weight": 0.05},
+                      {"start": 20, "end": 40, "target": 150, "band": 3},
+                      {"start": 40, "end": 47, "target": "150 + 10 * (t - 40) / 7", "weight": 0.05},
+                      {"start": 47, "end": 62.5, "target": 160, "band": 3}),
+              band_window=(13, 40), lqr_k_switch=0, lqr_q_early=1.0, du_max=0.03)
+
+
+def test_the_pages_recursion_with_a_recipe_and_rate_limits(designs, one_blas_thread):
+    d = load_design(designs["recipe"])
+    _, raw = read(designs["recipe"])
+    assert raw["target"].shape == (d.n_steps + 1, d.info.n_field)            # f*_k per step (v6)
+    plant = d.scenario.plant
+    mc = simulate(plant, d, "rom_lqg", 1, RUNS)
+    U, F_hat = closed_loop(designs["recipe"], plant, 1, RUNS)
+    du = d.problem.channels("du_max", d.info.n_u)
+    assert np.any(np.abs(np.diff(mc.U, axis=1)) >= du - 1e-12), "the rate limits should bind"
+    assert mc.summary["rate_clips"] > 0 and mc.summary["rate_violations"] == 0
+    np.testing.assert_allclose(U, mc.U, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(F_hat, mc.F_hat, rtol=0, atol=1e-9 * np.abs(mc.F_hat).max())
 
 
 @pytest.mark.parametrize("kind", KINDS)

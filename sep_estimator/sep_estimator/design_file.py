@@ -13,7 +13,7 @@ Arrays (N steps, n_r ROM order, n_d disturbance states, n_z = n_r + n_d, n_field
 index conventions of `sep_estimator.ltv`):
 
     u_nom (N, n_u)  y_nom (N+1, n_y)  field_nom, belief_mean, belief_std (N+1, n_field)
-    target (n_field,)  field_xyz (n_field, 3)  rom_dims (N+1,) int
+    target (n_field,) (version 6: (N+1, n_field) for a time-varying target)  field_xyz (n_field, 3)  rom_dims (N+1,) int
     A (N, n_r, n_r)  B (N, n_r, n_u)  C (N+1, n_y, n_r)                  the ROM
     field_basis (n_field, r_f)  field_coef (N+1, r_f, n_r)   the field map G_k = field_basis field_coef_k
     (or G (N+1, n_field, n_r) dense, as version 1 stored it)
@@ -74,10 +74,11 @@ from sep_estimator.ltv import LQG, DenseFieldMap, LTVModel, PODFieldMap
 from sep_estimator.tvkf import schedule_from_posteriors
 
 FORMAT = "sep-design"
-#: 5: disturbance kind noise, LQR weighting keys; 4: disturbance states, the belief statistics may be absent (meta["belief"]); 3 (sep 0.4): belief
+#: 6: the target may be per step, (N+1, n_field) (a recipe or a target expression in t), problem
+#: keys recipe and du_max; 5: disturbance kind noise, LQR weighting keys; 4: disturbance states, the belief statistics may be absent (meta["belief"]); 3 (sep 0.4): belief
 #: statistics in float32, field map compressed; 2 (sep 0.2-0.3): all float64
-VERSION = 5
-READS = (1, 2, 3, 4, 5)
+VERSION = 6
+READS = (1, 2, 3, 4, 5, 6)
 #: (N+1) x n_field trajectories larger than this many numbers are stored as a truncated SVD
 COMPRESS_ABOVE = 1 << 20
 TRAJECTORY_TOL = 1e-11
@@ -106,15 +107,16 @@ class DesignFileError(ValueError):
 
 def _shapes(info: PlantInfo, N: int, n_r: int, n_sv: int, with_bw: bool,
             field_rank: int | None, kind: str = "none", n_d: int = 0,
-            with_belief: bool = True) -> dict[str, tuple[int, ...]]:
+            with_belief: bool = True, per_step_target: bool = False) -> dict[str, tuple[int, ...]]:
     """Expected member shapes; field_rank None: the dense field map G; `kind`, `n_d`: the
-    disturbance states; `with_belief`: the EnKF belief statistics are stored."""
+    disturbance states; `with_belief`: the EnKF belief statistics are stored; `per_step_target`:
+    f* is stored per step (version 6, a time-varying target)."""
     nf, nu, ny = info.n_field, info.n_u, info.n_y
     nz = n_r + n_d
     out = {
         "u_nom": (N, nu), "y_nom": (N + 1, ny), "field_nom": (N + 1, nf),
         **({"belief_mean": (N + 1, nf), "belief_std": (N + 1, nf)} if with_belief else {}),
-        "target": (nf,), "field_xyz": (nf, 3),
+        "target": (N + 1, nf) if per_step_target else (nf,), "field_xyz": (nf, 3),
         "rom_dims": (N + 1,), "A": (N, n_r, n_r), "B": (N, n_r, nu), "C": (N + 1, ny, n_r),
         "K": (N, nu, nz), "L": (N + 1, nz, ny), "P_post": (N + 1, nz, nz),
         "field_std": (N + 1, nf), "hankel_sv": (N + 1, n_sv),
@@ -193,7 +195,8 @@ def save_design(path: str | Path, d: Design) -> Path:
     dist = d.disturbance
     belief = d.nominal.belief_kind
     expect = _shapes(d.info, d.n_steps, d.n_r, d.hankel_sv.shape[1], "Bw" in arrays, _field_rank(arrays),
-                     "none" if dist is None else dist.kind, d.lqg.n_d, belief == "ensemble")
+                     "none" if dist is None else dist.kind, d.lqg.n_d, belief == "ensemble",
+                     d.scenario.problem.time_varying)
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise ValueError(f"design array {name} has shape {arrays[name].shape}, expected {shape}")
@@ -349,7 +352,8 @@ def _check_arrays(path: Path, raw: dict[str, np.ndarray], meta: dict, version: i
         raise DesignFileError(f"{path}: field_basis must be a matrix (n_field, r_f)")
     kind, n_d = _disturbance_kind(path, meta, version, info)
     belief = _belief_kind(path, meta, raw)
-    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw), kind, n_d, belief == "ensemble")
+    expect = _shapes(info, N, n_r, hsv.shape[1], "Bw" in raw, _field_rank(raw), kind, n_d, belief == "ensemble",
+                     version >= 6 and scenario.problem.time_varying)
     missing = sorted(set(expect) - set(raw))
     if missing:
         raise DesignFileError(f"{path}: missing arrays {missing}")
@@ -427,7 +431,7 @@ def _assemble(path: Path, scenario: Scenario, info: PlantInfo, meta: dict, a: di
     W = noise_covariance(W, dist)
     lqg = LQG("rom_lqg", model, a["K"], schedule_from_posteriors(model, a["L"], a["P_post"], W), W, V,
               a["field_std"], disturbance=dist, rom=rom)
-    objective = Objective(a["target"], p.q_weights(), float(p.band), p.window, float(p.r_u))
+    objective = Objective.with_target(p, a["target"], info.dt)
     nominal = Nominal(a["u_nom"], a["y_nom"], a["field_nom"], a.get("belief_mean"), a.get("belief_std"))
     return Design(scenario, info, objective, a["field_xyz"], nominal, lqg, a["hankel_sv"], meta)
 

@@ -1,8 +1,9 @@
 """One plant episode without ROS: what the plant node does between its topics.
 
 Per step k = 0..N: y_k = h(x_k) + v_k goes out (after the clock reads k dt); if k < N, the
-command of step k is awaited, clipped to the input limits, goes out as the applied input, and
-x_{k+1} = f(x_k, u_k, w_k). The noise of (seed, run) is run `run` of
+command of step k is awaited, clipped to the input limits, then (rate limits, du_max) to within
+du_max of the input applied at k-1 (`rate_clips` counts the channel-steps that clip changed),
+goes out as the applied input, and x_{k+1} = f(x_k, u_k, w_k). The noise of (seed, run) is run `run` of
 `sep_plant.noise.noise_sequences(problem, info, seed, runs)`, the numbers the offline Monte
 Carlo uses for that run, and the episode starts from that run's initial state
 (`sep_plant.initial.initial_states`), so a lockstep episode reproduces it exactly.
@@ -34,7 +35,7 @@ from sep_plant import gate, topics
 from sep_plant.initial import initial_states
 from sep_plant.noise import DEFAULT_SEED, noise_sequences
 from sep_plant.problem import Problem
-from sep_plant.protocol import Plant, PlantInfo, clip_inputs
+from sep_plant.protocol import Plant, PlantInfo, clip_inputs, clip_rate
 
 MODES = ('lockstep', 'realtime')
 #: the exit code of a node whose episode cannot go on (no command, no peer in time)
@@ -108,6 +109,8 @@ class PlantEpisode:
         Rejected commands per reason.
     deadline_misses : int
         Realtime steps whose command came too late (or never).
+    rate_clips : int
+        Channel-steps whose command the rate limit (du_max) clipped.
     """
 
     def __init__(self, plant: Plant, problem: Problem, *, seed: int = DEFAULT_SEED, run: int = 0,
@@ -127,6 +130,8 @@ class PlantEpisode:
         self.w, self.v = w[0], v[0]
         self.seed, self.run_index = int(seed), int(run)
         self.lo, self.hi = problem.limits(info.n_u)
+        self.du_max = problem.channels("du_max", info.n_u)
+        self.rate_clips = 0
         self.k = 0
         self.last_cmd_step = -1
         self.pending: np.ndarray | None = None     # accepted command for step self.k
@@ -183,6 +188,10 @@ class PlantEpisode:
                 self._field(k, x, sink)
                 break
             u = clip_inputs(self._await_command(k, wait, sink), self.lo, self.hi)
+            if k > 0:
+                rated = clip_rate(u, self.held, self.du_max)
+                self.rate_clips += int(np.count_nonzero(rated != u))
+                u = rated
             self.pending = None
             self.held = u
             if self.U is not None:

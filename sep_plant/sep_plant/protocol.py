@@ -360,6 +360,61 @@ def clip_inputs(u: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float) -
     return np.clip(u, lo, hi)
 
 
+def clip_rate(u: np.ndarray, prev: np.ndarray | None, du_max: np.ndarray | float) -> np.ndarray:
+    """Inputs clipped to the rate limits |u_k - u_{k-1}| <= du_max per channel (applied after
+    `clip_inputs`: with u_{k-1} inside the box the result stays inside it).
+
+    Parameters
+    ----------
+    u : ndarray, shape (..., n_u)
+        Inputs u_k (already inside the box).
+    prev : ndarray, shape (..., n_u), or None
+        The inputs applied at the step before, u_{k-1}; None (step 0): no rate limit.
+    du_max : float or ndarray, shape (n_u,)
+        Largest change per step (inf: none).
+
+    Returns
+    -------
+    ndarray, shape (..., n_u)
+        The clipped inputs; `u` itself (not a copy) when there is no limit or no previous input.
+    """
+    if prev is None or np.all(np.isinf(du_max)):
+        return u
+    return np.clip(u, prev - du_max, prev + du_max)
+
+
+def rate_feasible(U: np.ndarray, du_max: np.ndarray | float, tol: float = 1e-9) -> np.ndarray:
+    """Whether input sequences keep |u_k - u_{k-1}| <= du_max (+ tol) for every k >= 1 and channel.
+
+    Parameters
+    ----------
+    U : ndarray, shape (..., T, n_u)
+        Input sequences u_0..u_{T-1} (any leading run axes).
+    du_max : float or ndarray, shape (n_u,)
+    tol : float
+        Absolute slack (the limits are met to rounding).
+
+    Returns
+    -------
+    ndarray of bool, shape (...)
+    """
+    dU = np.abs(np.diff(U, axis=-2))
+    return np.all(dU <= np.asarray(du_max) + tol, axis=(-2, -1))
+
+
+def rate_clip_sequence(U: np.ndarray, du_max: np.ndarray | float, prev: np.ndarray | None = None) -> np.ndarray:
+    """A sequence U (T, n_u) made rate-feasible forward in time: u_k = clip_rate(u_k, u_{k-1}) for
+    k = 0..T-1 (u_{-1} = prev; None: u_0 is kept). A copy; U itself when there is no limit."""
+    if np.all(np.isinf(du_max)):
+        return U
+    out = np.array(U, dtype=float)
+    last = prev
+    for k in range(out.shape[-2]):
+        out[..., k, :] = clip_rate(out[..., k, :], last, du_max)
+        last = out[..., k, :]
+    return out
+
+
 @dataclass
 class GridGeometry:
     """Node coordinates of a regular grid (helper for plants on structured grids)."""

@@ -89,7 +89,8 @@ class Scenario:
         except (PlantTypeError, PlantConfigError) as exc:
             raise ScenarioError(str(exc)) from None
         try:
-            self.problem.check_dims(int(p.n_u), int(p.n_y), noise_channels(p), np.asarray(p.field_coordinates()))
+            self.problem.check_dims(int(p.n_u), int(p.n_y), noise_channels(p), np.asarray(p.field_coordinates()),
+                                      float(p.dt))
         except ProblemError as exc:
             raise ScenarioError(f"plant {self.plant_type!r}: {exc}") from None
         return p

@@ -156,7 +156,7 @@ def model_mismatch(ep: Episode, design, reported: list[str]) -> list[str]:
 
 
 def _fits(obj: Objective, ep: Episode) -> bool:
-    return obj.n_steps == ep.n_steps and obj.target.shape == (ep.n_field,)
+    return obj.n_steps == ep.n_steps and obj.target.shape[-1] == ep.n_field
 
 
 def scenario_objective(ep: Episode, notes: list[str]) -> Objective | None:
@@ -169,7 +169,7 @@ def scenario_objective(ep: Episode, notes: list[str]) -> Objective | None:
         notes.append("no field clouds: the objective's target cannot be placed on the field's nodes")
         return None
     try:
-        obj = Objective.of(ep.scenario.problem, ep.xyz)
+        obj = Objective.of(ep.scenario.problem, ep.xyz, ep.dt)
     except ProblemError as exc:
         notes.append(f"the scenario's objective does not fit the recorded field: {exc}")
         return None

@@ -82,6 +82,8 @@ def control_metrics(F: np.ndarray, U: np.ndarray, obj: Objective, F_nom: np.ndar
         out["rms"] = float(M.rms_in_window(F, obj))
     else:
         notes.append("in_band/rms not computed: field missing in the band window")
+    if obj.holds is not None and all(np.all(np.isfinite(F[a:b + 1])) for a, b, _ in obj.holds):
+        out["segments"] = M.segment_summary(M.segment_max_dev(F[None], obj), obj)   # a recipe: per hold
     if F_nom is not None:
         for key, k in (("mean_dev_start", k0), ("mean_dev_end", k1)):
             if np.all(np.isfinite(F[k])):
@@ -158,9 +160,12 @@ def pooled_control_metrics(F_runs: np.ndarray, U_runs: np.ndarray, obj: Objectiv
     if F_nom is not None and F_nom.shape == F_runs.shape[1:]:
         return M.summarize(F_runs, U_runs, F_nom, obj)
     J = M.nominal_cost(F_runs, U_runs, obj)
-    return {"cost_mean": float(np.mean(J)), "cost_std": float(np.std(J)),
-            "in_band": float(np.mean(M.in_band(F_runs, obj))), "rms": float(np.mean(M.rms_in_window(F_runs, obj))),
-            "n_runs": len(F_runs)}
+    out = {"cost_mean": float(np.mean(J)), "cost_std": float(np.std(J)),
+           "in_band": float(np.mean(M.in_band(F_runs, obj))), "rms": float(np.mean(M.rms_in_window(F_runs, obj))),
+           "n_runs": len(F_runs)}
+    if obj.holds is not None:
+        out["segments"] = M.segment_summary(M.segment_max_dev(F_runs, obj), obj)
+    return out
 
 
 def pooled_metrics(reports: Sequence[EpisodeReport], obj: Objective | None, F_nom: np.ndarray | None,

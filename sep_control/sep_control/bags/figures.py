@@ -75,6 +75,21 @@ def episode_field_figure(rep: Reports, path: Path) -> Path | None:
     return _field_lines(r0, F, path)
 
 
+def episode_recipe_figure(rep: Reports, path: Path) -> Path | None:
+    """A time-varying target (a recipe) over time with each hold's band, the recorded field's
+    range over the nodes (and runs) and the nominal's (`evaluation.figures.recipe_figure`);
+    None for a target constant in time or nothing to draw."""
+    from sep_control.evaluation.figures import recipe_figure
+
+    reps = reports_of(rep)
+    r0 = reps[0]
+    if not _can_draw_field(r0) or np.ndim(r0.objective.target) < 2:
+        return None
+    F = np.stack([r.episode.F for r in reps])
+    name = "closed loop" if F.shape[0] == 1 else "closed loop"
+    return recipe_figure(path, r0.info, r0.objective, r0.F_nom, {name: F})
+
+
 def _field_lines(r0: EpisodeReport, F: np.ndarray, path: Path) -> Path:
     plt = pyplot()
     obj, xyz, dt = r0.objective, r0.xyz, r0.episode.dt
@@ -83,7 +98,8 @@ def _field_lines(r0: EpisodeReport, F: np.ndarray, path: Path) -> Path:
     x, _ = line_coordinate(xyz)
     order = np.argsort(x, kind="stable")
     for ax, k in zip(axes, obj.window):
-        ax.fill_between(x[order], (obj.target - obj.band)[order], (obj.target + obj.band)[order], color="0.9",
+        tgt = obj.target_at(k)
+        ax.fill_between(x[order], (tgt - obj.band)[order], (tgt + obj.band)[order], color="0.9",
                         label=f"target ± {obj.band:g}")
         for row in F[:, k]:
             draw_field(ax, r0.info, xyz, row, color="C0", lw=0.6 if many else 1.5, alpha=0.35 if many else 1)

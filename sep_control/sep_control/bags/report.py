@@ -16,8 +16,8 @@ import numpy as np
 
 from sep_control.bags.analysis import AggregateReport, EpisodeReport, reports_of
 from sep_control.bags.figures import (disturbance_names, episode_disturbance_figure, episode_estimation_figure,
-                                      episode_field_figure, episode_inputs_figure, image_step, render_image_frame,
-                                      unit_label)
+                                      episode_field_figure, episode_inputs_figure, episode_recipe_figure,
+                                      image_step, render_image_frame, unit_label)
 from sep_control.evaluation import metrics as M
 from sep_plant import topics as T
 
@@ -68,9 +68,11 @@ def scenario_line(r: EpisodeReport) -> str | None:
         grid = f", grid {' x '.join(map(str, info.grid_shape))}" if info.grid_shape else ""
         parts.append(f"{info.n_field} field nodes{grid}, {info.n_u} inputs, {info.n_y} outputs")
     parts.append(f"dt = {e.dt:g} s, N = {e.n_steps}")
-    if obj is not None:
-        tgt = f"{obj.target[0]:g}" if np.ptp(obj.target) == 0 else \
-            f"target field {obj.target.min():.4g}..{obj.target.max():.4g}"
+    if obj is not None and obj.holds is not None:
+        parts.append("recipe, hold segments " + ", ".join(
+            f"k = {k0}..{k1}: {_target_text(obj.targets(k0, k1))} ± {b:g}{unit_label(r)}" for k0, k1, b in obj.holds))
+    elif obj is not None:
+        tgt = _target_text(obj.targets(*obj.window))
         parts.append(f"band {tgt} ± {obj.band:g}{unit_label(r)} for k = {obj.window[0]}..{obj.window[1]}")
     return "Scenario: " + ", ".join(parts) + f" (source: {e.scenario_source})"
 
@@ -94,15 +96,36 @@ def _problems(rep: EpisodeReport | AggregateReport, reps: list[EpisodeReport]) -
     return out
 
 
+def _target_text(target: np.ndarray) -> str:
+    """A target (over nodes, or steps and nodes) in words: its value, or its range."""
+    if np.ptp(target) == 0:
+        return f"{np.ravel(target)[0]:g}"
+    return f"target field {target.min():.4g}..{target.max():.4g}"
+
+
+def segment_lines(rep: EpisodeReport | AggregateReport) -> list[str]:
+    """A recipe's results per hold segment (the metrics' `segments`), as Markdown lines."""
+    seg = rep.metrics.get("segments")
+    if not seg:
+        return []
+    lines = ["## Hold segments", "", "| hold | steps | band | in band | max abs(f - f*) | 99 % quantile |",
+             "|---|---|---|---|---|---|"]
+    for j, s in enumerate(seg):
+        lines.append(f"| {j + 1} | {s['k_start']}..{s['k_end']} | ± {s['band']:g} | {s['in_band']:.3f} | "
+                     f"{s['max_dev']:.4g} | {s['max_dev_p99']:.4g} |")
+    return lines + ["", "In band overall: the whole field inside every hold's band over that hold.", ""]
+
+
 def _figure_lines(rep: EpisodeReport | AggregateReport, out: Path) -> list[str]:
     """Draw the figures into `out`; their Markdown section (a line for each one not drawn)."""
     lines = ["## Figures", ""]
-    for fn, title, fname in ((episode_field_figure, "Closed-loop field vs nominal", "field.png"),
+    for fn, title, fname in ((episode_recipe_figure, "Recipe: target over time", "recipe.png"),
+                             (episode_field_figure, "Closed-loop field vs nominal", "field.png"),
                              (episode_estimation_figure, "Estimation error with 2-sigma bounds", "estimation.png"),
                              (episode_inputs_figure, "Inputs vs nominal", "inputs.png"),
                              (episode_disturbance_figure, "Disturbance estimates", "disturbance.png")):
         p = fn(rep, out / fname)
-        if p is None and fname == "disturbance.png":
+        if p is None and fname in ("disturbance.png", "recipe.png"):
             continue                         # a design without disturbance states: nothing to say
         if p is None:
             lines.append(f"- {title}: not drawn (the bag lacks the topics it needs)")
@@ -185,6 +208,7 @@ def write_report(rep: EpisodeReport | AggregateReport, out_dir: str | Path, figu
               "- mean_dev_start / mean_dev_end: max over nodes of |mean field - nominal| at the band window's "
               "first / last step.",
               "- deadline_misses / rejected_messages: last /diagnostics values (summed over episodes).", ""]
+    lines += segment_lines(rep)
     problems = _problems(rep, reps)
     if problems:
         lines += ["## Notes", ""] + [f"- {p}" for p in problems[:50]] + [""]

@@ -66,16 +66,23 @@ def run_analysis(kids: Children, bag: Path, design_file: Path, out: Path, log) -
 
 def print_metrics(m: dict, design, name: str = 'rom_lqg') -> None:
     """The episode's metrics table and one line on the band, the wall time and the fallbacks."""
+    import numpy as np
+
     from sep_control.evaluation import metrics as M
     keys = [k for k in M.JSON_KEYS if k in m]
     info, obj = design.info, design.objective
     horizon = design.n_steps * info.dt
     k0, k1 = obj.window
-    target = f'{obj.target[0]:g}' if (obj.target == obj.target[0]).all() else 'the target pattern'
+    flat = np.ravel(obj.target)
+    target = f'{flat[0]:g}' if (flat == flat[0]).all() else 'the target pattern'
     unit = f' {info.field_unit}' if info.field_unit else ''
+    band = f"{target} +- {obj.band:g}{unit} over t = {k0 * info.dt:g}..{k1 * info.dt:g} s"
+    if obj.holds is not None:                  # a recipe: every hold's own band
+        band = "every hold's band: " + ", ".join(f"+- {b:g}{unit} over t = {a * info.dt:g}..{c * info.dt:g} s"
+                                                 for a, c, b in obj.holds)
     print()
     print(M.format_table({f'{name} (topics)': m}, keys))
-    print(f"\nin band (whole field within {target} +- {obj.band:g}{unit} over t = {k0 * info.dt:g}..{k1 * info.dt:g} s): "
+    print(f"\nin band (whole field within {band}): "
           f"{'yes' if m['in_band'] >= 1 else 'NO'}; episode {m['wall_s']:.2f} s wall for {horizon:g} s simulated "
           f"({horizon / m['wall_s']:.1f}x real time; {m['total_wall_s']:.1f} s with start-up); "
           f"LQR nominal fallbacks {m['lqr_fallbacks']}"

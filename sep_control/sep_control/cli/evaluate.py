@@ -131,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         if truth is not None:
             print(truth_cli.describe(design, truth))
         print(format_table(rows, TABLE_KEYS))
+        print_recipe(rows, design)
         if "rom_lqg" in rows and "oracle_lqg" in rows:
             ratio = rows["rom_lqg"]["cost_mean"] / rows["oracle_lqg"]["cost_mean"]
             print(f"ROM-LQG / oracle mean cost: {ratio:.5f}  (oracle design {oracle_s:.2f} s)")
@@ -199,6 +200,28 @@ def chosen_controllers(args: argparse.Namespace, design) -> list[str]:
     return controllers
 
 
+def print_recipe(rows: dict, design) -> None:
+    """A recipe's per-hold results (in band, max |f - f*| and its 99 % quantile over the runs,
+    the nominal's max) and the rate-limit counts, when the problem has them."""
+    obj, p = design.objective, design.problem
+    if obj.holds is not None:
+        from sep_control.evaluation.metrics import segment_max_dev
+
+        nom = segment_max_dev(design.nominal.field[None], obj)[:, 0]
+        print("\nper hold segment (in band / max |f - f*| / its 99 % quantile over the runs):")
+        table = {"nominal": {f"hold {j + 1} [{k0},{k1}] ±{b:g}": f"max {d:.3g}"
+                             for j, ((k0, k1, b), d) in enumerate(zip(obj.holds, nom))}}
+        for name, r in rows.items():
+            table[name] = {f"hold {j + 1} [{s['k_start']},{s['k_end']}] ±{s['band']:g}":
+                           f"{s['in_band']:.3f} / {s['max_dev']:.3g} / {s['max_dev_p99']:.3g}"
+                           for j, s in enumerate(r.get("segments") or [])}
+        print(format_table(table, list(table["nominal"])))
+    if p.rate_limited:
+        print("\nrate limits (channel-steps): " + "; ".join(
+            f"{name}: {r.get('rate_clips', 0):,} clipped by the law, {r.get('rate_violations', 0):,} by the plant, "
+            f"{r.get('rate_at_limit', 0.0):.3f} at the limit" for name, r in rows.items()))
+
+
 def print_sweep(rows: list[dict], runs: int, design) -> None:
     from sep_control.design.pipeline import DesignSettings
 
@@ -214,12 +237,16 @@ def print_sweep(rows: list[dict], runs: int, design) -> None:
 def write_figures(out: Path, design, results, sweep_rows) -> list[Path]:
     info, xyz, obj, nom = design.info, design.field_xyz, design.objective, design.nominal
     mean = nom.belief_mean if nom.belief_mean is not None else nom.field      # no belief: the nominal field
-    paths = [figures.nominal_belief_figure(out / "nominal_belief_and_control.png", info, xyz, obj.target, obj.band,
+    target = obj.target_at(obj.window[1])             # a time-varying target: at the band window's end
+    paths = [figures.nominal_belief_figure(out / "nominal_belief_and_control.png", info, xyz, target, obj.band,
                                            mean, nom.belief_std, nom.u, obj.window)]
     means = {name: r.F_mean for name, r in results.items()}
     if means:
         paths.append(figures.mc_mean_vs_nominal_figure(out / "closed_loop_mean_vs_nominal.png", info, xyz,
-                                                       obj.target, obj.band, nom.field, means, obj.window))
+                                                       target, obj.band, nom.field, means, obj.window))
+    if np.ndim(obj.target) > 1:                       # the target drawn over time (a recipe)
+        paths.append(figures.recipe_figure(out / "recipe.png", info, obj, nom.field,
+                                           {name: r.F for name, r in results.items()}))
     closed = results.get("rom_lqg") or results.get("oracle_lqg")
     if closed is not None:
         ol = results["open_loop"].F[0] if "open_loop" in results else None

@@ -3,7 +3,9 @@
 A `Controller` maps step k and the filter's estimate to the input of step k:
 
 * `OpenLoop`:  u_k = clip(ubar_k)                          (the filter still runs; its estimate is unused)
-* `LqrLaw`:    u_k = clip(ubar_k + K_k zhat_{k|k})         (rom_lqg on the design's LQG, oracle_lqg on the oracle's)
+* `LqrLaw`:    u_k = clip(ubar_k + K_k zhat_{k|k})         (rom_lqg on the design's LQG, oracle_lqg on the oracle's);
+               with rate limits then u_k = clip(u_k, u_{k-1} - du_max, u_{k-1} + du_max), u_{k-1}
+               its own last command (a rate clip after the box clip; counted in `rate_clips`)
 * `MpcLaw`:    u_k = the first move of the box-constrained ROM-MPC (`sep_control.control.mpc.RomMPC`),
                with the warm start of every run kept inside the law.
 
@@ -29,7 +31,7 @@ import numpy as np
 
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Problem
-from sep_plant.protocol import clip_inputs
+from sep_plant.protocol import clip_inputs, clip_rate
 
 from sep_control.control.mpc import DEFAULT_HORIZON, MPCStats
 from sep_control.design.gains import command as lqr_command
@@ -120,16 +122,33 @@ class OpenLoop:
 
 
 class LqrLaw:
-    """u_k = clip(ubar_k + K_k ahat_k): the TV-LQR around the nominal (`sep_control.design.gains`)."""
+    """u_k = clip(ubar_k + K_k ahat_k): the TV-LQR around the nominal (`sep_control.design.gains`).
+
+    With rate limits (`du_max` finite) the box-clipped command is then clipped to within du_max
+    of the law's own command of step k-1 (kept per run between calls, like the MPC's warm
+    start; none at k = 0 or after a call with another number of runs); `rate_clips` counts the
+    channel-steps that clip changed."""
 
     stats = None
 
-    def __init__(self, lqg: LQG, u_nom: np.ndarray, lo: np.ndarray, hi: np.ndarray, name: str = "rom_lqg"):
+    def __init__(self, lqg: LQG, u_nom: np.ndarray, lo: np.ndarray, hi: np.ndarray, name: str = "rom_lqg",
+                 du_max: np.ndarray | None = None):
         self.name, self.K, self.u_nom, self.lo, self.hi = name, lqg.K, u_nom, lo, hi
         self.n = int(lqg.K.shape[2])
+        self.du_max = None if du_max is None or np.all(np.isinf(du_max)) else np.asarray(du_max, dtype=float)
+        self.rate_clips = 0
+        self._prev: np.ndarray | None = None
 
     def command(self, k: int, estimate: np.ndarray) -> np.ndarray:
-        return lqr_command(self.u_nom[k], self.K[k], estimate[..., :self.n], self.lo, self.hi)
+        u = lqr_command(self.u_nom[k], self.K[k], estimate[..., :self.n], self.lo, self.hi)
+        if self.du_max is None:
+            return u
+        prev = self._prev if (k > 0 and self._prev is not None and self._prev.shape == u.shape) else None
+        out = clip_rate(u, prev, self.du_max)
+        if prev is not None:
+            self.rate_clips += int(np.count_nonzero(out != u))
+        self._prev = np.array(out, dtype=float)
+        return out
 
 
 class MpcLaw:
@@ -150,6 +169,7 @@ class MpcLaw:
         self.n = self.mpc.n
         self.stats = self.mpc.stats
         self._warm: np.ndarray | None = None
+        self._prev: np.ndarray | None = None        # each run's last input (rate limits)
 
     @property
     def horizon(self) -> int:
@@ -158,13 +178,16 @@ class MpcLaw:
     def reset(self) -> None:
         """A new episode: no warm starts (the counters in `stats` go on)."""
         self._warm = None
+        self._prev = None
 
     def command(self, k: int, estimate: np.ndarray) -> np.ndarray:
         single = np.ndim(estimate) == 1
         a = np.atleast_2d(estimate)[:, :self.n]
         warm = self._warm if self._warm is not None and self._warm.shape[0] == a.shape[0] else None
-        U, Z = self.mpc.command_batch(k, a, warm)
+        prev = self._prev if (k > 0 and self._prev is not None and self._prev.shape[0] == a.shape[0]) else None
+        U, Z = self.mpc.command_batch(k, a, warm, prev=prev)
         self._warm = self.mpc.shift(Z)
+        self._prev = U.copy() if self.mpc.rated else None
         return U[0] if single else U
 
 
@@ -195,7 +218,7 @@ def make_controller(name: str, lqg: LQG, problem: Problem, u_nom: np.ndarray,
     if name == "open_loop":
         return OpenLoop(u_nom, lo, hi, lqg.model.n)
     if name in ("rom_lqg", "oracle_lqg"):
-        return LqrLaw(lqg, u_nom, lo, hi, name)
+        return LqrLaw(lqg, u_nom, lo, hi, name, problem.channels("du_max", u_nom.shape[1]))
     if name == "rom_mpc":
         return MpcLaw(lqg, problem, u_nom, MpcOptions.of(mpc))
     raise ValueError(f"unknown controller {name!r}: use {', '.join(CONTROLLER_NAMES)}")

@@ -32,6 +32,17 @@ LQR command, counted (`MPCStats`); the returned input is always clipped to the l
 solver meets them only to its tolerance). Beyond the horizon's end (k + H > N) the padded
 moves are fixed at zero.
 
+Rate limits (problem key du_max): |u_j - u_{j-1}| <= du_max per channel adds the rows
+
+    -du_max - (ubar_{k+i} - ubar_{k+i-1}) <= du_{k+i} - du_{k+i-1} <= du_max - (ubar_{k+i} - ubar_{k+i-1}),
+    i = 1..H-1 (H = min(horizon, N - k)),
+
+to the QP's constraint matrix [I; D], and the first move's box is intersected with
+u_{k-1} -+ du_max - ubar_k, u_{k-1} the run's previous input (known: the law keeps it; none at
+k = 0). The unconstrained minimizer is checked against all rows at once for every run (one
+vectorized test); a run that violates one solves the QP. The returned input is clipped to the
+box, then to u_{k-1} -+ du_max (`sep_plant.protocol.clip_rate`), so the plant never has to.
+
 The Monte Carlo and the nodes run it as the control law `sep_control.control.controllers.MpcLaw`
 (which keeps each run's warm start). Pure numpy/scipy + osqp: no ROS import.
 """
@@ -47,10 +58,12 @@ import scipy.sparse as sp
 
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Problem
-from sep_plant.protocol import clip_inputs
+from sep_plant.protocol import clip_inputs, clip_rate
 
 from sep_control.design.gains import lqr_gains
 
+#: OSQP's infinity (a constraint row with these bounds is free)
+OSQP_INF = 1e30
 #: OSQP settings: absolute/relative tolerance on the deviations (inputs are O(0.1-1)), and the
 #: iteration cap; solution polishing makes the active set exact
 OSQP_SETTINGS = dict(eps_abs=1e-8, eps_rel=1e-8, max_iter=4000, polishing=True, verbose=False,
@@ -112,6 +125,8 @@ class RomMPC:
         self.N, self.n_u = self.u_nom.shape
         self.n, self.H = m.n, int(min(horizon, self.N))
         self.lo, self.hi = problem.limits(self.n_u)
+        self.du_max = problem.channels("du_max", self.n_u)
+        self.rated = bool(np.any(np.isfinite(self.du_max)))
         self.budget = None if time_budget_s is None else float(time_budget_s)
         _, S, Q, R = lqr_gains(lqg.rom, problem, lqg.disturbance)
         self.P, self.chol, self.F = self._condense(m.A, m.B, Q, R, S)
@@ -125,8 +140,10 @@ class RomMPC:
         P0 = sp.csc_matrix((self.P[0][self._iu], rows, indptr), shape=(nz, nz))
         self.solver = osqp.OSQP()
         settings = {**OSQP_SETTINGS, **({"time_limit": self.budget} if self.budget else {}), **(solver_settings or {})}
-        self.solver.setup(P=P0, q=np.zeros(nz), A=sp.identity(nz, format="csc"), l=-np.ones(nz), u=np.ones(nz),
-                          **settings)
+        A = sp.identity(nz, format="csc")
+        if self.rated:               # rows z_i - z_{i-1}, i = 1..H-1
+            A = sp.vstack([A, self._difference()], format="csc")
+        self.solver.setup(P=P0, q=np.zeros(nz), A=A, l=-np.ones(A.shape[0]), u=np.ones(A.shape[0]), **settings)
         self._rho0 = float(settings.get("rho", 0.1))
         self._solved = osqp.SolverStatus.OSQP_SOLVED
         self._time_limit = osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED
@@ -173,6 +190,38 @@ class RomMPC:
         hi[:Hk] = self.hi - self.u_nom[k:k + Hk]
         return lo.ravel(), hi.ravel()
 
+    def _difference(self) -> sp.csc_matrix:
+        """D ((H-1) n_u, H n_u): (D z)_i = du_{k+i} - du_{k+i-1}, i = 1..H-1."""
+        H, n_u = self.H, self.n_u
+        D = sp.diags([np.ones(H * n_u), -np.ones(H * n_u)], [0, -n_u], shape=(H * n_u, H * n_u), format="csr")
+        return D[n_u:]
+
+    def rate_bounds(self, k: int, prev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of every constraint row (box rows, then the difference rows) at step k for runs
+        whose previous inputs are `prev` (M, n_u) (None: none, step 0): (M, H n_u + (H-1) n_u) each."""
+        H, n_u, N = self.H, self.n_u, self.N
+        Hk = min(H, N - k)
+        lo_box, hi_box = self.bounds(k)
+        M = 1 if prev is None else prev.shape[0]
+        lo = np.tile(lo_box, (M, 1))
+        hi = np.tile(hi_box, (M, 1))
+        if prev is not None and k > 0:           # the first move within du_max of u_{k-1}
+            lo[:, :n_u] = np.maximum(lo[:, :n_u], prev - self.du_max - self.u_nom[k])
+            hi[:, :n_u] = np.minimum(hi[:, :n_u], prev + self.du_max - self.u_nom[k])
+        d_lo = np.full((H - 1, n_u), -OSQP_INF)
+        d_hi = np.full((H - 1, n_u), OSQP_INF)
+        if Hk > 1:
+            dnom = np.diff(self.u_nom[k:k + Hk], axis=0)          # (Hk-1, n_u)
+            d_lo[:Hk - 1] = np.maximum(-self.du_max - dnom, -OSQP_INF)
+            d_hi[:Hk - 1] = np.minimum(self.du_max - dnom, OSQP_INF)
+        return (np.concatenate([lo, np.tile(d_lo.ravel(), (M, 1))], axis=1),
+                np.concatenate([hi, np.tile(d_hi.ravel(), (M, 1))], axis=1))
+
+    def _rows(self, Z: np.ndarray) -> np.ndarray:
+        """[z, D z] of solutions Z (M, H n_u): every constraint row's value."""
+        Zr = Z.reshape(Z.shape[0], self.H, self.n_u)
+        return np.concatenate([Z, (Zr[:, 1:] - Zr[:, :-1]).reshape(Z.shape[0], -1)], axis=1)
+
     # ------------------------------------------------------------- online
     def unconstrained(self, k: int, a: np.ndarray) -> np.ndarray:
         """The unconstrained minimizers for estimates a (M, n): (M, H n_u)."""
@@ -182,28 +231,41 @@ class RomMPC:
         return -sla.cho_solve((self.chol[k], True), q.T).T
 
     def command(self, k: int, a: np.ndarray, warm: np.ndarray | None = None,
-                fail: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+                fail: bool = False, prev: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """u_k for one estimate a (n,): (input (n_u,), the solution to warm-start the next step
         from, None after a fallback). The online path is `command_batch` of one run, so it equals
-        the offline Monte Carlo's. `fail` forces the fallback path (for tests and benchmarks)."""
+        the offline Monte Carlo's. `fail` forces the fallback path (for tests and benchmarks);
+        `prev` (n_u,): u_{k-1}, for the rate limits."""
         fallbacks = self.stats.fallbacks
-        U, Z = self.command_batch(k, np.atleast_2d(a), None if warm is None else np.atleast_2d(warm), fail)
+        U, Z = self.command_batch(k, np.atleast_2d(a), None if warm is None else np.atleast_2d(warm), fail,
+                                  None if prev is None else np.atleast_2d(prev))
         return U[0], (None if self.stats.fallbacks > fallbacks else Z[0])
 
     def command_batch(self, k: int, A_hat: np.ndarray, warm: np.ndarray | None = None,
-                      fail: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                      fail: bool = False, prev: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """u_k for M estimates (M, n) at once: the feasible unconstrained ones in one solve, the
-        others one QP each (`fail`: every one falls back). Returns (inputs (M, n_u), solutions
-        (M, H n_u) for warm starts; zero after a fallback)."""
+        others one QP each (`fail`: every one falls back). `prev` (M, n_u): the runs' inputs of
+        step k-1 (rate limits; None: none). Returns (inputs (M, n_u), solutions (M, H n_u) for
+        warm starts; zero after a fallback)."""
         Q = A_hat @ self.F[k].T                       # the QPs' linear terms, (M, H n_u)
         Z = self._unconstrained(k, Q)
-        lo, hi = self.bounds(k)
-        tol = 1e-12 * (1.0 + np.abs(Z))
-        ok = np.all((Z >= lo - tol) & (Z <= hi + tol), axis=1) & (not fail)
+        if self.rated:                                 # every run's rows at once (vectorized)
+            if prev is not None and prev.shape[0] != Z.shape[0]:
+                prev = None
+            L, Uu = self.rate_bounds(k, prev)
+            R = self._rows(Z)
+            tol = 1e-12 * (1.0 + np.abs(R))
+            ok = np.all((R >= L - tol) & (R <= Uu + tol), axis=1) & (not fail)
+            bound_of = (lambda r: (L[r if L.shape[0] > 1 else 0], Uu[r if Uu.shape[0] > 1 else 0]))
+        else:
+            lo, hi = self.bounds(k)
+            tol = 1e-12 * (1.0 + np.abs(Z))
+            ok = np.all((Z >= lo - tol) & (Z <= hi + tol), axis=1) & (not fail)
+            bound_of = (lambda r: (lo, hi))
         self.stats.unconstrained += int(ok.sum())
         U = self.u_nom[k] + Z[:, :self.n_u]
         for r in np.flatnonzero(~ok):
-            z, why = (None, "forced") if fail else self._solve(k, A_hat[r], lo, hi,
+            z, why = (None, "forced") if fail else self._solve(k, A_hat[r], *bound_of(r),
                                                                None if warm is None else warm[r], Q[r])
             if z is None:
                 self.stats.fallbacks += 1
@@ -214,7 +276,10 @@ class RomMPC:
                 self.stats.qp += 1
                 U[r] = self.u_nom[k] + z[:self.n_u]
                 Z[r] = z
-        return self._clip(U), Z
+        U = self._clip(U)
+        if self.rated and prev is not None and k > 0:
+            U = clip_rate(U, prev, self.du_max)
+        return U, Z
 
     def shift(self, z: np.ndarray | None) -> np.ndarray | None:
         """A solution of step k as the warm start of step k+1 (moves shifted, last one held)."""
@@ -236,7 +301,8 @@ class RomMPC:
         # run's inputs do not depend on which runs were solved before it (batch = one by one)
         self.solver.update_settings(rho=self._rho0)
         x0 = np.zeros_like(lo) if warm is None else warm
-        self.solver.warm_start(x=np.clip(x0, lo, hi), y=np.zeros_like(lo))
+        nz = self.H * self.n_u
+        self.solver.warm_start(x=np.clip(x0, lo[:nz], hi[:nz]), y=np.zeros_like(lo))
         res = self.solver.solve(raise_error=False)
         dt = time.perf_counter() - t0
         self.stats.qp_seconds.append(dt)
@@ -244,7 +310,7 @@ class RomMPC:
             return None, "over time budget"
         if res.info.status_val != self._solved or res.x is None or not np.all(np.isfinite(res.x)):
             return None, f"osqp: {res.info.status}"
-        return np.clip(res.x, lo, hi), "ok"
+        return np.clip(res.x, lo[:nz], hi[:nz]), "ok"
 
     def _clip(self, u: np.ndarray) -> np.ndarray:
         return clip_inputs(u, self.lo, self.hi)

@@ -24,7 +24,7 @@ from sep_control.compute.budget import runs_per_batch
 
 def objective_of(plant: Plant, problem: Problem) -> Objective:
     """The problem's objective on this plant's field nodes."""
-    return Objective.of(problem, np.asarray(plant.field_coordinates()))
+    return Objective.of(problem, np.asarray(plant.field_coordinates()), float(plant.dt))
 
 
 def belief_cost(belief: EnKFResult, U: np.ndarray, obj: Objective) -> float:

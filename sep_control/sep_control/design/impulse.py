@@ -97,7 +97,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
                         scheme: str = "central", chunks: int = 1, engine=None,
                         U_ext: np.ndarray | None = None, noise: NoiseSketch | None = None,
-                        start: int = 0, inputs_only: bool = False) -> MarkovData:
+                        start: int = 0, inputs_only: bool = False, stride: int = 1) -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
@@ -122,6 +122,10 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     `noise`: impulses on the sketch's r_w combinations of the noise channels instead of on each
     (`sep_control.design.noise_sketch`; start step j uses the combinations of step start + j).
     `inputs_only`: impulses on the n_u inputs only, none on the noise channels.
+    `stride` > 1: impulses only at the start steps `strided_starts` (every stride-th one and the
+    last), the Markov parameters of the others interpolated linearly in j at each lag
+    (`interpolate_starts`): about 1/stride of the experiments, an error of O(stride^2) times
+    the second difference of Y_{j+l,j} in j (the plant's time variation along the nominal).
     """
     from sep_control.compute.engine import InProcess
 
@@ -144,6 +148,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     in_process = engine.local
     groups = _channel_groups(plant, n_ch, lags, scheme, memory_budget, engine)
     plan = experiment_chunks(N, chunks)
+    starts = strided_starts(N, stride)
     # a metered plant counts its own steps in this process; a worker steps its own copy, so its
     # experiments are counted here (every run is stepped `lags` times, `experiment_run_steps`)
     meter = None if in_process else meter_of(plant)
@@ -151,15 +156,36 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
                   field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
                   n_chunks=len(plan), noise=noise, start=start)
-    tasks = [(i, j0, j1, Xbar_ext[j0:j1]) for i, (j0, j1) in enumerate(plan)]
+    tasks = [(i, j0, j1, Xbar_ext[j0:j1]) if stride == 1 else
+             (i, j0, j1, Xbar_ext[j0:j1], starts[(starts >= j0) & (starts < j1)] - j0) for i, (j0, j1) in enumerate(plan)]
     labels = [f"plant {type(base_plant(unmetered(plant))).__name__}: TV-ERA impulse experiments, chunk {i + 1}/{len(plan)} "
               f"(start steps {j0}..{j1 - 1}, {n_ch} channels, scheme {scheme})" for i, (j0, j1) in enumerate(plan)]
     parts = engine.map(_impulse_chunk, tasks, shared, labels, "TV-ERA experiments",
                        show_progress=show_progress and not in_process)
     if meter is not None:
-        meter.add(experiment_run_steps(N, n_ch, lags, scheme, len(groups)))
+        meter.add(experiment_run_steps(len(starts), n_ch, lags, scheme, len(groups)))
     Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
-    return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * N * n_ch, n_u, noise)
+    if stride > 1:
+        Y, Yc = interpolate_starts(Y, starts), interpolate_starts(Yc, starts)
+    return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * len(starts) * n_ch, n_u, noise)
+
+
+def strided_starts(N: int, stride: int) -> np.ndarray:
+    """The start steps impulsed with `stride`: 0, stride, 2 stride, ... and N - 1 (every one for 1)."""
+    if stride < 1:
+        raise ValueError(f"impulse stride must be >= 1, got {stride}")
+    return np.union1d(np.arange(0, N, stride), [N - 1]) if N > 0 else np.zeros(0, dtype=int)
+
+
+def interpolate_starts(Z: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Z (N, ...) with the rows j not in `starts` set by linear interpolation in j between the
+    neighbouring start steps a <= j <= b: Z_j = (1 - w) Z_a + w Z_b, w = (j - a) / (b - a)
+    (`starts` sorted, holding 0 and N - 1)."""
+    j = np.arange(Z.shape[0])
+    hi = starts[np.minimum(np.searchsorted(starts, j, "left"), len(starts) - 1)]
+    lo = starts[np.maximum(np.searchsorted(starts, j, "right") - 1, 0)]
+    w = np.where(hi > lo, (j - lo) / np.maximum(hi - lo, 1), 0.0).reshape((-1,) + (1,) * (Z.ndim - 1))
+    return (1.0 - w) * Z[lo] + w * Z[hi]
 
 
 def experiment_run_steps(N: int, n_ch: int, lags: int, scheme: str = "central", groups: int = 1) -> int:
@@ -220,7 +246,8 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     shipped form (`engine.ship`: rebuilt once per worker process)."""
     from sep_control.compute.engine import local_plant
 
-    i, j0, j1, Xbar = task
+    i, j0, j1, Xbar = task[:4]
+    local_starts = task[4] if len(task) > 4 else None     # strided: the chunk's start steps (local)
     plant = local_plant(plant)
     n_y, n_f = int(plant.n_y), int(plant.n_field)
     n_ch = n_u + n_w
@@ -232,7 +259,7 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
     for chs in groups:
         _impulse_pass(plant, U_ext[j0:], Xbar, n, lags, field_lags, delta, chs, n_u, n_w, Y, basis, blocks, bar,
-                      scheme, noise, start + j0)
+                      scheme, noise, start + j0, local_starts)
     if hasattr(bar, "close"):
         bar.close()
     r = basis.rank
@@ -247,12 +274,16 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
 def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
                   delta: float, chs: np.ndarray, n_u: int, n_w: int, Y: np.ndarray, basis: IncrementalBasis,
                   blocks: list, bar, scheme: str = "central", noise: NoiseSketch | None = None,
-                  start: int = 0) -> None:
+                  start: int = 0, starts: np.ndarray | None = None) -> None:
     """One lockstep pass over the channels `chs` (see `impulse_experiments`); steps and start
     steps are counted from the chunk's first start step (U_ext and Xbar_ext begin there; it is
-    start step `start` of the horizon, which picks a sketch's combinations)."""
-    ring = _Ring(plant, chs, n_u, n_w, lags, delta, scheme, noise, start)
-    for k in range(N + lags - 1):
+    start step `start` of the horizon, which picks a sketch's combinations). `starts`: the
+    (local) start steps of a strided pass (None: every step)."""
+    if starts is not None and len(starts) == 0:
+        return
+    ring = _Ring(plant, chs, n_u, n_w, lags, delta, scheme, noise, start) if starts is None else \
+        _StridedRing(plant, chs, n_u, n_w, lags, delta, scheme, noise, start, starts)
+    for k in range(N + lags - 1 if starts is None else int(starts[-1]) + lags):
         if hasattr(bar, "update"):
             bar.update(1)
         j_slot = ring.advance(k, N, U_ext[k], Xbar_ext[k] if k < N else None)
@@ -331,6 +362,48 @@ class _Ring:
     def _index(self, idx: np.ndarray):
         """Row indices for the runs' array (on a device: uploaded, as CuPy wants)."""
         return idx if self.xp is np else self.xp.asarray(idx)
+
+
+class _StridedRing(_Ring):
+    """A `_Ring` whose experiments start only at the (local) steps `starts`: start number i in
+    slot i mod n_slots, n_slots the most experiments active at once; only the slots still in an
+    experiment are stepped."""
+
+    def __init__(self, plant: Plant, chs: np.ndarray, n_u: int, n_w: int, lags: int, delta: float, scheme: str,
+                 noise: NoiseSketch | None, start: int, starts: np.ndarray):
+        starts = np.asarray(starts, dtype=int)
+        # the most starts within any window of `lags` steps: slot i's previous experiment,
+        # start i - n_slots, has then ended (start_i - start_{i - n_slots} >= lags)
+        n_slots = int(np.max(np.arange(len(starts)) + 1 - np.searchsorted(starts, starts - lags + 1)))
+        super().__init__(plant, chs, n_u, n_w, n_slots, delta, scheme, noise, start)
+        self.lags, self.n_slots = lags, n_slots
+        self.order = {int(j): i for i, j in enumerate(starts)}
+        self.filled = 0
+
+    def advance(self, k: int, N: int, u_k: np.ndarray, xbar_k: np.ndarray | None) -> np.ndarray:
+        """Start the experiment of step k when k is a start step, then step every slot still in an
+        experiment by u_k (plus the new slot's impulses); returns the start step of each slot."""
+        rows, n_u, n_w, X = self.rows, self.n_u, self.n_w, self.X
+        i = self.order.get(k)
+        if i is not None:
+            s = i % self.n_slots
+            X[s * rows:(s + 1) * rows] = to_device(self.plant, xbar_k)
+            self.slot_start[s] = k
+            self.filled = min(i + 1, self.n_slots)
+        used = self.filled * rows
+        j_slot = self.slot_start[:self.filled]
+        Uk = np.repeat(u_k[None], used, axis=0)
+        Wk = np.zeros((used, self.n_w_plant)) if n_w else None
+        if i is not None:
+            Uk[s * rows:(s + 1) * rows] += self.pert[:, :n_u]
+            if n_w:
+                pw = self.pert[:, n_u:]
+                Wk[s * rows:(s + 1) * rows] += pw if self.noise is None else \
+                    pw @ self.noise.directions(self.start + k).T
+        for a, b in _ranges(np.flatnonzero((j_slot >= 0) & (k - j_slot < self.lags))):
+            r0, r1 = a * rows, b * rows
+            X[r0:r1] = self.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
+        return j_slot
 
 
 def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:

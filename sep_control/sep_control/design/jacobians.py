@@ -183,7 +183,13 @@ class KeptRomJacobian(RomJacobian):
         super().__init__(rom, proposal, relinearize_rtol=float("inf"))
 
     def _full(self, ident: Identification) -> bool:
-        return ident.made_with(self.rom.scheme, self.rom.field_tol, self.rom.p, self.rom.q)
+        return ident.made_with(self.rom.scheme, self.rom.field_tol, self.rom.p, self.rom.q, noise=False)
+
+    def full_model(self, lin: Linearization) -> bool:
+        """Whether `lin` is a model with the design's settings (not a coarse proposal one): a
+        settle stop (`OptimizerOptions.settle`) applies to its steps only, since a coarse
+        model's small decrease says that model is poor, not that the optimum is near."""
+        return lin.identification is not None and self._full(lin.identification)
 
     def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,
                     gram: bool = True) -> Linearized | None:

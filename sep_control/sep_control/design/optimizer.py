@@ -28,7 +28,7 @@ import numpy as np
 
 from sep_estimator.enkf import EnKFResult
 from sep_plant.problem import Problem
-from sep_plant.protocol import Plant, fields, nominal_states
+from sep_plant.protocol import Plant, fields, nominal_states, rate_clip_sequence
 
 from sep_control.compute.progress import progress
 from sep_control.design.belief import belief_cost, objective_of, run_belief
@@ -64,6 +64,10 @@ class OptimizerOptions:
     # one at this input (`Jacobian.relinearize`) and go on, instead of stopping there (a kept
     # model's fixed point is not the optimum: J_kept' r = 0, not J' r = 0)
     refresh_on_stall: bool = False
+    # settle stop (0: none): an accepted step that lowers the objective by less than this (relative)
+    # is taken and ends the run, when the strategy's model has its full settings
+    # (`KeptRomJacobian.full_model`; any model for a strategy without that test)
+    settle: float = 0.0
 
     def check(self) -> None:
         """Raise ValueError naming a bad method or objective."""
@@ -119,11 +123,14 @@ class Optimizer:
     Every step is accepted on the true objective, whichever model proposed it. Input limits:
     the problem's u_min/u_max or `options.bounds`; inputs at an active bound (`active_bounds`)
     are held, the others step, and the trial point is projected onto the box before the true
-    objective accepts it.
+    objective accepts it. Rate limits (du_max): the projected trial is then clipped forward in
+    time to |u_k - u_{k-1}| <= du_max (a feasible point, not the exact projection).
 
     A run stops after `max_iter` iterations, when an accepted trial lowers the objective by less
     than `tol` relative (such a step is not taken: it keeps the last linearization at the final
-    input), when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
+    input), with a settle stop (`settle` > 0) after an accepted step that lowered it by less than
+    `settle` on a full model (that step is taken; the last linearization was made before it),
+    when no trial of `max_trials` lowers it, or, for the belief objective (gn), when the
     Gauss-Newton model predicts a decrease below `tol` relative for the next step (that trial,
     an EnKF run, is not evaluated); the result's `stop` says which. With a ROM strategy the
     result carries the last identification, made at the final input or within the strategy's
@@ -158,7 +165,7 @@ class Optimizer:
         o, t0 = self.options, time.perf_counter()
         U = self.problem.u_start(int(self.plant.n_u)) if U0 is None else np.array(U0, dtype=float)
         self._box(U.shape)
-        at = self._evaluate(np.clip(U, self.lo, self.hi))
+        at = self._evaluate(self._project(U))
         result = OptimizationResult(at.U, at.J, [at.J], method=o.method, objective=o.objective)
         lin = self._linearize(self.strategy.linearize(self.plant, self.obj, at, self._gram), result)
         lam, alpha, last = 1e-3, o.step_size, o.iterations - 1
@@ -191,6 +198,9 @@ class Optimizer:
             result.iterations = it + 1
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(J=f"{at.J:.6g}")
+            if rel < o.settle and getattr(self.strategy, "full_model", lambda _: True)(lin):
+                result.stop = f"settled: the step lowered the objective by less than {o.settle:g} (taken)"
+                break
             if it == last and lin.identification is None:
                 result.stop = f"max_iter = {o.iterations}"
                 break
@@ -220,6 +230,13 @@ class Optimizer:
         self.lo = np.broadcast_to(np.asarray(lo, dtype=float), shape)
         self.hi = np.broadcast_to(np.asarray(hi, dtype=float), shape)
         self.bounded = bool(np.any(np.isfinite(self.lo)) or np.any(np.isfinite(self.hi)))
+        self.du_max = self.problem.channels("du_max", int(self.plant.n_u))
+
+    def _project(self, U: np.ndarray) -> np.ndarray:
+        """U clipped into the box, then made rate-feasible forward in time (u_k = clip(u_k,
+        u_{k-1} -+ du_max), k = 1..N-1; `sep_plant.protocol.rate_clip_sequence`): every trial
+        the true objective accepts is a feasible nominal."""
+        return rate_clip_sequence(np.clip(U, self.lo, self.hi), self.du_max)
 
     def _evaluate(self, U: np.ndarray) -> Point:
         """The objective at U (a rollout, and for the belief objective an EnKF run)."""
@@ -263,7 +280,7 @@ class Optimizer:
                 dU = -alpha * grad
                 if frozen is not None:
                     dU[frozen] = 0.0
-            U_try = np.clip(at.U + dU, self.lo, self.hi)
+            U_try = self._project(at.U + dU)
             if self.predict_stop and 0.0 <= -lin.predicted_change(U_try - at.U) < o.tol * at.J:
                 return Attempt("converged", lam, alpha)
             trial = self._evaluate(U_try)

@@ -177,7 +177,9 @@ def _meta(st: DesignSettings, timings: dict[str, float], final: DesignPass, obj:
                       "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
         "validation": {"markov_rel_error": ident.markov_rel_error, "impulse_amplitude": ident.identification.delta,
                        **({} if ident.spot_rel_error is None else {"spot_markov_rel_error": ident.spot_rel_error}),
-                       "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.target)))},
+                       "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.targets(k0, k1)))),
+                       **({} if obj.holds is None else {"max_dev_per_hold": [
+                           float(np.max(np.abs(F_nom[a:b + 1] - obj.targets(a, b)))) for a, b, _ in obj.holds]})},
         "disturbance": disturbance_meta(final.lqg.disturbance),
     }
 

@@ -14,9 +14,11 @@ from typing import Any, Callable
 from sep_plant.problem import Problem
 from sep_plant.protocol import Plant, noise_channels
 
-from sep_control.design.impulse import experiment_run_steps
+from sep_control.design.impulse import SCHEMES, experiment_run_steps, strided_starts
 from sep_control.design.noise_sketch import identified_noise_channels
 from sep_control.design.runsteps import STAGES
+from sep_control.design.spotcheck import SPOT_BLOCKS, SPOT_STARTS
+from sep_control.design.stages import PLAN_PQ
 
 #: run-steps per horizon step and per channel above which the plan warns (the reference with
 #: 0.8.0's plan: 315k run-steps over N = 250 steps and 5 channels, ~250 per step and channel)
@@ -25,6 +27,8 @@ WARN_PER_STEP_CHANNEL = 2500
 WARN_HANKEL_COLUMNS = 600
 #: identifications the mean-only ROM optimizer usually makes (coarse first model, one at the optimum)
 USUAL_IDENTIFICATIONS = 2
+#: rollouts (one run of N steps each) the mean-only ROM optimizer usually makes: its trial steps
+USUAL_ROLLOUTS = 20
 
 
 def channels(plant: Plant) -> tuple[int, int]:
@@ -40,21 +44,43 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
     N, lags = problem.n_steps, st.p + st.q
     n_u, n_w = channels(plant)
     n_ch = n_u + identified_noise_channels(plant, problem.w_std)    # many channels: r_w combinations
-    ident = experiment_run_steps(N, n_ch, lags, st.impulse_scheme) + N + lags
+    starts = len(strided_starts(N, st.impulse_stride))
+    ident = experiment_run_steps(starts, n_ch, lags, st.impulse_scheme) + N + lags
     jac = st.resolved_jacobian_for(plant, N)
-    if jac == "rom":
-        nominal = USUAL_IDENTIFICATIONS * ident + 20 * N
-    else:
-        nominal = 3 * (N * (N + 1) * n_u // 2) + ident
     belief = (st.belief_iter + 1) * st.ensemble * N if st.belief else 0
-    steps = {"nominal": nominal, "belief": belief, "identification": 0 if jac == "rom" else ident,
-             "validation": 0}
+    if st.experiment_plan != "0.8" and st.method == "gn" and (jac == "rom" or st.jacobian == "auto"):
+        steps = _plan_09(st, N, n_u, n_ch, starts, ident)
+        jac = "rom"
+        steps["belief"] = belief
+    else:
+        if jac == "rom":
+            nominal = USUAL_IDENTIFICATIONS * ident + USUAL_ROLLOUTS * N
+        else:
+            nominal = 3 * (N * (N + 1) * n_u // 2) + ident
+        steps = {"nominal": nominal, "belief": belief, "identification": 0 if jac == "rom" else ident,
+                 "validation": 0}
     matrices = {"hankel": (st.p * int(plant.n_y), st.q * n_ch),
                 "field_basis": (int(plant.n_field), None),
                 "sensitivity_normal": (N * n_u, N * n_u) if jac == "sensitivity" else None,
                 "ensemble": (st.ensemble, int(plant.n_x)) if st.belief else None}
     return {"run_steps": {**steps, "total": sum(steps.values())}, "matrices": matrices, "n_u": n_u, "n_w": n_w,
             "jacobian": jac, "n_w_identified": n_ch - n_u}
+
+
+def _plan_09(st, N: int, n_u: int, n_ch: int, starts: int, ident: int) -> dict[str, int]:
+    """Plan 0.9's usual run-steps (`sep_control.design.stages`): a coarse model and one with the
+    design's settings, both of the inputs only, and the optimizer's trial rollouts; the design's
+    model identified again only when the plant has noise channels beside its inputs (the
+    optimizer's models have none), else the optimizer's last one spot-checked at the final input."""
+    lags = st.p + st.q
+    coarse = 2 * min(st.p, PLAN_PQ) if st.coarse_proposals else lags
+    scheme = "forward" if st.coarse_proposals else st.impulse_scheme
+    nominal = (experiment_run_steps(starts, n_u, coarse, scheme) + N + coarse
+               + experiment_run_steps(starts, n_u, lags, st.impulse_scheme) + N + lags + USUAL_ROLLOUTS * N)
+    spot = SPOT_BLOCKS * SPOT_STARTS * (SCHEMES[st.impulse_scheme] * n_ch + (st.impulse_scheme == "forward")) * lags
+    noisy = n_ch > n_u
+    return {"nominal": nominal, "belief": 0, "identification": ident if noisy else 0,
+            "validation": 0 if noisy else spot + N + lags}
 
 
 def plan_warnings(plan: dict[str, Any], n_steps: int) -> list[str]:

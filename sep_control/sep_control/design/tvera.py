@@ -52,11 +52,14 @@ class Identification:
     field_tol: float = FIELD_TOL  # the field basis' relative tolerance
     p: int = 0              # Hankel block rows and columns it was identified with
     q: int = 0
+    stride: int = 1         # impulses at every stride-th start step (`impulse_experiments`)
+    inputs_only: bool = False   # the plant's noise channels were not impulsed (no B_w)
 
     def made_with(self, scheme: str, field_tol: float | None = None, p: int | None = None,
-                  q: int | None = None) -> bool:
-        """Whether it was identified with these settings (a coarse proposal model is not)."""
-        return (self.scheme == scheme and self.field_tol == (FIELD_TOL if field_tol is None else field_tol)
+                  q: int | None = None, noise: bool = True) -> bool:
+        """Whether it was identified with these settings (a coarse proposal model is not), its
+        noise channels included when the plant has them (`noise` False: whether or not)."""
+        return (not (noise and self.inputs_only) and self.scheme == scheme and self.field_tol == (FIELD_TOL if field_tol is None else field_tol)
                 and (p is None or self.p == p) and (q is None or self.q == q))
 
 
@@ -76,19 +79,22 @@ class RomSettings:
     engine: object = None           # `sep_control.compute.engine` running the chunks (None: in-process)
     noise_std: object = None        # the problem's w_std (sketch weights W^{1/2}; None: 1 per channel)
     noise_probes: int | None = None  # combinations of a sketch (`noise_sketch`; None: SKETCH_PROBES, 0: none)
+    stride: int = 1                 # impulses at every stride-th start step, the rest interpolated
+    inputs_only: bool = False       # impulse the inputs only, not the plant's noise channels (no B_w)
 
     def identify(self, plant: Plant, U: np.ndarray, show_progress: bool = False) -> Identification:
         """`identify` around the nominal input U with these settings."""
         return identify(plant, U, self.p, self.q, self.n_r, self.sv_tol, self.impulse, show_progress,
                         field_tol=self.field_tol, memory_budget=self.memory_budget, scheme=self.scheme,
                         chunks=self.chunks, engine=self.engine, noise_std=self.noise_std,
-                        noise_probes=self.noise_probes)
+                        noise_probes=self.noise_probes, stride=self.stride, inputs_only=self.inputs_only)
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
              memory_budget: int | None = None, scheme: str = "central", chunks: int = 1,
-             engine=None, noise_std=None, noise_probes: int | None = None) -> Identification:
+             engine=None, noise_std=None, noise_probes: int | None = None, stride: int = 1,
+             inputs_only: bool = False) -> Identification:
     """TV-ERA around the nominal input U: impulse experiments, then the realization (`tv_era`).
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
@@ -125,6 +131,11 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     noise_probes : int, optional
         Combinations per start step when the noise channels are sketched (`noise_sketch.sketch_for`:
         only above SKETCH_FROM channels; None: SKETCH_PROBES; 0: never).
+    stride : int
+        Impulses at every stride-th start step and the last; the Markov parameters between them
+        interpolated linearly (`sep_control.design.impulse.interpolate_starts`).
+    inputs_only : bool
+        Impulse the n_u inputs only (a model for the optimizer's steps: no B_w).
 
     Returns
     -------
@@ -136,13 +147,16 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     X_ext = nominal_states(plant, extend_nominal(U, lags))
     delta = impulse * max(float(np.sqrt(np.mean(U**2))), 1e-3)
     ftol = FIELD_TOL if field_tol is None else field_tol
-    noise = None if getattr(plant, "noise_on_inputs", True) else \
+    skipped = inputs_only and not getattr(plant, "noise_on_inputs", True) and noise_channels(plant) > 0
+    noise = None if skipped or getattr(plant, "noise_on_inputs", True) else \
         sketch_for(noise_channels(plant), noise_std, noise_probes)
+    extra = {} if stride == 1 and not skipped else dict(stride=stride, inputs_only=skipped)
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
                                memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine,
-                               noise=noise)
+                               noise=noise, **extra)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
-    return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float), scheme, ftol, p, q)
+    return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float), scheme, ftol, p, q, stride,
+                          skipped)
 
 
 def _hankel(Y: np.ndarray, k: int, p: int, q_k: int, shift: int) -> np.ndarray:

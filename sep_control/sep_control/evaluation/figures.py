@@ -14,6 +14,9 @@ mc_std_map_figure           mean reconstruction std over the band window
 rom_sweep_figure            Hankel singular values, Markov error and cost vs n_r
 inputs_vs_limits_figure     each input over time against its limits, for several controllers (one run)
 robustness_figure           in band and mean cost against a swept truth-plant key, one line per controller
+recipe_figure               a time-varying target (a recipe) over time: f* with each hold's band, the
+                            nominal and each controller's field range over the nodes, and the largest
+                            |f - f*| over the nodes against the holds' bands
 """
 from __future__ import annotations
 
@@ -219,4 +222,52 @@ def robustness_figure(path: Path, key: str, values: Sequence[float],
     if np.all(np.isfinite([p["cost_mean"] for pts in rows.values() for p in pts if p is not None])):
         b.set_yscale("log")
     a.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+def recipe_figure(path: Path, info: PlantInfo, obj, F_nom: np.ndarray | None,
+                  fields: Mapping[str, np.ndarray]) -> Path:
+    """The target drawn over time (a recipe, or a target expression in t).
+
+    Top: f*_k (its range over the nodes), each hold's band [min f* - band_s, max f* + band_s]
+    shaded over its steps, the nominal field's range over the nodes and, for each entry of
+    `fields` ((M, N+1, n_field) runs, or (N+1, n_field)), the range over its runs and nodes.
+    Bottom: max_i |f_{k,i} - f*_{k,i}| over time (the runs' largest for many runs) against each
+    hold's band.
+
+    Parameters
+    ----------
+    obj : sep_plant.problem.Objective
+        The objective (its target per step, `segments`).
+    """
+    plt = pyplot()
+    N = obj.n_steps
+    t = np.arange(N + 1) * info.dt
+    target = np.broadcast_to(obj.target, (N + 1, info.n_field)) if np.ndim(obj.target) == 1 else obj.target
+    unit = unit_suffix(info.field_unit)
+    fig, (a, b) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True, height_ratios=(2, 1))
+    for j, (k0, k1, band) in enumerate(obj.segments):
+        a.fill_between(t[k0:k1 + 1], target[k0:k1 + 1].min(axis=1) - band, target[k0:k1 + 1].max(axis=1) + band,
+                       color="0.85", zorder=0, label="hold bands" if j == 0 else None)
+        b.hlines(band, t[k0], t[k1], color="k", lw=1.5, label="hold band" if j == 0 else None)
+    a.plot(t, target.mean(axis=1), "k-", lw=1.2, label="target f*")
+    if np.ptp(target, axis=1).max() > 0:
+        a.fill_between(t, target.min(axis=1), target.max(axis=1), color="k", alpha=0.15)
+    if F_nom is not None:
+        a.plot(t, F_nom.min(axis=1), "k--", lw=0.8, label="nominal (min, max over nodes)")
+        a.plot(t, F_nom.max(axis=1), "k--", lw=0.8)
+        b.plot(t, np.max(np.abs(F_nom - target), axis=1), "k--", lw=1, label="nominal")
+    for i, (name, F) in enumerate(fields.items()):
+        F = F[None] if F.ndim == 2 else F
+        color = f"C{i}"
+        a.fill_between(t, np.min(F, axis=(0, 2)), np.max(F, axis=(0, 2)), color=color, alpha=0.3,
+                       label=f"{name} ({F.shape[0]} run{'s' if F.shape[0] > 1 else ''}: range)")
+        b.plot(t, np.max(np.abs(F - target), axis=(0, 2)), color=color, lw=1.2, label=name)
+    a.set(ylabel=info.field_name + unit, title="Recipe: target and field over time")
+    a.legend(fontsize=7, loc="lower right")
+    a.grid(alpha=0.3)
+    b.set(xlabel="t [s]", ylabel="max |f - f*|" + unit)
+    b.set_ylim(bottom=0)
+    b.legend(fontsize=7, loc="upper right")
+    b.grid(alpha=0.3)
     return save_figure(fig, path)

@@ -3,6 +3,12 @@
 Arrays are batched: a leading run axis is optional everywhere. Field trajectories are
 F (..., N+1, n_field) for k = 0..N, inputs U (..., N, n_u) for k = 0..N-1; the objective
 (target f*, weights q_k, band, band window) is a `sep_plant.problem.Objective`.
+
+A recipe's objective (`Objective.holds`) has several hold segments s = (k_s0, k_s1, band_s): a
+run is in band when |f_{k,i} - f*_{k,i}| <= band_s for every node and every step of EVERY hold,
+and the metrics add `segments`, per hold: in_band (share of runs in band over that hold),
+max_dev (the largest |f - f*| over the hold, runs and nodes) and max_dev_p99 (the 99 % quantile
+over the runs of each run's largest |f - f*| over the hold).
 Pure numpy: no ROS import.
 """
 from __future__ import annotations
@@ -29,14 +35,36 @@ def nominal_cost(F: np.ndarray, U: np.ndarray, obj: Objective) -> np.ndarray:
     return obj.cost(F, U)
 
 
-def _window(F: np.ndarray, obj: Objective) -> np.ndarray:
-    k0, k1 = obj.window
-    return F[..., k0:k1 + 1, :] - obj.target
+def _window(F: np.ndarray, obj: Objective, k0: int | None = None, k1: int | None = None) -> np.ndarray:
+    """f_k - f*_k over steps k0..k1 (the band window by default)."""
+    if k0 is None:
+        k0, k1 = obj.window
+    return F[..., k0:k1 + 1, :] - obj.targets(k0, k1)
 
 
 def in_band(F: np.ndarray, obj: Objective) -> np.ndarray:
-    """True where the whole field stays in [f* - band, f* + band] for every k in the band window."""
-    return np.all(np.abs(_window(F, obj)) <= obj.band, axis=(-2, -1))
+    """True where the whole field stays in [f*_k - band_s, f*_k + band_s] for every k of every
+    hold s (the band window with `band` without a recipe)."""
+    ok = None
+    for k0, k1, band in obj.segments:
+        seg = np.all(np.abs(_window(F, obj, k0, k1)) <= band, axis=(-2, -1))
+        ok = seg if ok is None else ok & seg
+    return ok
+
+
+def segment_max_dev(F: np.ndarray, obj: Objective) -> np.ndarray:
+    """Each run's largest |f - f*| over each hold: (S, ...) for the S holds."""
+    return np.stack([np.max(np.abs(_window(F, obj, k0, k1)), axis=(-2, -1)) for k0, k1, _ in obj.segments])
+
+
+def segment_summary(max_dev: np.ndarray, obj: Objective) -> list[dict[str, Any]]:
+    """The per-hold metrics from each run's largest deviation per hold, max_dev (S, M)."""
+    out = []
+    for (k0, k1, band), d in zip(obj.segments, np.atleast_2d(max_dev)):
+        out.append({"k_start": int(k0), "k_end": int(k1), "band": float(band),
+                    "in_band": float(np.mean(d <= band)), "max_dev": float(np.max(d)),
+                    "max_dev_p99": float(np.percentile(d, 99))})
+    return out
 
 
 def rms_in_window(F: np.ndarray, obj: Objective) -> np.ndarray:
@@ -68,6 +96,8 @@ def summarize(F_runs: np.ndarray, U_runs: np.ndarray, F_nom: np.ndarray, obj: Ob
         "mean_dev_end": mean_deviation(F_runs, F_nom, k1),
         "n_runs": int(F_runs.shape[0]),
     }
+    if obj.holds is not None:
+        out["segments"] = segment_summary(segment_max_dev(F_runs, obj), obj)
     if extra:
         out.update(extra)
     return out
@@ -87,11 +117,16 @@ class MetricsAccumulator:
         self.band_ok = np.ones(runs, dtype=bool)
         self.sq_sum = np.zeros(runs)
         self.sum_traj = np.zeros_like(F_nom)
+        # a recipe: each run's largest |f - f*| per hold (S, M), and the holds' steps
+        self.seg_dev = np.zeros((len(obj.segments), runs)) if obj.holds is not None else None
+        self._hold_of = {k: (s, band) for s, (k0, k1, band) in enumerate(obj.segments) for k in range(k0, k1 + 1)}
 
     def add_field(self, k: int, f_k: np.ndarray, rows: slice = slice(None)) -> None:
         """The field of step k of the runs `rows` (all by default; a chunk of them otherwise)."""
         obj = self.obj
         xp = namespace(f_k)
+        if np.ndim(obj.target) > 1:            # f*_k per step (host or device)
+            return self._add_steps_field(k, f_k, rows)
         if xp is not np:                       # a device field: reduced there, the sums come to the host
             return self._add_device_field(xp, k, f_k, rows)
         sq = obj.squared_error(f_k)
@@ -102,6 +137,27 @@ class MetricsAccumulator:
             self.band_ok[rows] &= np.all(np.abs(f_k - obj.target) <= obj.band, axis=-1)
             self.sq_sum[rows] += sq
         self.sum_traj[k] += np.sum(f_k, axis=0)
+
+    def _add_steps_field(self, k: int, f_k, rows: slice) -> None:
+        """`add_field` of a per-step target f*_k with holds (a recipe): the band test of the
+        hold step k is in, the largest deviation per hold, the rms over the band window."""
+        obj = self.obj
+        xp = namespace(f_k)
+        target = obj.target_at(k) if xp is np else xp.asarray(obj.target_at(k))
+        err = f_k - target
+        sq = to_host(xp.mean(err**2, axis=-1))
+        if k >= 1:
+            self.cost[rows] += obj.field_cost(k, sq)
+        k0, k1 = obj.window
+        if k0 <= k <= k1:
+            self.sq_sum[rows] += sq
+        if k in self._hold_of:
+            s, band = self._hold_of[k]
+            dev = to_host(xp.max(xp.abs(err), axis=-1))
+            self.band_ok[rows] &= dev <= band
+            if self.seg_dev is not None:
+                self.seg_dev[s, rows] = np.maximum(self.seg_dev[s, rows], dev)
+        self.sum_traj[k] += to_host(xp.sum(f_k, axis=0))
 
     def _add_device_field(self, xp, k: int, f_k, rows: slice) -> None:
         """`add_field` of a device array (`sep_control.evaluation.montecarlo`): the same sums, with
@@ -131,7 +187,10 @@ class MetricsAccumulator:
 
     def state(self) -> dict[str, np.ndarray]:
         """The per-run sums and the summed field (to merge a chunk's accumulator into another)."""
-        return {"cost": self.cost, "band_ok": self.band_ok, "sq_sum": self.sq_sum, "sum_traj": self.sum_traj}
+        out = {"cost": self.cost, "band_ok": self.band_ok, "sq_sum": self.sq_sum, "sum_traj": self.sum_traj}
+        if self.seg_dev is not None:
+            out["seg_dev"] = self.seg_dev
+        return out
 
     def merge(self, part: Mapping[str, np.ndarray], rows: slice) -> None:
         """Add a chunk's `state()` for the runs `rows` (chunks merged in order: the same sums)."""
@@ -139,6 +198,8 @@ class MetricsAccumulator:
         self.band_ok[rows] &= part["band_ok"]
         self.sq_sum[rows] += part["sq_sum"]
         self.sum_traj += part["sum_traj"]
+        if self.seg_dev is not None:
+            self.seg_dev[:, rows] = np.maximum(self.seg_dev[:, rows], part["seg_dev"])
 
     @property
     def mean_traj(self) -> np.ndarray:
@@ -157,6 +218,8 @@ class MetricsAccumulator:
             "mean_dev_end": float(np.max(np.abs(mean[k1] - self.F_nom[k1]))),
             "n_runs": int(self.M),
         }
+        if self.seg_dev is not None:
+            out["segments"] = segment_summary(self.seg_dev, self.obj)
         if extra:
             out.update(extra)
         return out

@@ -13,6 +13,11 @@ Per step k = 0..N (as the ROS graph does it):
                                               or the ROM-MPC's first move);
     x_{k+1} = f(x_k, u_k, w_k);           ahat_{k+1|k} = KF predict with u_k - ubar_k.
 
+Rate limits (du_max): the plant enforces |u_k - u_{k-1}| <= du_max on the command as the plant
+node does (`sep_plant.protocol.clip_rate`), and the summary adds rate_clips (channel-steps the
+law's own rate clip changed: the LQR's), rate_violations (channel-steps the plant had to clip)
+and rate_at_limit (share of channel-steps k >= 1 with |u_k - u_{k-1}| at du_max).
+
 On a device (`sep_plant.device`) the runs' states stay there for the whole rollout
 (`_Resident`): the plant steps them there, the metrics reduce the field there (per-run sums and
 the summed field cross, `MetricsAccumulator.add_field`), the reconstruction f_nom + Phi (g_k a)
@@ -34,7 +39,7 @@ from sep_estimator.tvkf import KalmanFilter
 from sep_plant.device import array_module_of, base_plant, check_finite, step_resident, to_device, to_host_of
 from sep_plant.initial import initial_states
 from sep_plant.noise import noise_sequences
-from sep_plant.protocol import Plant
+from sep_plant.protocol import Plant, clip_rate
 
 from sep_control.compute.budget import runs_per_batch, worker_budget
 from sep_control.control.controllers import CONTROLLER_NAMES, Controller, MpcOptions, make_controller
@@ -160,7 +165,10 @@ def _assemble(design: Design, controller: str, lqg: LQG, chunks: list, parts: li
     U = np.empty((M, N, info.n_u))
     Y = np.empty((M, N + 1, info.n_y))
     covered = 0
+    rate = {"rate_clips": 0, "rate_violations": 0, "at_limit": 0}
     for (a, ids, nf, ne), part in zip(chunks, parts):
+        for key in rate:
+            rate[key] += part["rate"][key]
         rows = slice(a, a + len(ids))
         acc.merge(part["acc"], rows)
         U[rows], Y[rows] = part["U"], part["Y"]
@@ -168,6 +176,9 @@ def _assemble(design: Design, controller: str, lqg: LQG, chunks: list, parts: li
         covered += part["covered"]
     coverage = covered / (M * N * info.n_field)
     extra = {"coverage_2sigma": coverage}
+    if design.problem.rate_limited:
+        extra.update(rate_clips=rate["rate_clips"], rate_violations=rate["rate_violations"],
+                     rate_at_limit=rate["at_limit"] / max(1, M * (N - 1) * info.n_u))
     stats = [part["stats"] for part in parts if part["stats"] is not None]
     if stats:
         extra.update(MPCStats.merged(stats).as_dict())
@@ -197,9 +208,11 @@ def _mc_chunk(chunk: tuple, plant, design: Design, lqg: LQG, controller: str, se
     out = _Outputs(F=np.empty((keep_f, N + 1, info.n_field)), U=np.empty((M, N, info.n_u)),
                    Y=np.empty((M, N + 1, info.n_y)), F_hat=np.empty((keep_e, N + 1, info.n_field)))
     law = make_controller(controller, lqg, problem, nom.u if affine is None else affine.u_nom, mpc)
-    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out, affine)
+    rate = {"rate_clips": 0, "rate_violations": 0, "at_limit": 0}
+    covered = _run_batch(plant, design, lqg, law, seed, list(run_ids), slice(0, M), acc, out, affine, rate)
+    rate["rate_clips"] = int(getattr(law, "rate_clips", 0))
     return {"acc": acc.state(), "U": out.U, "Y": out.Y, "F": out.F, "F_hat": out.F_hat, "covered": covered,
-            "stats": law.stats}
+            "stats": law.stats, "rate": rate}
 
 
 @dataclass
@@ -211,10 +224,13 @@ class _Outputs:
 
 
 def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: int, run_ids: list[int],
-               rows: slice, acc: MetricsAccumulator, out: _Outputs, affine: AffineTerms | None = None) -> int:
+               rows: slice, acc: MetricsAccumulator, out: _Outputs, affine: AffineTerms | None = None,
+               rate: dict | None = None) -> int:
     """Simulate the runs `run_ids` (rows `rows` of the outputs) under `law`; returns the covered
-    node-steps. `affine`: the known offsets of a truth oracle's model (`oracle.AffineTerms`)."""
+    node-steps. `affine`: the known offsets of a truth oracle's model (`oracle.AffineTerms`);
+    `rate`: the plant's rate-limit counts are added to it (violations, at_limit)."""
     problem, info, nom = design.problem, design.info, design.nominal
+    du_max = problem.channels("du_max", info.n_u) if problem.rate_limited else None
     w, v = noise_sequences(problem, info, seed, run_ids)
     M, N = len(run_ids), problem.n_steps
     kf = KalmanFilter(lqg, batch=M)
@@ -246,6 +262,13 @@ def _run_batch(plant: Plant, design: Design, lqg: LQG, law: Controller, seed: in
         if k == N:
             break
         u = law.command(k, a)
+        if du_max is not None and k > 0:          # the plant's rate limit, as the plant node applies it
+            prev = out.U[rows, k - 1]
+            applied = clip_rate(u, prev, du_max)
+            if rate is not None:
+                rate["rate_violations"] += int(np.count_nonzero(applied != u))
+                rate["at_limit"] += int(np.count_nonzero(np.abs(applied - prev) >= du_max * (1 - 1e-9)))
+            u = applied
         out.U[rows, k] = u
         acc.add_input(k, u, rows)
         x = step(x, u, w[:, k])

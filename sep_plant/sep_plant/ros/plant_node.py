@@ -444,7 +444,12 @@ class PlantNode(NodeBase):
                             'rejected_by_reason': ep.rejections.as_dict(),
                             'last_rejection': str(ep.rejections.last or ''),
                             'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'],
-                            'seed': self.p['seed'], 'run': ep.run_index, 'perturbation': self.perturbation})
+                            'seed': self.p['seed'], 'run': ep.run_index, 'perturbation': self.perturbation,
+                            **self._rate_values()})
+
+    def _rate_values(self) -> dict:
+        """rate_clips (channel-steps the rate limit clipped), only for a rate-limited problem."""
+        return {'rate_clips': self.episode.rate_clips} if self.episode.problem.rate_limited else {}
 
     def summary(self, status: str) -> dict:
         ep, p = self.episode, self.p
@@ -460,7 +465,7 @@ class PlantNode(NodeBase):
                 'scenario_file': p['scenario_file'], 'plant': self.scenario.plant_type,
                 'perturbation': self.perturbation, 'namespace': self.node.get_namespace(),
                 'safe_input_steps': self.safe_steps, 'commands_while_inactive': self.ignored_commands,
-                **({'episodes': self.played.as_dict()} if self.multi else {})}
+                **({'episodes': self.played.as_dict()} if self.multi else {}), **self._rate_values()}
 
     def finish_label(self) -> str:
         return 'episode'
