@@ -189,7 +189,7 @@ class LqrNode(DesignedNode):
 
     # ---------------------------------------------------- standalone inputs
     def _on_estimate_msg(self, msg) -> None:
-        if not self.taking():
+        if not self.taking(msg):
             return
         t = steady()
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
@@ -205,7 +205,7 @@ class LqrNode(DesignedNode):
         self.on_estimate(k, a, t)
 
     def _on_measurement(self, msg) -> None:
-        if not self.taking():
+        if not self.taking(msg):
             return
         k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if rej is None:

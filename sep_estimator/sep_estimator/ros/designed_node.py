@@ -187,11 +187,17 @@ class DesignedNode(NodeBase):
                     f.serving = self.serving
 
     # ----------------------------------------------------------- episodes
-    def taking(self) -> bool:
-        """Whether the node takes its inputs: active, and, with wait_for_scenario_s > 0, the plant's
-        scenario received and checked (a node started while a multi-episode plant runs learns from it
-        which episode it joins before it takes a step)."""
-        return self.active and (self.plant_scenario_checked or self.wait_for_scenario_s <= 0)
+    def taking(self, msg) -> bool:
+        """Whether the node takes the message `msg`: active, and, with wait_for_scenario_s > 0, a
+        message of a step k > 0 only once the plant's scenario is received and checked (a node that
+        joins a running multi-episode plant mid-episode learns from it which episode it joins; step 0
+        is taken as always)."""
+        if not self.active or self.plant_scenario_checked or self.wait_for_scenario_s <= 0:
+            return self.active
+        from sep_plant import gate
+
+        k, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
+        return k == 0
 
     def end_of_episode(self) -> None:
         """The episode's last step N is handled: the node is done (it exits with exit_at_end) unless

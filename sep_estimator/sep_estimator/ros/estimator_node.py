@@ -173,7 +173,7 @@ class EstimatorNode(DesignedNode):
 
     # -------------------------------------------------------------- inputs
     def _on_measurement(self, msg) -> None:
-        if not self.taking():                  # inactive (or the scenario not yet checked): not taken
+        if not self.taking(msg):                  # inactive (or the scenario not yet checked): not taken
             return
         t = steady()
         k = self._step_of(msg, 'measurement', self.N)
@@ -215,7 +215,7 @@ class EstimatorNode(DesignedNode):
             self.end_of_episode()
 
     def _on_applied(self, msg) -> None:
-        if not self.taking():                  # inactive (or the scenario not yet checked): not taken
+        if not self.taking(msg):                  # inactive (or the scenario not yet checked): not taken
             return
         j, u, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N - 1, msg.name, msg.effort,
                                        self.input_names, 'applied_input effort')
@@ -225,7 +225,7 @@ class EstimatorNode(DesignedNode):
             self.reject('applied_input', rej, self.rej, j)
 
     def _on_command(self, msg) -> None:
-        if not self.taking():                  # inactive (or the scenario not yet checked): not taken
+        if not self.taking(msg):                  # inactive (or the scenario not yet checked): not taken
             return
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if j is None or not 0 <= j < self.N:
