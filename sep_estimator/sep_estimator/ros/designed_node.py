@@ -189,15 +189,15 @@ class DesignedNode(NodeBase):
     # ----------------------------------------------------------- episodes
     def taking(self, msg) -> bool:
         """Whether the node takes the message `msg`: active, and, with wait_for_scenario_s > 0, a
-        message of a step k > 0 only once the plant's scenario is received and checked (a node that
-        joins a running multi-episode plant mid-episode learns from it which episode it joins; step 0
-        is taken as always)."""
+        first message of a step k > 0 only once the plant's scenario is received and checked (a node
+        that joins a running multi-episode plant mid-episode learns from it which episode it joins; an
+        episode begun at step 0 goes on as always)."""
         if not self.active or self.plant_scenario_checked or self.wait_for_scenario_s <= 0:
             return self.active
         from sep_plant import gate
 
         k, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
-        return k == 0
+        return k == 0 or self.last_k >= 0       # held back: only a first message of a step k > 0
 
     def end_of_episode(self) -> None:
         """The episode's last step N is handled: the node is done (it exits with exit_at_end) unless
