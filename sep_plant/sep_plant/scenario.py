@@ -342,23 +342,52 @@ def same_value(a: Any, b: Any) -> bool:
 
 
 # ------------------------------------------------------------- scenario topic
-def scenario_payload(scenario: Scenario, info: PlantInfo, perturbation: Mapping[str, Any] | None = None) -> str:
+def scenario_payload(scenario: Scenario, info: PlantInfo, perturbation: Mapping[str, Any] | None = None,
+                     episode: Mapping[str, int] | None = None) -> str:
     """The JSON the plant publishes on the scenario topic (and bags keep): the scenario and the
     plant's description, so that nodes, the recorder and the analysis need not import the plant;
     with a perturbation of its actuators and sensors (`sep_plant.perturb`: the non-neutral values
-    per key) also ``"perturbation"``, so that controllers and bag analyses see the plant they ran on."""
+    per key) also ``"perturbation"``, so that controllers and bag analyses see the plant they ran on;
+    for a plant that plays several episodes (parameter ``episodes`` != 1) also ``"episode"``
+    (`episode_entry`), published anew before each episode."""
     data: dict[str, Any] = {"scenario": scenario.to_dict(), "plant_info": info.to_dict()}
     if perturbation:
         data["perturbation"] = {str(k): v for k, v in perturbation.items()}
+    if episode is not None:
+        data["episode"] = {str(k): int(v) for k, v in episode.items()}
     return json.dumps(data, sort_keys=True, default=json_default)
+
+
+def episode_entry(index: int, episodes: int, seed: int, run: int) -> dict[str, int]:
+    """The ``"episode"`` entry of the scenario message of episode `index` (0-based) of a plant that
+    plays `episodes` episodes (0: until stopped); it plays Monte Carlo run `run` of `seed`."""
+    return {"index": int(index), "of": int(episodes), "seed": int(seed), "run": int(run)}
 
 
 def parse_scenario_message(text: str) -> tuple[Scenario, PlantInfo, dict[str, list[float]]]:
     """(scenario, plant description, perturbation) of one scenario-topic message, parsed once:
     `parse_scenario_payload` and the perturbation the plant node publishes ({} for an
     unperturbed plant and for messages that carry none); ScenarioError naming what is wrong."""
+    return scenario_message_parts(text)[:3]
+
+
+def scenario_message_parts(text: str) -> tuple[Scenario, PlantInfo, dict[str, list[float]], dict[str, int] | None]:
+    """`parse_scenario_message` and the message's ``"episode"`` entry (None: a single-episode plant)."""
     data = _message_json(text)
-    return (*_scenario_of(data), _perturbation_of(data))
+    return (*_scenario_of(data), _perturbation_of(data), _episode_of(data))
+
+
+def _episode_of(data: Any) -> dict[str, int] | None:
+    ep = data.get("episode") if isinstance(data, Mapping) else None
+    if ep is None:
+        return None
+    try:
+        out = {k: int(ep[k]) for k in ("index", "of", "seed", "run")}
+    except (TypeError, KeyError, ValueError):
+        raise ScenarioError(f"scenario message: episode must map index, of, seed, run to integers, got {ep!r}") from None
+    if out["index"] < 0 or out["of"] < 0 or (out["of"] and out["index"] >= out["of"]):
+        raise ScenarioError(f"scenario message: bad episode entry {ep!r}")
+    return out
 
 
 def parse_scenario_payload(text: str) -> tuple[Scenario, PlantInfo]:

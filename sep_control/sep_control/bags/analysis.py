@@ -247,6 +247,16 @@ def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, 
     ep = read_episode(bag_path, scenario=design.scenario if design is not None else None,
                       info=design.info if design is not None else None,
                       namespace=namespace, allow_truncated=allow_truncated)
+    rep = analyze_episode(ep, design, allow_mismatch=allow_mismatch, name=_episode_name(bag_path, name))
+    if on_progress is not None:
+        on_progress(ep.n_steps, ep.n_steps)
+    return rep
+
+
+def analyze_episode(ep: Episode, design, *, allow_mismatch: bool = False, name: str = "") -> EpisodeReport:
+    """`analyze` of an episode already read (a bag's, or one episode of a multi-episode bag:
+    `sep_control.bags.episodes`); `design` loaded (or None)."""
+    bag_path = ep.path
     reported = reported_mismatch(ep)
     diff = scenario_differences(ep, design)
     if reported and all(d.startswith("plant.") for d in diff):
@@ -263,9 +273,7 @@ def analyze(bag_path: str | Path, design=None, *, allow_mismatch: bool = False, 
     m["model_mismatch"] = model_mismatch(ep, design, reported)
     if ep.missing:
         notes.append("missing topics: " + ", ".join(ep.missing))
-    if on_progress is not None:
-        on_progress(ep.n_steps, ep.n_steps)
-    return EpisodeReport(name=_episode_name(bag_path, name), episode=ep, scenario=scen, design=design,
+    return EpisodeReport(name=name or _episode_name(bag_path, None), episode=ep, scenario=scen, design=design,
                          objective=obj, F_nom=F_nom, metrics=m, err=ep.F_hat - ep.F, latency_cmd_s=lat_cmd,
                          latency_est_s=lat_est, mismatch=diff, notes=notes + mnotes)
 
@@ -370,5 +378,5 @@ def aggregate(paths: Iterable[str | Path] | Sequence[EpisodeReport], design=None
                            metrics=out, rows=_unique_rows(reports), notes=notes)
 
 
-__all__ = ["AnalysisError", "BagError", "EpisodeReport", "AggregateReport", "ProgressHook", "analyze",
+__all__ = ["AnalysisError", "BagError", "EpisodeReport", "AggregateReport", "ProgressHook", "analyze", "analyze_episode",
            "aggregate", "model_mismatch", "reported_mismatch", "reports_of"]

@@ -119,6 +119,13 @@ def group_by_topic(raw: RawBag, namespace: str) -> tuple[dict[str, np.ndarray], 
     return index, sorted(ignored)
 
 
+def cdr_string(data: bytes) -> str:
+    """The text of a serialized std_msgs/String (CDR: 4-byte header, uint32 length with the
+    terminating NUL, then the text): the scenario topic's payload."""
+    (n,) = struct.unpack_from("<I", data, 4)
+    return data[8:8 + n - 1].decode()
+
+
 def cdr_stamp_ns(data: bytes) -> int | None:
     """Stamp [ns] of a serialized message that starts with a builtin_interfaces/Time (after the
     4-byte CDR encapsulation: int32 sec, uint32 nanosec); None for one too short to hold it."""

@@ -268,6 +268,12 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, info: Plant
         Not a bag, corrupt, empty, truncated (unless `allow_truncated`), or no step grid.
     """
     raw, name = open_bag(path, allow_truncated)
+    return episode_of_raw(raw, name, Path(path), scenario, info, namespace)
+
+
+def episode_of_raw(raw, name: str, path: Path, scenario: Scenario | None = None, info: PlantInfo | None = None,
+                   namespace: str | None = None) -> Episode:
+    """`read_episode` of an opened raw bag (or one episode's part of it: `sep_control.bags.episodes`)."""
     if namespace is None:
         namespace = T.detect_namespace({c.topic for c in raw.connections.values()}) or T.NAMESPACE
     notes = list(raw.notes)
@@ -287,7 +293,7 @@ def read_episode(path: str | Path, scenario: Scenario | None = None, info: Plant
                      f"(first: {msgs.decode.bad[0]})")
     counts = {t.name: int(msgs.of(t.name).size) for t in T.TOPICS}
     return Episode(
-        path=Path(path), scenario=scen, info=info, dt=msgs.dt, n_steps=msgs.n_steps, **vectors, **fields,
+        path=path, scenario=scen, info=info, dt=msgs.dt, n_steps=msgs.n_steps, **vectors, **fields,
         images={key: p.values for key, p in images.items()},
         step_recv_ns={key: p.recv_ns for key, p in per_step.items()},
         times={key: TopicTimes(raw.log_times[idx], msgs.stamps.get(key, NO_MESSAGES))

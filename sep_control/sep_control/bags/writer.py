@@ -11,18 +11,18 @@ everything up to about the last flush (`sep_control.bags.reader.read_episode(...
 allow_truncated=True)` reads it, `sep_control.bags.repair.repair_bag` completes it).
 
 End of episode: the sink watches the scenario topic (N and dt of the plant) and the
-measurements' header stamps; `final_seen` is set when the measurement of step N has arrived.
+measurements' header stamps; `final_seen` is set when the measurement of step N has arrived (of
+the plant's last episode, when the scenario messages announce several: one bag holds them all).
 """
 from __future__ import annotations
 
 import queue
-import struct
 import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-from sep_control.bags.messages import cdr_stamp_ns
+from sep_control.bags.messages import cdr_stamp_ns, cdr_string
 from sep_plant import topics as T
 
 _STOP = object()
@@ -244,16 +244,21 @@ class BagSink:
             self.final_seen = now
 
     def _note_scenario(self, data: bytes) -> None:
-        """N and dt from the scenario topic's payload (CDR std_msgs/String: uint32 length with
-        the terminating NUL, then the text)."""
+        """N and dt from the scenario topic's payload (`messages.cdr_string`); with an episode
+        entry, the end is the last episode's."""
         try:
-            from sep_plant.scenario import parse_scenario_payload
+            from sep_plant.scenario import scenario_message_parts
 
-            (n,) = struct.unpack_from("<I", data, 4)
-            scenario, info = parse_scenario_payload(data[8:8 + n - 1].decode())
-            self.n_steps, self.dt_ns = scenario.problem.n_steps, T.dt_ns(info.dt)
+            scenario, info, _, episode = scenario_message_parts(cdr_string(data))
         except Exception:  # noqa: BLE001 - then only idle/signal/duration stop the recording
-            pass
+            return
+        self.n_steps, self.dt_ns = scenario.problem.n_steps, T.dt_ns(info.dt)
+        if episode is not None:
+            # several episodes in one bag: the end is step N of the plant's last episode (never
+            # for a plant that plays until stopped); an episode's measurements start anew
+            self.last_meas_ns = -1
+            if episode["of"] == 0 or episode["index"] < episode["of"] - 1:
+                self.n_steps = None
 
     def _final_step_recorded(self) -> bool:
         """Whether the measurement of step N (of the recorded scenario) has arrived."""

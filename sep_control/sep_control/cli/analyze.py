@@ -3,7 +3,8 @@
 Any plant: one bag gives its metrics (docs/method.md) and the paper's figures (lines for 1-D
 plants, heat maps for grid plants, a frame of the image topic when the bag has one); several
 bags (e.g. 50 seeded episodes) give one row per episode plus pooled statistics comparable to
-the offline Monte Carlo table. Without --design the objective is the bag's own scenario's and
+the offline Monte Carlo table; so does one bag of several episodes (a plant with ``episodes`` != 1:
+rows BAG.e0, BAG.e1, ..., `sep_control.bags.episodes`). Without --design the objective is the bag's own scenario's and
 nominal comparisons are skipped. Prints the metrics table and where the report is; exits 2
 with a one-line message on bad input (missing/corrupt/truncated bag, unreadable design file,
 design file of another plant).
@@ -101,15 +102,16 @@ class ProgressBar:
 def analysed(args: argparse.Namespace):
     """(report, default report directory) of the bags: one bag's `analyze`, or `aggregate` over
     several (with a bar in run-steps); exit 2 on a bad bag or design."""
-    from sep_control.bags.analysis import AnalysisError, aggregate, analyze
+    from sep_control.bags.analysis import AnalysisError, aggregate
+    from sep_control.bags.episodes import analyze_episodes
     from sep_control.bags.storage import BagError
     from sep_estimator.design_file import DesignFileError, load_design
 
     try:
         design = load_design(args.design) if args.design else None
         kw = dict(allow_mismatch=args.allow_mismatch, allow_truncated=args.allow_truncated, namespace=args.namespace)
-        if len(args.bags) == 1:
-            rep = analyze(args.bags[0], design, **kw)
+        if len(args.bags) == 1:     # a bag of several episodes: a row each and the pooled row
+            rep = analyze_episodes(args.bags[0], design, **kw)
             return rep, Path(str(Path(args.bags[0]).resolve()).removesuffix(".mcap").removesuffix(".db3") + "_report")
         with ProgressBar(bars_wanted(args.quiet)) as bar:
             rep = aggregate(args.bags, design, on_progress=bar, **kw)

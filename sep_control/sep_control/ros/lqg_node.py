@@ -27,7 +27,8 @@ from sep_control.ros.lqr_node import CONTROLLER_PARAMETERS, LqrNode
 #: the estimator's parameters, then the control law's (the lqr's estimate_timeout_s does not apply)
 PARAMETERS = (EST_PARAMETERS.replace('sep_estimator)/share/sep_estimator/config/estimator.yaml',
                                      'sep_control)/share/sep_control/config/lqg.yaml') + CONTROLLER_PARAMETERS
-              + "\n  (the LQR's estimate_timeout_s does not apply: the estimate is computed in-process)")
+              + "\n  (the LQR's estimate_timeout_s does not apply: the estimate is computed in-process;"
+              "\n  set next_design_file on /sep/estimator: the LQR uses the estimator's design)")
 
 
 class LqgProcess(NodeProcess):
@@ -38,6 +39,7 @@ class LqgProcess(NodeProcess):
         lqr = LqrNode(peer=est, standalone=False)
         est.on_estimate = lqr.on_estimate
         lqr.on_command = est.note_command
+        est.followers.append(lqr)          # a new episode (and a swapped design) reaches the LQR through the estimator
         self.est, self.lqr = est, lqr
         # one summary file for the process (a -p summary_file:=X applies to both nodes)
         self.summary_file = est.summary_file or lqr.summary_file

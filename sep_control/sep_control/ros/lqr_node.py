@@ -57,7 +57,10 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    this long (steady clock) after measurement k  (0 = never)
   autostart (bool, true)           configure and activate at start; false: a managed node that waits
                                    for its lifecycle transitions (docs/reference/parameters.md)
-  exit_at_end (bool, true)         exit 0 after the last step (k = N)
+  exit_at_end (bool, true)         exit 0 after the last step (k = N; of the plant's last episode)
+  next_design_file (str, '')       set at run time: the design for the next episode, checked at once
+                                   as design_file at start (a refused one is reported, the old kept)
+  episode_log_file (str, '')       append one JSON line per episode served
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
   use_sim_time (bool, true)        time from the plant's /clock"""
@@ -104,12 +107,9 @@ class LqrNode(DesignedNode):
         self.timeout = declare(node, 'estimate_timeout_s', 0.5,
                                'nominal fallback when no estimate arrives this long after the '
                                'measurement of a step (0 = never)', lo=0.0, hi=3600.0)
-        self.law = declare_controller(node, d, self.log)
-        self.core = ControlLoopCore(self.law, d.nominal.u, *d.problem.limits(self.info.n_u))
-        self.input_names = list(self.info.input_names)
-        self.labels = c.state_labels(d.n_r, d.lqg.n_d)
+        self.timer = None
+        self._build_law()
         self.rej = gate.RejectionLog()
-        self.last_est = -1
         self.compute_s = SampleWindow()
         self.pub_cmd = node.create_publisher(c.TOPIC_TYPES[c.COMMAND], c.COMMAND, c.LOOP_QOS)
         self.timer = self._watch_inputs() if standalone else None
@@ -118,6 +118,31 @@ class LqrNode(DesignedNode):
                       f'controller {self.law.name}, '
                       + (f'estimate_timeout_s {self.timeout:g}' if standalone else 'in-process estimator')
                       + f', namespace {node.get_namespace()}')
+
+    def _build_law(self) -> None:
+        """The control law of the design in use and a fresh episode."""
+        d = self.design
+        self.law = declare_controller(self.node, d, self.log)
+        self.input_names = list(self.info.input_names)
+        self.labels = c.state_labels(d.n_r, d.lqg.n_d)
+        self.reset_episode()
+
+    def reset_episode(self) -> None:
+        """A fresh episode of the control law (which step got its command; the MPC's warm start)."""
+        if hasattr(self.law, 'reset'):
+            self.law.reset()
+        d = self.design
+        self.core = ControlLoopCore(self.law, d.nominal.u, *d.problem.limits(self.info.n_u))
+        self.last_est = -1
+        if self.timer is not None:
+            self.timer.cancel()
+
+    def adopt_design(self, design) -> None:
+        super().adopt_design(design)
+        self._build_law()
+
+    def episode_counters(self) -> dict:
+        return self.core.counters()
 
     def _watch_inputs(self):
         """Subscribe to state estimates and, with a timeout, to measurements; the watchdog timer."""
@@ -142,7 +167,7 @@ class LqrNode(DesignedNode):
         out = self.core.estimate(k, a_hat)
         self.last_k = self.core.last_k
         if out.end:
-            self.done = True
+            self.end_of_episode()
             return
         if out.late:
             self.log.warning(f'estimate of step {k} arrived after the nominal fallback was sent',
@@ -164,9 +189,12 @@ class LqrNode(DesignedNode):
 
     # ---------------------------------------------------- standalone inputs
     def _on_estimate_msg(self, msg) -> None:
-        if not self.active:
+        if not self.taking(msg):
             return
         t = steady()
+        j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
+        if j is not None:
+            self.stale_step(j, self.last_est)       # the plant began its next episode
         k, a, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N, msg.name, msg.position,
                                        self.labels, 'state_estimate position',
                                        order=(max(self.last_est + 1, 0), self.last_est, True))
@@ -177,9 +205,11 @@ class LqrNode(DesignedNode):
         self.on_estimate(k, a, t)
 
     def _on_measurement(self, msg) -> None:
-        if not self.active:
+        if not self.taking(msg):
             return
         k, rej = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
+        if rej is None:
+            self.stale_step(k, self.core.current)   # the plant began its next episode
         if rej is None and self.core.measurement(k):
             self.timer.reset()   # for k = N: ends the episode if its estimate never comes
         self.last_k = self.core.last_k
@@ -192,8 +222,8 @@ class LqrNode(DesignedNode):
         if out is None:
             return
         if out.end:
-            self.done = True
             self.log.warning(f'no state estimate of the last step {out.k}: ending the episode')
+            self.end_of_episode()
             return
         self._send(out.k, out.u)
         self.log.warning(f'no state estimate of step {out.k} within estimate_timeout_s = {self.timeout:g} s: '
@@ -226,7 +256,7 @@ class LqrNode(DesignedNode):
 
     def summary(self, status: str) -> dict:
         return {'node': 'lqr', 'status': status, 'steps': self.last_k, **self._values(),
-                'fallback_steps': self.core.fallback_steps}
+                'fallback_steps': self.core.fallback_steps, **self.episode_summary()}
 
     def summary_line(self, s: dict) -> str:
         mpc = (f", mpc: {s['mpc_qp_steps']} QPs (p99 {fmt_s(s['mpc_qp_p99_s'])}), {s['mpc_fallbacks']} "

@@ -61,7 +61,10 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    float64 below; messages stay float64
   autostart (bool, true)           configure and activate at start; false: a managed node that waits
                                    for its lifecycle transitions (docs/reference/parameters.md)
-  exit_at_end (bool, true)         exit 0 after the last step (k = N)
+  exit_at_end (bool, true)         exit 0 after the last step (k = N; of the plant's last episode)
+  next_design_file (str, '')       set at run time: the design for the next episode, checked at once
+                                   as design_file at start (a refused one is reported, the old kept)
+  episode_log_file (str, '')       append one JSON line per episode served
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
   use_sim_time (bool, true)        time from the plant's /clock"""
@@ -90,12 +93,7 @@ class EstimatorNode(DesignedNode):
             raise StartError(f"bad parameter field_precision: {self.field_precision!r}, expected one of "
                              f"{list(FIELD_PRECISIONS)}")
         d = self.design
-        nom = d.nominal
-        self.core = EstimatorCore(d.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
-        self.sensors = list(self.info.output_names)
-        self.input_names = list(self.info.input_names)
-        self.labels = c.state_labels(d.n_r, d.lqg.n_d)
-        self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name, self.frame_id)
+        self._build_filter()
         self.rej = gate.RejectionLog()
         self.compute_s = SampleWindow()
         self.n_estimates_published = 0
@@ -113,7 +111,6 @@ class EstimatorNode(DesignedNode):
         self.sub_cmd = (node.create_subscription(c.TOPIC_TYPES[c.COMMAND], c.COMMAND,
                                                  self._on_command, c.LOOP_QOS)
                         if subscribe_command else None)
-        self._warm_up()
         rank = getattr(d.rom.G, 'rank', None)
         self.log.info(f'estimator: design file {self.design_file} (n_r={d.n_r}, disturbance states '
                       f'{disturbance_summary(d.disturbance)}; {scenario_summary(d)}), '
@@ -122,6 +119,28 @@ class EstimatorNode(DesignedNode):
                       f"{f' on a field basis of rank {rank}' if rank is not None else ''}, "
                       f'namespace {node.get_namespace()}, use_sim_time '
                       f"{node.get_parameter('use_sim_time').value}")
+
+    def _build_filter(self) -> None:
+        """The filter of the design in use, the names of its messages, the warm-up."""
+        d = self.design
+        self.reset_episode()
+        self.sensors = list(self.info.output_names)
+        self.input_names = list(self.info.input_names)
+        self.labels = c.state_labels(d.n_r, d.lqg.n_d)
+        self.cloud = c.CloudBuilder(d.field_xyz, self.info.field_name, self.frame_id)
+        self._warm_up()
+
+    def reset_episode(self) -> None:
+        """A fresh filter (the prior of step 0) for the next episode."""
+        nom = self.design.nominal
+        self.core = EstimatorCore(self.design.lqg, nom.u, nom.y, nom.field, field_precision=self.field_precision)
+
+    def adopt_design(self, design) -> None:
+        super().adopt_design(design)
+        self._build_filter()
+
+    def episode_counters(self) -> dict:
+        return self.core.counters()
 
     def _warm_up(self) -> None:
         """Run every per-step code path once on throwaway objects (first calls into numpy,
@@ -154,12 +173,13 @@ class EstimatorNode(DesignedNode):
 
     # -------------------------------------------------------------- inputs
     def _on_measurement(self, msg) -> None:
-        if not self.active:                    # inactive: messages are not taken
+        if not self.taking(msg):                  # inactive (or the scenario not yet checked): not taken
             return
         t = steady()
         k = self._step_of(msg, 'measurement', self.N)
         if k is None:
             return
+        self.stale_step(k, self.last_k)          # the plant began its next episode
         y, bad = gate.check_vector(msg.name, msg.position, self.sensors, 'measurement position')
         restarts = self.core.restarts
         a, rej = self.core.measurement(k, y)
@@ -192,10 +212,10 @@ class EstimatorNode(DesignedNode):
                 self.pub_image.publish(c.field_image(k, self.dt, f, self.info.grid_shape, self.frame_id))
         self.core.finish_step()
         if k == self.N:
-            self.done = True
+            self.end_of_episode()
 
     def _on_applied(self, msg) -> None:
-        if not self.active:                    # inactive: messages are not taken
+        if not self.taking(msg):                  # inactive (or the scenario not yet checked): not taken
             return
         j, u, rej = gate.check_message(c.time_ns(msg.header.stamp), self.dt_ns, self.N - 1, msg.name, msg.effort,
                                        self.input_names, 'applied_input effort')
@@ -205,7 +225,7 @@ class EstimatorNode(DesignedNode):
             self.reject('applied_input', rej, self.rej, j)
 
     def _on_command(self, msg) -> None:
-        if not self.active:                    # inactive: messages are not taken
+        if not self.taking(msg):                  # inactive (or the scenario not yet checked): not taken
             return
         j, _ = gate.step_of_stamp(c.time_ns(msg.header.stamp), self.dt_ns)
         if j is None or not 0 <= j < self.N:
@@ -247,7 +267,7 @@ class EstimatorNode(DesignedNode):
                 'rejected_messages': self.rej.total, 'rejected_by_reason': self.rej.as_dict(),
                 'state_estimates_published': self.n_estimates_published,
                 **self.core.nis_stats(), 'compute_p50_s': comp['p50'], 'compute_p99_s': comp['p99'],
-                'model_mismatch': self.model_mismatch}
+                'model_mismatch': self.model_mismatch, **self.episode_summary()}
 
     def summary_line(self, s: dict) -> str:
         nis = 'n/a' if s['nis_mean'] is None else f"{s['nis_mean']:.2f} (expected {s['nis_expected']})"

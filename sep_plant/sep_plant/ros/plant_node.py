@@ -5,7 +5,11 @@ Publishes /clock (simulated time k*dt), measurements (y_k), applied_input (u app
 at step k), field (true field as a PointCloud2 with the nodes' x, y, z), for grid plants
 field_image (32FC1; the middle slice of a 3-D grid), scenario (its scenario and plant
 description as JSON, latched) and /diagnostics; subscribes command.  One episode of N
-steps per process, then exit 0.  The plant is checked against the protocol before step 0.
+steps per process, then exit 0; with the parameter ``episodes`` K != 1, K episodes one after the
+other (0: until stopped), episode i playing Monte Carlo run ``run + i``, each announced by a new
+scenario message with an ``"episode"`` entry (the controllers reset on it; a lockstep episode
+whose command does not come is cut off and the next one starts).  The plant is checked against
+the protocol before step 0.
 
 A thin node around `sep_plant.plant_episode.PlantEpisode` (the episode: lockstep or real-time
 stepping, command gating, limits, the noise of (seed, run), latencies); here: parameters,
@@ -31,7 +35,9 @@ The field messages are built only while somebody subscribes to them.
 """
 from __future__ import annotations
 
+import json
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -40,7 +46,8 @@ import numpy as np
 from sep_plant.plant_episode import MODES, CommandTimeout, EpisodeError, PlantEpisode
 from sep_plant.noise import DEFAULT_SEED
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import EXIT_OK, NodeBase, Shutdown, StartError, declare, fmt_s, percentiles, steady
+from sep_plant.ros.base import (EXIT_OK, NodeBase, Shutdown, StartError, declare, flush_publishers, fmt_s,
+                                percentiles, steady)
 from sep_plant.ros.process import NodeProcess, node_main, spin_once
 
 PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_plant)/share/sep_plant/config/plant.yaml):
@@ -48,6 +55,10 @@ PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file
   mode (str, lockstep)             lockstep | realtime
   real_time_factor (float, 10)     realtime: steps every dt / real_time_factor  [0.01, 1000]
   seed (int, {DEFAULT_SEED}), run (int, 0)      noise = run `run` of the Monte Carlo with seed `seed`
+  episodes (int, 1)                episodes played one after the other in this process (0 = until
+                                   stopped); episode i plays run `run + i` and is announced by a new
+                                   scenario message with an "episode" entry
+  episode_log_file (str, '')       append one JSON line per episode (index, run, status, steps, ...)
   command_timeout_s (float, 10)    lockstep: wait this long for the command of each step
   publish_field (bool, true)       publish the true field on field
   wait_for_subscribers (int, 1)    matched measurement subscribers needed before step 0
@@ -85,7 +96,10 @@ def declare_parameters(node) -> dict:
                                     lo=0.0, hi=86400.0),
          'start_delay_s': declare(node, 'start_delay_s', 0.2, 'settle time after the subscribers appeared',
                                   lo=0.0, hi=60.0),
-         'trajectory_file': declare(node, 'trajectory_file', '', 'true trajectory .npz')}
+         'trajectory_file': declare(node, 'trajectory_file', '', 'true trajectory .npz'),
+         'episodes': declare(node, 'episodes', 1, 'episodes to play in this process (episode i plays run run+i; '
+                             '0 = until stopped)', lo=0, hi=10**9),
+         'episode_log_file': declare(node, 'episode_log_file', '', 'one JSON line per episode played')}
     if p['mode'] not in MODES:
         raise StartError(f"bad parameter mode: {p['mode']!r}, expected one of {list(MODES)}")
     return p
@@ -140,6 +154,23 @@ def perturbed(plant, perturbation: dict[str, list[float]]):
     return PerturbedPlant.around(plant, **perturbation)
 
 
+class EpisodeTally:
+    """What the episodes of a multi-episode plant came to (the summary's ``episodes``)."""
+
+    def __init__(self) -> None:
+        self.by_status: dict[str, int] = {}
+        self.deadline_misses = self.rejected_messages = 0
+
+    def add(self, rec: dict) -> None:
+        self.by_status[rec['status']] = self.by_status.get(rec['status'], 0) + 1
+        self.deadline_misses += rec['deadline_misses']
+        self.rejected_messages += rec['rejected_messages']
+
+    def as_dict(self) -> dict:
+        return {'played': sum(self.by_status.values()), 'by_status': dict(self.by_status),
+                'deadline_misses': self.deadline_misses, 'rejected_messages': self.rejected_messages}
+
+
 class PlantNode(NodeBase):
     """The plant node: a `PlantEpisode` with its topics."""
 
@@ -154,8 +185,6 @@ class PlantNode(NodeBase):
 
     def configure(self) -> None:
         """Load and check the scenario and its plant, build the episode, create the topics."""
-        from sep_plant.scenario import scenario_payload
-
         if self.episode_started:
             raise StartError('this process has run its episode (one episode per plant process): shut it down '
                              'and start a new plant')
@@ -164,13 +193,11 @@ class PlantNode(NodeBase):
         self.plant = plant = perturbed(scen.plant, declare_perturbation(self.node, int(scen.plant.n_u),
                                                                         int(scen.plant.n_y)))
         self.perturbation = plant.perturbation() if plant is not scen.plant else {}
-        self.episode = ep = PlantEpisode(plant, scen.problem, seed=p['seed'], run=p['run'], mode=p['mode'],
-                                         real_time_factor=p['real_time_factor'],
-                                         command_timeout_s=p['command_timeout_s'],
-                                         keep_trajectory=bool(p['trajectory_file']), clock=steady)
+        self.episode = ep = self._new_episode(0)
         self.info, self.N = info, N = ep.info, ep.N
         self.dt, self.frame_id = info.dt, info.frame_id
-        self.payload = scenario_payload(scen, info, self.perturbation)
+        self.payload = self._payload(0)
+        self.played = EpisodeTally()
         self.cloud = c.CloudBuilder(scen.plant.field_coordinates(), info.field_name, info.frame_id)
         self.input_names, self.sensors = list(info.input_names), list(info.output_names)
         self.t_end: float | None = None
@@ -184,6 +211,26 @@ class PlantNode(NodeBase):
                if p['mode'] == 'realtime' else f", command_timeout_s {p['command_timeout_s']:g}")
             + f", seed {p['seed']} run {p['run']}, namespace {self.node.get_namespace()}"
             + (f"; perturbed: {plant!r}" if self.perturbation else ''))
+
+    @property
+    def multi(self) -> bool:
+        """Whether this plant plays more than one episode (parameter episodes != 1)."""
+        return self.p['episodes'] != 1
+
+    def _new_episode(self, index: int) -> PlantEpisode:
+        """Episode `index`: Monte Carlo run ``run + index`` of the seed."""
+        p = self.p
+        return PlantEpisode(self.plant, self.scenario.problem, seed=p['seed'], run=p['run'] + index, mode=p['mode'],
+                            real_time_factor=p['real_time_factor'], command_timeout_s=p['command_timeout_s'],
+                            keep_trajectory=bool(p['trajectory_file']), clock=steady)
+
+    def _payload(self, index: int) -> str:
+        """The scenario message of episode `index` (with its "episode" entry when multi)."""
+        from sep_plant.scenario import episode_entry, scenario_payload
+
+        p = self.p
+        entry = episode_entry(index, p['episodes'], p['seed'], p['run'] + index) if self.multi else None
+        return scenario_payload(self.scenario, self.episode.info, self.perturbation, entry)
 
     def _create_topics(self) -> None:
         from rosgraph_msgs.msg import Clock
@@ -250,7 +297,9 @@ class PlantNode(NodeBase):
             spin_once(self.executor, t_end - now)
         return True
 
-    def _wait_for_peers(self) -> None:
+    def _wait_for_peers(self, first: bool = True) -> None:
+        """Wait for the subscribers and a command publisher, then settle start_delay_s; before a
+        later episode (`first` false) only when they are not all there (a controller restarting)."""
         p = self.p
         need_y, need_f = p['wait_for_subscribers'], p['wait_for_field_subscribers']
         # with subscribers required, also a command publisher (a command sent before
@@ -258,6 +307,8 @@ class PlantNode(NodeBase):
         ok = lambda: (self.pub_y.get_subscription_count() >= need_y
                       and self.pub_field.get_subscription_count() >= need_f
                       and (need_y == 0 or self.sub_cmd.get_publisher_count() >= 1))
+        if not first and ok():
+            return
         if need_y or need_f:
             self.log.info(f'waiting for {need_y} measurement subscriber(s)'
                           + (f', {need_f} field subscriber(s)' if need_f else '') + ' and a command publisher')
@@ -314,6 +365,8 @@ class PlantNode(NodeBase):
         self.executor = executor
         self._hold_while_inactive('before the episode')
         self.episode_started = True
+        if self.multi:
+            return self._play_episodes()
         self.pub_scen.publish(c.scenario_msg(self.payload))
         self.publish_diagnostics()
         self._wait_for_peers()
@@ -325,6 +378,55 @@ class PlantNode(NodeBase):
                                f'{self.node.get_namespace()}?', exc.exit_code) from None
         self.last_k = self.N
         return EXIT_OK
+
+    # ------------------------------------------------------- several episodes
+    def _play_episodes(self) -> int:
+        """Episodes 0, 1, ... (`episodes` of them, or until stopped): each announced by the
+        scenario message with its "episode" entry, each a fresh `PlantEpisode` of run run+i. A
+        lockstep episode whose command does not come is cut off (status 'timeout', logged) and
+        the next one starts; a controller that is gone is waited for (start_timeout_s, then exit 3)."""
+        n, i = self.p['episodes'], 0
+        while n == 0 or i < n:
+            if i > 0:
+                self.episode, self.payload = self._new_episode(i), self._payload(i)
+            self._log_episode(i, *self._play(i))
+            i += 1
+        self.last_k = self.N
+        return EXIT_OK
+
+    def _play(self, i: int) -> tuple[str, float]:
+        """Announce and run episode `i`; (its status, its wall-clock start)."""
+        self.pub_scen.publish(c.scenario_msg(self.payload))
+        # every reader holds the announcement before y_0 goes out: the controllers reset first
+        flush_publishers([self.pub_scen], 1.0)
+        self._wait_for_peers(first=i == 0)
+        t_wall = time.time()
+        status = 'completed'
+        try:
+            self.episode.run(self._spin_until, self)
+        except CommandTimeout as exc:
+            status = 'timeout'
+            self.log.warning(f'episode {i} (run {self.episode.run_index}) cut off at step {self.episode.k}: {exc}; '
+                             f'next episode', throttle_duration_sec=1.0)
+        self.flush()     # the episode's last messages reach bags and peers before the next announcement
+        return status, t_wall
+
+    def _log_episode(self, i: int, status: str, t_wall: float) -> None:
+        """Count episode `i` and append its record to episode_log_file (its trajectory file too)."""
+        ep = self.episode
+        steps = self.N if status == 'completed' else ep.k
+        lat = percentiles(ep.latencies())
+        rec = {'episode': i, 'seed': ep.seed, 'run': ep.run_index, 'status': status, 'steps': steps,
+               'deadline_misses': ep.deadline_misses, 'rejected_messages': ep.rejections.total,
+               'rejected_by_reason': ep.rejections.as_dict(), 'latency_p50_s': lat['p50'],
+               'latency_p99_s': lat['p99'], 't_start': t_wall, 't_end': time.time()}
+        self.played.add(rec)
+        if self.p['episode_log_file']:
+            with open(self.p['episode_log_file'], 'a') as fh:
+                fh.write(json.dumps(rec, sort_keys=True) + '\n')
+        if self.p['trajectory_file']:
+            path = Path(self.p['trajectory_file'])
+            self._save_trajectory(path.with_name(f'{path.stem}.e{i}{path.suffix}'), steps)
 
     # --------------------------------------------------------------- report
     def health(self) -> c.Health:
@@ -342,7 +444,7 @@ class PlantNode(NodeBase):
                             'rejected_by_reason': ep.rejections.as_dict(),
                             'last_rejection': str(ep.rejections.last or ''),
                             'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'],
-                            'seed': self.p['seed'], 'run': self.p['run'], 'perturbation': self.perturbation,
+                            'seed': self.p['seed'], 'run': ep.run_index, 'perturbation': self.perturbation,
                             **self._rate_values()})
 
     def _rate_values(self) -> dict:
@@ -355,7 +457,7 @@ class PlantNode(NodeBase):
         lat = percentiles(ep.latencies())
         return {'node': 'plant', 'status': status, 'mode': p['mode'],
                 'real_time_factor': p['real_time_factor'] if p['mode'] == 'realtime' else None,
-                'seed': p['seed'], 'run': p['run'], 'steps': ep.k if status != 'completed' else self.N,
+                'seed': p['seed'], 'run': ep.run_index, 'steps': ep.k if status != 'completed' else self.N,
                 'n_steps': self.N, 'deadline_misses': ep.deadline_misses,
                 'rejected_messages': ep.rejections.total, 'rejected_by_reason': ep.rejections.as_dict(),
                 'latency_p50_s': lat['p50'], 'latency_p99_s': lat['p99'], 'latency_max_s': lat['max'],
@@ -363,7 +465,7 @@ class PlantNode(NodeBase):
                 'scenario_file': p['scenario_file'], 'plant': self.scenario.plant_type,
                 'perturbation': self.perturbation, 'namespace': self.node.get_namespace(),
                 'safe_input_steps': self.safe_steps, 'commands_while_inactive': self.ignored_commands,
-                **self._rate_values()}
+                **({'episodes': self.played.as_dict()} if self.multi else {}), **self._rate_values()}
 
     def finish_label(self) -> str:
         return 'episode'
@@ -375,12 +477,15 @@ class PlantNode(NodeBase):
 
     def on_finish(self, summ: dict) -> None:
         """The trajectory file (when asked for)."""
-        if not self.p['trajectory_file']:
+        if not self.p['trajectory_file'] or self.multi:   # several episodes: one file each (`_log_episode`)
             return
-        path = Path(self.p['trajectory_file'])
+        self._save_trajectory(Path(self.p['trajectory_file']), summ['steps'])
+
+    def _save_trajectory(self, path: Path, steps: int) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, **self.episode.trajectory(summ['steps']),
-                 scenario=np.frombuffer(self.payload.encode(), dtype=np.uint8), seed=self.p['seed'], run=self.p['run'])
+        np.savez(path, **self.episode.trajectory(steps),
+                 scenario=np.frombuffer(self.payload.encode(), dtype=np.uint8), seed=self.p['seed'],
+                 run=self.episode.run_index)
 
     def publishers(self):
         return [self.pub_y, self.pub_field, self.pub_image, self.pub_u, self.pub_clock, self.pub_diag]
