@@ -492,7 +492,7 @@ def check_matches(design: Design, plant: Scenario, where: str = "design file") -
     diff = design.scenario.plant_mismatches(plant) + problem_mismatches(design.problem, plant.problem)
     if diff:
         raise DesignFileError(f"{where} was designed for another plant or problem: " + "; ".join(diff) +
-                              ". Re-run `design` with this plant's scenario, or run the plant with the "
+                              ". Re-run `sep design` with this plant's scenario, or run the plant with the "
                               f"design's scenario (only {', '.join(RUN_TIME_KEYS)} may differ at run time)")
 
 
