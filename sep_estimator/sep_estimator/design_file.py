@@ -322,7 +322,7 @@ def _read_archive(path: Path) -> dict[str, np.ndarray]:
         raise
     except Exception as exc:  # zlib, zipfile, numpy header parsing: all mean "corrupt"
         raise DesignFileError(f"{path}: corrupt or not a design file ({type(exc).__name__}: {exc}); "
-                              "re-run `design` to regenerate it") from None
+                              "re-run `sep design` to regenerate it") from None
     return raw
 
 

@@ -76,7 +76,7 @@ def model_mismatch(design: Any, plant: Scenario, info: PlantInfo | None = None,
     if hard:
         raise DesignFileError(f"{where} cannot run on this plant even with allow_model_mismatch: "
                               + "; ".join(hard) + ". A design runs only on a plant of its type, horizon, "
-                              "problem and interface; re-run `design` for this one")
+                              "problem and interface; re-run `sep design` for this one")
     return diffs
 
 
