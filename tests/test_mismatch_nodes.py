@@ -70,6 +70,9 @@ def run_rehearsal(launcher, probe, case, truth_file, tmp_path, *, three: bool, s
     else:
         controllers = [launcher.start('lqg', params={**ctl, 'summary_file': tmp_path / 'lqg.json'})]
         subscribers = 2
+    # both controller nodes' /diagnostics writers seen before the (fast) episode: a controller
+    # exits at its end, and a status it wrote before the probe matched it would be lost
+    pr.wait_for(lambda: pr.subs[c.DIAGNOSTICS].get_publisher_count() >= 2, 20, 'controller diagnostics publishers')
     pr.wait_matched(subs=(c.FIELD_ESTIMATE,))
     plant = launcher.start('plant', params={
         'scenario_file': truth_file, 'seed': seed, 'run': run, 'input_gain': 0.8,
@@ -107,7 +110,7 @@ def test_lockstep_against_a_truth_equals_offline(launcher, probe, small_case, tr
         assert 'model mismatch (allow_model_mismatch)' in p.output() and 'plant.t_right: 150.0 -> 147.0' in p.output()
         # the closing summary line names the mismatch too
         assert '; model mismatch: ' + '; '.join(EXPECTED) in p.output(), p.output()
-    pr.wait_for(lambda: pr.diagnostics('lqr') and pr.diagnostics('estimator'), 5, 'controller diagnostics')
+    pr.wait_for(lambda: pr.diagnostics('lqr') and pr.diagnostics('estimator'), 10, 'controller diagnostics')
     for name in ('lqr', 'estimator'):
         assert json.loads(pr.diagnostics(name)[-1]['model_mismatch']) == EXPECTED
     assert json.loads(pr.diagnostics('plant')[-1]['perturbation']) == plant_summary['perturbation']

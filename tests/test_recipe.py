@@ -14,10 +14,6 @@
 * a lockstep recipe episode over topics (plant, lqg, record) equals the offline Monte Carlo run
   to 1e-9, and the bag report shows the per-hold results and the recipe figure.
 """
-import os
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +21,7 @@ import pytest
 import yaml
 
 from core_helpers import TINY_YAML, one_blas_thread  # noqa: F401
+from recorded_lockstep import run_recorded_episode
 from sep_control.control.controllers import LqrLaw
 from sep_control.design.pipeline import run_design
 from sep_control.design.settings import DesignSettings
@@ -309,20 +306,6 @@ def test_shipped_scenarios_without_a_recipe_mean_what_they_meant(path):
 
 
 # ----------------------------------------------------------- over topics, bag report
-SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep_control"))
-
-
-def _popen(args, cwd, name):
-    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
-    log = open(cwd / f"{name}.log", "w")
-    return subprocess.Popen([sys.executable, "-m", *args], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
-
-
-def _log(cwd, name):
-    return (cwd / f"{name}.log").read_text()
-
-
 @pytest.mark.ros
 def test_lockstep_recipe_over_topics_equals_offline_and_the_report_shows_the_holds(tmp_path, recipe_design, procs):
     from sep_control.bags.analysis import analyze
@@ -332,24 +315,7 @@ def test_lockstep_recipe_over_topics_equals_offline_and_the_report_shows_the_hol
     sc, _, design_path = recipe_design
     scen = design_path.parent / "recipe.yaml"
     seed, run = 7, 2
-    rec = _popen(["sep_control.ros.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
-                  "--ready-topics", "command", "state_estimate", "field_estimate", "--max-duration", "120"],
-                 tmp_path, "record")
-    procs.append(rec)
-    lqg = _popen(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
-    procs.append(lqg)
-    t0 = time.monotonic()
-    while not (tmp_path / "ready").exists():
-        assert time.monotonic() - t0 < 60, _log(tmp_path, "record") + _log(tmp_path, "lqg")
-        assert rec.poll() is None and lqg.poll() is None, _log(tmp_path, "record") + _log(tmp_path, "lqg")
-        time.sleep(0.05)
-    plant = _popen(["sep_plant.ros.plant_node", "--ros-args", "-p", f"scenario_file:={scen}", "-p", f"seed:={seed}",
-                    "-p", f"run:={run}", "-p", "wait_for_subscribers:=2", "-p", "wait_for_field_subscribers:=1",
-                    "-p", "trajectory_file:=traj.npz", "-p", "summary_file:=plant.json"], tmp_path, "plant")
-    procs.append(plant)
-    assert plant.wait(120) == 0, _log(tmp_path, "plant")
-    assert rec.wait(60) == 0, _log(tmp_path, "record")
-    lqg.wait(30)
+    run_recorded_episode(tmp_path, design_path, scen, seed, run, procs, plant_params=("summary_file:=plant.json",))
     design = load_design(design_path)
     ref = simulate(design.scenario.plant, design, "rom_lqg", seed, range(run, run + 1))
     live = np.load(tmp_path / "traj.npz", allow_pickle=False)

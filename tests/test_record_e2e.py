@@ -7,19 +7,13 @@ Small scenario for speed; isolated DDS domain (conftest.py); processes always cl
 """
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import time
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from recorded_lockstep import run_recorded_episode
+
 pytestmark = pytest.mark.ros
 
-REPO = Path(__file__).resolve().parent.parent
-SRC = os.pathsep.join(str(REPO / p) for p in ("sep_plant", "sep_estimator", "sep_control"))
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=19)
 SEED, RUN = 7, 2
 
@@ -38,17 +32,6 @@ def small_design(tmp_path_factory):
     return path, d / "small.yaml"
 
 
-def _popen(args, cwd, name):
-    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
-    log = open(cwd / f"{name}.log", "w")
-    return subprocess.Popen([sys.executable, "-m", *args], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
-
-
-def _log(cwd, name):
-    return (cwd / f"{name}.log").read_text()
-
-
 def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design, procs):
     from sep_control.evaluation import metrics as M
     from sep_control.evaluation import montecarlo
@@ -56,25 +39,7 @@ def test_lockstep_episode_bag_equals_live_run_and_offline(tmp_path, small_design
     from sep_estimator.design_file import load_design
 
     design_path, scen = small_design
-    rec = _popen(["sep_control.ros.record_node", "--out", "bag", "--final-grace", "0.5", "--ready-file", "ready",
-                  "--ready-topics", "command", "state_estimate", "field_estimate", "--max-duration", "120"],
-                 tmp_path, "record")
-    procs.append(rec)
-    lqg = _popen(["sep_control.ros.lqg_node", "--ros-args", "-p", f"design_file:={design_path}"], tmp_path, "lqg")
-    procs.append(lqg)
-    t0 = time.monotonic()
-    while not (tmp_path / "ready").exists():
-        assert time.monotonic() - t0 < 60, _log(tmp_path, "record") + _log(tmp_path, "lqg")
-        assert rec.poll() is None and lqg.poll() is None, _log(tmp_path, "record") + _log(tmp_path, "lqg")
-        time.sleep(0.05)
-    plant = _popen(["sep_plant.ros.plant_node", "--ros-args", "-p", f"scenario_file:={scen}", "-p", f"seed:={SEED}",
-                    "-p", f"run:={RUN}", "-p", "wait_for_subscribers:=2", "-p", "wait_for_field_subscribers:=1",
-                    "-p", "trajectory_file:=traj.npz"], tmp_path, "plant")
-    procs.append(plant)
-    assert plant.wait(120) == 0, _log(tmp_path, "plant")
-    assert rec.wait(60) == 0, _log(tmp_path, "record")     # stops by itself after the final step
-    assert "episode ended" in _log(tmp_path, "record")
-    lqg.wait(30)
+    run_recorded_episode(tmp_path, design_path, scen, SEED, RUN, procs)
 
     design = load_design(design_path)
     rep = analyze(tmp_path / "bag", design)

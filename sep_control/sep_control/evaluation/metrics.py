@@ -129,14 +129,20 @@ class MetricsAccumulator:
             return self._add_steps_field(k, f_k, rows)
         if xp is not np:                       # a device field: reduced there, the sums come to the host
             return self._add_device_field(xp, k, f_k, rows)
-        sq = obj.squared_error(f_k)
-        if k >= 1:
-            self.cost[rows] += obj.field_cost(k, sq)
+        self._add_squared_error(k, obj.squared_error(f_k), rows)
         k0, k1 = obj.window
         if k0 <= k <= k1:
             self.band_ok[rows] &= np.all(np.abs(f_k - obj.target) <= obj.band, axis=-1)
-            self.sq_sum[rows] += sq
         self.sum_traj[k] += np.sum(f_k, axis=0)
+
+    def _add_squared_error(self, k: int, sq: np.ndarray, rows: slice) -> None:
+        """Step k's share of the cost J and of the band window's rms from the runs' mean squared
+        error over the nodes, sq = mean_i (f_k,i - f*_k,i)^2 (host numbers)."""
+        if k >= 1:
+            self.cost[rows] += self.obj.field_cost(k, sq)
+        k0, k1 = self.obj.window
+        if k0 <= k <= k1:
+            self.sq_sum[rows] += sq
 
     def _add_steps_field(self, k: int, f_k, rows: slice) -> None:
         """`add_field` of a per-step target f*_k with holds (a recipe): the band test of the
@@ -145,12 +151,7 @@ class MetricsAccumulator:
         xp = namespace(f_k)
         target = obj.target_at(k) if xp is np else xp.asarray(obj.target_at(k))
         err = f_k - target
-        sq = to_host(xp.mean(err**2, axis=-1))
-        if k >= 1:
-            self.cost[rows] += obj.field_cost(k, sq)
-        k0, k1 = obj.window
-        if k0 <= k <= k1:
-            self.sq_sum[rows] += sq
+        self._add_squared_error(k, to_host(xp.mean(err**2, axis=-1)), rows)
         if k in self._hold_of:
             s, band = self._hold_of[k]
             dev = to_host(xp.max(xp.abs(err), axis=-1))
@@ -166,13 +167,10 @@ class MetricsAccumulator:
         target = obj.target if np.ndim(obj.target) == 0 else self._on(xp, "target", obj.target)
         band = obj.band if np.ndim(obj.band) == 0 else self._on(xp, "band", obj.band)
         err = f_k - target
-        sq = to_host(xp.mean(err**2, axis=-1))
-        if k >= 1:
-            self.cost[rows] += obj.field_cost(k, sq)
+        self._add_squared_error(k, to_host(xp.mean(err**2, axis=-1)), rows)
         k0, k1 = obj.window
         if k0 <= k <= k1:
             self.band_ok[rows] &= to_host(xp.all(xp.abs(err) <= band, axis=-1))
-            self.sq_sum[rows] += sq
         self.sum_traj[k] += to_host(xp.sum(f_k, axis=0))
 
     def _on(self, xp, name: str, value):

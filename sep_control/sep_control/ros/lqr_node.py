@@ -33,7 +33,7 @@ from sep_plant.ros import contract as c
 from sep_plant.ros.base import SampleWindow, StartError, declare, fmt_s, steady
 from sep_plant.ros.process import NodeProcess, node_main
 from sep_estimator.disturbance import summary as disturbance_summary
-from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
+from sep_estimator.ros.designed_node import DESIGNED_NODE_PARAMETERS, DesignedNode, scenario_summary
 
 from sep_control.control.controllers import (CONTROLLER_ALIASES, NODE_CONTROLLERS, Controller, MpcOptions,
                                              make_controller, resolve_controller_name)
@@ -54,16 +54,7 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
   allow_model_mismatch (bool, false)  run on a plant whose keys or actuator/sensor perturbation
                                    differ from the design's (logged, reported as model_mismatch)""" + CONTROLLER_PARAMETERS + """
   estimate_timeout_s (float, 0.5)  send the nominal input if no estimate of step k arrives
-                                   this long (steady clock) after measurement k  (0 = never)
-  autostart (bool, true)           configure and activate at start; false: a managed node that waits
-                                   for its lifecycle transitions (docs/reference/parameters.md)
-  exit_at_end (bool, true)         exit 0 after the last step (k = N; of the plant's last episode)
-  next_design_file (str, '')       set at run time: the design for the next episode, checked at once
-                                   as design_file at start (a refused one is reported, the old kept)
-  episode_log_file (str, '')       append one JSON line per episode served
-  diagnostics_period_s (float, 1)  /diagnostics period
-  summary_file (str, '')           end-of-episode summary JSON
-  use_sim_time (bool, true)        time from the plant's /clock"""
+                                   this long (steady clock) after measurement k  (0 = never)""" + DESIGNED_NODE_PARAMETERS
 
 
 def declare_controller(node, design, log) -> Controller:

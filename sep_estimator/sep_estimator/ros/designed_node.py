@@ -29,6 +29,19 @@ _DESIGN_CACHE: 'OrderedDict[tuple, object]' = OrderedDict()
 #: designs kept (a long-running node swapping designs keeps only the recent ones)
 DESIGN_CACHE_SIZE = 4
 
+# The --help lines of the parameters every designed node (estimator, lqr, lqg) has.
+DESIGNED_NODE_PARAMETERS = """
+  autostart (bool, true)           configure and activate at start; false: a managed node that waits
+                                   for its lifecycle transitions (docs/reference/parameters.md)
+  exit_at_end (bool, true)         exit 0 after the last step (k = N; of the plant's last episode)
+  next_design_file (str, '')       set at run time: the design for the next episode, checked at once
+                                   as design_file at start (a refused one is reported, the old kept)
+  episode_log_file (str, '')       append one JSON line per episode served
+  diagnostics_period_s (float, 1)  /diagnostics period
+  summary_file (str, '')           end-of-episode summary JSON
+  use_sim_time (bool, true)        time from the plant's /clock"""
+
+
 
 def _file_key(path: str) -> tuple:
     """A design file's identity: path, mtime, size and inode (a file rewritten in place or

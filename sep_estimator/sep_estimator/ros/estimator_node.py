@@ -45,7 +45,7 @@ from sep_plant.ros.process import NodeProcess, node_main
 from sep_estimator.disturbance import summary as disturbance_summary
 from sep_estimator.estimator_core import EstimatorCore
 from sep_estimator.ltv import FIELD_PRECISIONS
-from sep_estimator.ros.designed_node import DesignedNode, scenario_summary
+from sep_estimator.ros.designed_node import DESIGNED_NODE_PARAMETERS, DesignedNode, scenario_summary
 
 PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_estimator)/share/sep_estimator/config/estimator.yaml):
   design_file (str, required)      design file written by `sep design`
@@ -58,16 +58,7 @@ PARAMETERS = """parameters (--ros-args -p NAME:=VALUE or --params-file $(ros2 pk
                                    copy of Phi (~1e-7 relative round-off; a half to a third of the
                                    time on large grids, where the product is memory-bound); float64;
                                    auto: float32 from a Phi of 8 MB on (65 536 nodes x r_f 16),
-                                   float64 below; messages stay float64
-  autostart (bool, true)           configure and activate at start; false: a managed node that waits
-                                   for its lifecycle transitions (docs/reference/parameters.md)
-  exit_at_end (bool, true)         exit 0 after the last step (k = N; of the plant's last episode)
-  next_design_file (str, '')       set at run time: the design for the next episode, checked at once
-                                   as design_file at start (a refused one is reported, the old kept)
-  episode_log_file (str, '')       append one JSON line per episode served
-  diagnostics_period_s (float, 1)  /diagnostics period
-  summary_file (str, '')           end-of-episode summary JSON
-  use_sim_time (bool, true)        time from the plant's /clock"""
+                                   float64 below; messages stay float64""" + DESIGNED_NODE_PARAMETERS
 
 
 class EstimatorNode(DesignedNode):
