@@ -12,14 +12,13 @@ ROS-side module (imports rclpy).
 """
 from __future__ import annotations
 
-import json
 import os
 from collections import OrderedDict
 
 import numpy as np
 
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import NodeBase, StartError, StopError, declare, steady
+from sep_plant.ros.base import NodeBase, StartError, StopError, append_json_line, declare, steady
 from sep_plant.ros.process import spin_once
 
 from sep_estimator.episode_switch import EpisodeSwitch
@@ -40,7 +39,6 @@ DESIGNED_NODE_PARAMETERS = """
   diagnostics_period_s (float, 1)  /diagnostics period
   summary_file (str, '')           end-of-episode summary JSON
   use_sim_time (bool, true)        time from the plant's /clock"""
-
 
 
 def _file_key(path: str) -> tuple:
@@ -260,8 +258,7 @@ class DesignedNode(NodeBase):
         rec = {'node': self.role, 'episode': index, 'design_file': self.design_file,
                'status': 'completed' if self.episode_over else ('cut_off' if self.last_k >= 0 else 'no_steps'),
                'last_step': self.last_k, 'pid': os.getpid(), **self.episode_counters()}
-        with open(self.episode_log_file, 'a') as fh:
-            fh.write(json.dumps(rec, sort_keys=True, default=float) + '\n')
+        append_json_line(self.episode_log_file, rec)
 
     def episode_summary(self) -> dict:
         """The summary's episode entries (a multi-episode plant only)."""

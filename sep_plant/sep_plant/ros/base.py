@@ -141,6 +141,11 @@ def write_summary_json(path: str | os.PathLike, obj: Any) -> Path:
     return p
 
 
+def append_json_line(path: str | os.PathLike, record: dict) -> None:
+    """Append `record` as one JSON line to `path` (a node's episode_log_file)."""
+    with open(path, 'a') as fh:
+        fh.write(json.dumps(record, sort_keys=True, default=json_default) + '\n')
+
 
 def sim_time_default(args: list[str], value: bool = True) -> list[str]:
     """rclpy args with ``use_sim_time`` defaulting to `value` (a user's own

@@ -35,7 +35,6 @@ The field messages are built only while somebody subscribes to them.
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -46,8 +45,8 @@ import numpy as np
 from sep_plant.plant_episode import MODES, CommandTimeout, EpisodeError, PlantEpisode
 from sep_plant.noise import DEFAULT_SEED
 from sep_plant.ros import contract as c
-from sep_plant.ros.base import (EXIT_OK, NodeBase, Shutdown, StartError, declare, flush_publishers, fmt_s,
-                                percentiles, steady)
+from sep_plant.ros.base import (EXIT_OK, NodeBase, Shutdown, StartError, append_json_line, declare,
+                                flush_publishers, fmt_s, percentiles, steady)
 from sep_plant.ros.process import NodeProcess, node_main, spin_once
 
 PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file $(ros2 pkg prefix sep_plant)/share/sep_plant/config/plant.yaml):
@@ -422,8 +421,7 @@ class PlantNode(NodeBase):
                'latency_p99_s': lat['p99'], 't_start': t_wall, 't_end': time.time()}
         self.played.add(rec)
         if self.p['episode_log_file']:
-            with open(self.p['episode_log_file'], 'a') as fh:
-                fh.write(json.dumps(rec, sort_keys=True) + '\n')
+            append_json_line(self.p['episode_log_file'], rec)
         if self.p['trajectory_file']:
             path = Path(self.p['trajectory_file'])
             self._save_trajectory(path.with_name(f'{path.stem}.e{i}{path.suffix}'), steps)
