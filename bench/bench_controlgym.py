@@ -143,22 +143,29 @@ def weighting_keys(plant: ControlgymPlant, weighting: str) -> dict:
     return {"lqr_weighting": "field", "lqr_field_nodes": "sum", "lqr_q_early": qw, "lqr_q_late": qw, "lqr_r": rw}
 
 
-def run_task(name: str, args, resets: int) -> dict:
+def task_setup(name: str, noise_modes: int | None, weighting: str):
+    """(plant, problem, env) of a task: sep's plant and problem, and a scoring env with the task's target."""
     env_id, keys, target = task(name)
-    plant = ControlgymPlant(env=env_id, noise_modes=args.noise_modes, **keys)
-    counter = Counting(plant)
-    overrides = weighting_keys(plant, args.weighting)
+    plant = ControlgymPlant(env=env_id, noise_modes=noise_modes, **keys)
+    overrides = weighting_keys(plant, weighting)
     if target:
         overrides["target"] = target
     problem = controlgym_problem(plant, **overrides)
+    env = make_env(env_id, **keys)
+    env.set_target_state(plant.env.target_state if target is None else
+                         np.asarray(problem.target_field(plant.field_coordinates()), dtype=float))
+    return plant, problem, env
+
+
+def run_task(name: str, args, resets: int) -> dict:
+    env_id = task(name)[0]
+    plant, problem, env = task_setup(name, args.noise_modes, args.weighting)
+    counter = Counting(plant)
     t0 = time.perf_counter()
     design = run_design(plant, problem, DesignSettings(n_r=args.n_r, experiment_plan=args.plan,
                                                        disturbance=args.disturbance, jacobian=args.jacobian),
                         show_progress=False, log=lambda m: None)
     design_s = time.perf_counter() - t0
-    env = make_env(env_id, **keys)
-    env.set_target_state(plant.env.target_state if target is None else
-                         np.asarray(problem.target_field(plant.field_coordinates()), dtype=float))
     row = {"task": name, "resets": resets, "n_state": plant.n_x, "steps": env.n_steps, "plant_steps": counter.n, "design_s": design_s,
            "stages": format_run_steps(design.meta["run_steps"]), "prior": design.meta.get("initial_prior")}
     zero = np.zeros(plant.n_u)

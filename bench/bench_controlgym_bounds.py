@@ -26,11 +26,11 @@ import time
 
 import numpy as np
 
-from bench_controlgym import task, weighting_keys
+from bench_controlgym import task_setup
 from sep_control.design.optimizer import Optimizer, OptimizerOptions
 from sep_control.design.pipeline import DesignSettings
 from sep_control.design.stages import mean_only_jacobian
-from sep_plant.plants.controlgym import ControlgymPlant, controlgym_problem, make_env
+from sep_plant.plants.controlgym import ControlgymPlant
 
 #: the state-feedback gains tried (the best one's mean is reported)
 GAINS = (0.3, 1.0, 3.0, 10.0, 30.0)
@@ -56,15 +56,7 @@ def optimal_open_loop(plant: ControlgymPlant, problem, x0: np.ndarray, max_iter:
 
 
 def bounds_row(name: str, resets: int, max_iter: int) -> dict:
-    env_id, keys, target = task(name)
-    plant = ControlgymPlant(env=env_id, noise_modes=8, **keys)
-    overrides = weighting_keys(plant, "field")
-    if target:
-        overrides["target"] = target
-    problem = controlgym_problem(plant, **overrides)
-    env = make_env(env_id, **keys)
-    env.set_target_state(plant.env.target_state if target is None else
-                         np.asarray(problem.target_field(plant.field_coordinates()), dtype=float))
+    plant, problem, env = task_setup(name, 8, "field")
     seeds = range(resets)
     t0 = time.perf_counter()
     mean_x0 = plant.initial_state(1)[0].copy()

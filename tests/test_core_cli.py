@@ -429,3 +429,14 @@ def test_validate_and_sweep_bars_count_the_plants_run_steps(tiny):
     rows = rom_sweep(plant, d, None, [4, 6], 3, seed=1, progress=bar)
     assert plant.steps == bar.done == bar.total
     assert [r["n_r"] for r in rows] == [4, 6] and rows[0]["cost_oracle"] is None
+
+
+def test_quiet_keeps_the_warnings(capsys):
+    from sep_control.cli.common import stderr_log
+
+    quiet, loud = stderr_log(True), stderr_log(False)
+    quiet("design: scenario x")
+    quiet("warning: about 1e9 run-steps")
+    assert capsys.readouterr().err == "warning: about 1e9 run-steps\n"
+    loud("design: scenario x")
+    assert capsys.readouterr().err == "design: scenario x\n"

@@ -17,7 +17,7 @@ from scipy.optimize import minimize
 
 from core_helpers import flat
 from node_harness import joint_matrix, launcher, make_case, probe  # noqa: F401
-from sep_control.design.pipeline import DesignSettings, run_design, tightened_limits
+from sep_control.design.pipeline import MARGIN_COST_WARN, DesignSettings, run_design, tightened_limits
 from sep_control.design.gains import input_spread
 from sep_control.evaluation.montecarlo import simulate
 from sep_control.control.mpc import RomMPC
@@ -127,11 +127,27 @@ def test_limit_aware_nominal_stays_inside_the_tightened_limits(limited, free):
     assert 0.85 < np.median(ratio) < 1.15
     # with a margin: the nominal respects lo + c sigma <= u <= hi - c sigma (of its own LQG)
     st = DesignSettings(**FAST, limit_margin=0.5, margin_iterations=1)
-    dm = run_design(sc.plant, sc.problem, st, show_progress=False, log=lambda m: None)
+    lines = []
+    dm = run_design(sc.plant, sc.problem, st, show_progress=False, log=lines.append)
     assert dm.meta["optimizer"]["limit_margins"][0]["iteration"] == 1
+    assert not [m for m in lines if m.startswith("warning: the limit margin")], lines
     LO, HI = tightened_limits(lo, hi, input_spread(d.lqg), 0.5)
     assert np.all(dm.nominal.u >= LO - 1e-12) and np.all(dm.nominal.u <= HI + 1e-12)
     assert np.any(dm.nominal.u < d.nominal.u - 1e-6)     # it moved away from the upper limit
+
+
+def test_a_margin_that_puts_the_targets_out_of_reach_is_warned_of(limited):
+    """Heaters that cannot cool, held c sigma_u above 0 and below u_max: past some c the nominal
+    cannot reach its targets, and the design says so (its objective rises many-fold)."""
+    sc, d = limited
+    lines = []
+    dm = run_design(sc.plant, sc.problem, DesignSettings(**FAST, limit_margin=8.0, margin_iterations=1),
+                    show_progress=False, log=lines.append)
+    before = d.meta["optimizer"]["belief_history"][-1]          # the unmargined design's J_b
+    after = dm.meta["optimizer"]["limit_margins"][0]["objective"]
+    assert after > MARGIN_COST_WARN * before
+    warned = [m for m in lines if m.startswith("warning: the limit margin raised")]
+    assert len(warned) == 1 and "--limit-margin" in warned[0], lines
 
 
 def test_tightened_limits_meet_in_the_middle_when_they_cross():

@@ -101,3 +101,18 @@ def test_plan_09_design_counts_fewer_run_steps_and_records_its_plan():
     assert new.meta["run_steps"]["total"] < old.meta["run_steps"]["total"]
     assert new.meta["settings"]["experiment_plan"] == "0.9" and new.meta["settings"]["ensemble"] == 50
     assert any("rom (proposal)" in line for line in lines)
+
+
+def test_plan_counts_the_limit_margin_passes():
+    """Each pass of the limit-margin loop repeats the stages: the estimate multiplies them (and
+    a margin without input limits adds no pass)."""
+    from dataclasses import replace
+
+    scen = reference()
+    st, margin = DesignSettings(), DesignSettings(limit_margin=1.0, margin_iterations=2)
+    free = design_plan(scen.plant, scen.problem, st)
+    assert free["passes"] == 1 and design_plan(scen.plant, scen.problem, margin)["passes"] == 1
+    limited = replace(scen.problem, u_min=0.0, u_max=0.6)
+    one, three = design_plan(scen.plant, limited, st), design_plan(scen.plant, limited, margin)
+    assert three["passes"] == 3
+    assert three["run_steps"] == {k: 3 * v for k, v in one["run_steps"].items()}

@@ -198,7 +198,8 @@ def plant_or_exit(scenario: Scenario, where: str = "scenario", device: str = "cp
 
 
 def stderr_log(quiet: bool = False) -> Callable[[str], None]:
-    """A log function writing lines to stderr (nothing when `quiet`)."""
+    """A log function writing lines to stderr (when `quiet`, only the lines that start with
+    "warning:": a quiet run still says what the user should act on)."""
     if quiet:
-        return lambda msg: None
+        return lambda msg: print(msg, file=sys.stderr) if msg.startswith("warning:") else None
     return lambda msg: print(msg, file=sys.stderr)

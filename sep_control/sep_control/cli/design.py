@@ -143,7 +143,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     basic.add_argument("--out", metavar="DESIGN_FILE", required=True, help="design file to write (.npz)")
     basic.add_argument("--json", metavar="PATH", help="also write the design summary as JSON")
     basic.add_argument("--quiet", action="store_true",
-                       help="no progress bars and no log lines (bars are drawn only when stderr is a terminal)")
+                       help="no progress bars and no log lines but warnings (bars are drawn only when stderr is a terminal)")
     add_design_options(basic, advanced)
     add_deprecated(advanced, "--seed", "--enkf-seed", _DEST + SETTING_KEY["enkf_seed"], type=int)
     add_compute_options(advanced)

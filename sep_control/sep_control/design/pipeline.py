@@ -43,7 +43,7 @@ from sep_control import __version__
 from sep_control.design.belief import objective_of
 from sep_control.design.gains import design_lqg, input_spread
 from sep_control.design.settings import DesignSettings
-from sep_control.design.plan import format_run_steps, log_plan
+from sep_control.design.plan import format_run_steps, log_plan, margin_redesigns
 from sep_control.design.runsteps import RunStepMeter, metered
 from sep_control.design.stages import DesignPass, StageContext, design_pass
 from sep_control.design.tvera import Identification
@@ -144,17 +144,20 @@ def _initial_prior_hook(plant: Plant, final: DesignPass, problem: Problem, st: D
     return compressed_lqg(design_lqg(rom, problem, final.lqg.disturbance), st.field_map_tol)
 
 
+#: the limit-margin loop warns when its nominal's objective ends above this many times the
+#: unmargined one's: the tightened limits then hold the targets out of reach (the FMU rod at
+#: margin 1: 1.18 -> 461.6, no run in band), which a user asked for the margin should be told
+MARGIN_COST_WARN = 2.0
+
+
 def _with_limit_margin(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext,
                        first: DesignPass) -> tuple[DesignPass, list[dict[str, Any]], int]:
     """The limit-margin loop on top of the stages: the last pass, one record per redesign, and
     the experiments of the passes before the last."""
     lo, hi = problem.limits(int(plant.n_u))
-    limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
     current, margins, experiments = first, [], 0
-    if not (limited and st.limit_margin > 0):
-        return current, margins, experiments
     kind = "belief" if st.belief else "nominal"
-    for it in range(st.margin_iterations):
+    for it in range(margin_redesigns(problem, int(plant.n_u), st)):
         sigma = input_spread(current.lqg)
         bounds = tightened_limits(lo, hi, sigma, st.limit_margin)
         experiments += current.nominal.experiments
@@ -164,6 +167,12 @@ def _with_limit_margin(plant: Plant, problem: Problem, st: DesignSettings, ctx: 
                         "objective_kind": kind})
         ctx.log(f"limit margin {st.limit_margin:g} sigma_u (iteration {it + 1}): input std up to "
                 f"{sigma.max():.3g}, {kind} J = {current.nominal.cost:.6g}")
+    ratio = current.nominal.cost / first.nominal.cost if margins and first.nominal.cost > 0 else 1.0
+    if ratio > MARGIN_COST_WARN:
+        ctx.log(f"warning: the limit margin raised the {kind} objective {ratio:.3g}x "
+                f"({first.nominal.cost:.6g} -> {current.nominal.cost:.6g}): inside limits tightened by "
+                f"{st.limit_margin:g} closed-loop input stds the nominal cannot reach its targets; "
+                f"a smaller --limit-margin (limit_margin) keeps them in reach")
     return current, margins, experiments
 
 

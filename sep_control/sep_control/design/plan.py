@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+import numpy as np
+
 from sep_plant.problem import Problem
 from sep_plant.protocol import Plant, noise_channels
 
@@ -38,9 +40,18 @@ def channels(plant: Plant) -> tuple[int, int]:
     return int(plant.n_u), n_w
 
 
+def margin_redesigns(problem: Problem, n_u: int, st) -> int:
+    """The passes of the stages the limit-margin loop adds (`pipeline._with_limit_margin`):
+    `st.margin_iterations` when the problem limits an input and `st.limit_margin` > 0, else 0."""
+    lo, hi = problem.limits(n_u)
+    limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
+    return st.margin_iterations if limited and st.limit_margin > 0 else 0
+
+
 def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
     """Estimated run-steps per stage and the largest matrices of a design with settings `st`
-    (resolved: `DesignSettings.for_plant`)."""
+    (resolved: `DesignSettings.for_plant`); each pass of the limit-margin loop repeats the
+    stages, so it multiplies them."""
     N, lags = problem.n_steps, st.p + st.q
     n_u, n_w = channels(plant)
     n_ch = n_u + identified_noise_channels(plant, problem.w_std)    # many channels: r_w combinations
@@ -59,12 +70,14 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
             nominal = 3 * (N * (N + 1) * n_u // 2) + ident
         steps = {"nominal": nominal, "belief": belief, "identification": 0 if jac == "rom" else ident,
                  "validation": 0}
+    passes = 1 + margin_redesigns(problem, n_u, st)
+    steps = {k: passes * v for k, v in steps.items()}
     matrices = {"hankel": (st.p * int(plant.n_y), st.q * n_ch),
                 "field_basis": (int(plant.n_field), None),
                 "sensitivity_normal": (N * n_u, N * n_u) if jac == "sensitivity" else None,
                 "ensemble": (st.ensemble, int(plant.n_x)) if st.belief else None}
     return {"run_steps": {**steps, "total": sum(steps.values())}, "matrices": matrices, "n_u": n_u, "n_w": n_w,
-            "jacobian": jac, "n_w_identified": n_ch - n_u}
+            "jacobian": jac, "n_w_identified": n_ch - n_u, "passes": passes}
 
 
 def _plan_09(st, N: int, n_u: int, n_ch: int, starts: int, ident: int) -> dict[str, int]:
@@ -114,7 +127,8 @@ def log_plan(plant: Plant, problem: Problem, st, log: Callable[[str], None]) -> 
     plan = design_plan(plant, problem, st)
     m = plan["matrices"]
     big = [f"{name} {r} x {c}" for name, v in m.items() if v is not None for r, c in [v] if c is not None]
-    log(f"plan ({st.experiment_plan}): about {format_run_steps(plan['run_steps'])} run-steps; largest matrices: "
+    passes = f", {plan['passes']} passes of the stages (limit margin)" if plan["passes"] > 1 else ""
+    log(f"plan ({st.experiment_plan}): about {format_run_steps(plan['run_steps'])} run-steps{passes}; largest matrices: "
         f"{', '.join(big)}; field basis rows {m['field_basis'][0]}")
     for line in plan_warnings(plan, problem.n_steps):
         log(line)
