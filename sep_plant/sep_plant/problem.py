@@ -122,6 +122,12 @@ class Problem:
         return self.recipe is not None or (isinstance(self.target, str) and uses_time(self.target))
 
     @property
+    def input_limited(self) -> bool:
+        """Whether any channel has a finite u_min or u_max."""
+        return any(math.isfinite(v) for key in (self.u_min, self.u_max)
+                   for v in (key if isinstance(key, tuple) else (key,)))
+
+    @property
     def rate_limited(self) -> bool:
         """Whether any channel has a finite du_max."""
         d = self.du_max if isinstance(self.du_max, tuple) else (self.du_max,)

@@ -187,10 +187,8 @@ def oracle_skip_reason(design, max_nx: int) -> str | None:
 def chosen_controllers(args: argparse.Namespace, design) -> list[str]:
     """--controllers, or the defaults (rom_mpc only with input limits); oracle_lqg left out (with
     a line saying so) above --oracle-max-nx."""
-    lo, hi = design.problem.limits(design.info.n_u)
-    limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
     controllers = list(dict.fromkeys(args.controllers)) if args.controllers else \
-        [c for c in CONTROLLERS if c != "rom_mpc" or limited]
+        [c for c in CONTROLLERS if c != "rom_mpc" or design.problem.input_limited]
     why = oracle_skip_reason(design, args.oracle_max_nx) if "oracle_lqg" in controllers else None
     if why is not None:
         print(f"oracle_lqg skipped: {why}")

@@ -157,7 +157,7 @@ def _with_limit_margin(plant: Plant, problem: Problem, st: DesignSettings, ctx: 
     lo, hi = problem.limits(int(plant.n_u))
     current, margins, experiments = first, [], 0
     kind = "belief" if st.belief else "nominal"
-    for it in range(margin_redesigns(problem, int(plant.n_u), st)):
+    for it in range(margin_redesigns(problem, st)):
         sigma = input_spread(current.lqg)
         bounds = tightened_limits(lo, hi, sigma, st.limit_margin)
         experiments += current.nominal.experiments

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-import numpy as np
-
 from sep_plant.problem import Problem
 from sep_plant.protocol import Plant, noise_channels
 
@@ -40,12 +38,10 @@ def channels(plant: Plant) -> tuple[int, int]:
     return int(plant.n_u), n_w
 
 
-def margin_redesigns(problem: Problem, n_u: int, st) -> int:
+def margin_redesigns(problem: Problem, st) -> int:
     """The passes of the stages the limit-margin loop adds (`pipeline._with_limit_margin`):
     `st.margin_iterations` when the problem limits an input and `st.limit_margin` > 0, else 0."""
-    lo, hi = problem.limits(n_u)
-    limited = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
-    return st.margin_iterations if limited and st.limit_margin > 0 else 0
+    return st.margin_iterations if problem.input_limited and st.limit_margin > 0 else 0
 
 
 def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
@@ -70,7 +66,7 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
             nominal = 3 * (N * (N + 1) * n_u // 2) + ident
         steps = {"nominal": nominal, "belief": belief, "identification": 0 if jac == "rom" else ident,
                  "validation": 0}
-    passes = 1 + margin_redesigns(problem, n_u, st)
+    passes = 1 + margin_redesigns(problem, st)
     steps = {k: passes * v for k, v in steps.items()}
     matrices = {"hankel": (st.p * int(plant.n_y), st.q * n_ch),
                 "field_basis": (int(plant.n_field), None),
