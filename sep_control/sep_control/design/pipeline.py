@@ -45,7 +45,8 @@ from sep_control.design.gains import design_lqg, input_spread
 from sep_control.design.settings import DesignSettings
 from sep_control.design.plan import format_run_steps, log_plan, margin_redesigns
 from sep_control.design.runsteps import RunStepMeter, metered
-from sep_control.design.stages import DesignPass, StageContext, design_pass
+from sep_control.design.saturation import ClosedLoopRom, clipping_loss, correct_nominal
+from sep_control.design.stages import DesignPass, NominalResult, StageContext, design_pass, fixed_nominal_pass
 from sep_control.design.tvera import Identification
 
 __all__ = ["DesignSettings", "run_design", "identify_rom", "with_rom", "tightened_limits", "scenario_of"]
@@ -105,8 +106,9 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     log_plan(plant, problem, st, log)
     t_all = time.perf_counter()
     counted = metered(plant, meter)
-    final, margins, experiments = _with_limit_margin(counted, problem, st, ctx,
-                                                     design_pass(counted, problem, st, ctx))
+    optimized, margins, experiments = _with_limit_margin(counted, problem, st, ctx,
+                                                         design_pass(counted, problem, st, ctx))
+    final, correction = _with_clip_correction(counted, problem, st, ctx, optimized)
     ctx.timings["total_s"] = time.perf_counter() - t_all
     log(f"run-steps: {format_run_steps(meter.as_dict())}")
 
@@ -116,7 +118,10 @@ def run_design(plant: Plant, problem: Problem, settings: DesignSettings | None =
     X_nom = ident.X_ext[: problem.n_steps + 1]
     F_nom = fields(plant, X_nom)
     nominal = Nominal(U, outputs(plant, X_nom), F_nom, *((belief.mean, belief.std) if belief is not None else ()))
-    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments), "belief": nominal.belief_kind}
+    meta = {**_meta(st, ctx.timings, final, obj, F_nom, margins, experiments, optimized.nominal),
+            "belief": nominal.belief_kind}
+    if correction is not None:
+        meta["clip_correction"] = correction
     with meter.stage("identification"):            # the free responses of sampled initial states
         lqg = _initial_prior_hook(counted, final, problem, st, nominal, meta, log)
     meta["run_steps"] = meter.as_dict()
@@ -176,10 +181,69 @@ def _with_limit_margin(plant: Plant, problem: Problem, st: DesignSettings, ctx: 
     return current, margins, experiments
 
 
+#: the clip correction runs when the limits' clipping adds more than this share to the closed-loop
+#: cost the ROM predicts (below it the feedback rarely reaches a limit and there is nothing to gain)
+CLIP_LOSS_MIN = 0.01
+#: the ROM Monte Carlo's random numbers: one stream to optimize on, a fresh one to judge by
+CLIP_SEEDS = (0, 1)
+
+
+def _predicted(plant: Plant, problem: Problem, p: DesignPass, seed: int) -> tuple[ClosedLoopRom, tuple[float, float]]:
+    """Pass p's closed loop on its ROM, and the ROM Monte Carlo's cost (with the limits, without them)."""
+    X = p.identification.identification.X_ext[: problem.n_steps + 1]
+    cl = ClosedLoopRom.of(p.lqg, p.nominal.U, fields(plant, X), objective_of(plant, problem), problem)
+    return cl, clipping_loss(cl, seed=seed)
+
+
+def _nominal_cost(cl: ClosedLoopRom) -> float:
+    """J of the nominal (its rollout's field and inputs)."""
+    return float(cl.objective.cost(cl.f_nom, cl.u_nom))
+
+
+def _with_clip_correction(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext,
+                          current: DesignPass) -> tuple[DesignPass, dict[str, Any] | None]:
+    """The nominal moved to where the ROM predicts the lowest closed-loop cost under the limits'
+    clipping (`sep_control.design.saturation`), the stages again around it, and the pass the
+    ROM Monte Carlo of fresh random numbers predicts cheaper; the record for the design file."""
+    if not (st.resolved().clip_correction and problem.input_limited):
+        return current, None
+    t0 = time.perf_counter()
+    cl, (clipped, free) = _predicted(plant, problem, current, CLIP_SEEDS[0])
+    record: dict[str, Any] = {"predicted_cost": clipped, "predicted_cost_unclipped": free}
+    if clipped - free <= CLIP_LOSS_MIN * clipped:
+        ctx.log(f"clip correction: the limits add {clipped - free:.3g} to the predicted closed-loop cost "
+                f"{clipped:.6g} (ROM Monte Carlo), under {CLIP_LOSS_MIN:.0%}: nominal kept")
+        record["kept"] = "optimized"
+        return current, record
+    fix = correct_nominal(cl, seed=CLIP_SEEDS[0])
+    if np.array_equal(fix.U, current.nominal.U):
+        ctx.log(f"clip correction: the limits add {clipped - free:.3g} to the predicted closed-loop cost "
+                f"{clipped:.6g} (ROM Monte Carlo), and no move inside them lowers it: nominal kept")
+        record.update({"iterations": fix.iterations, "kept": "optimized"})
+        return current, record
+    ctx.log(f"clip correction: the limits clip the feedback; ROM Monte Carlo closed-loop cost {clipped:.6g} "
+            f"(without limits {free:.6g}), moved nominal {fix.predicted_after:.6g} ({fix.iterations} L-BFGS-B "
+            f"iterations, {time.perf_counter() - t0:.1f} s); identifying again there")
+    moved = fixed_nominal_pass(plant, problem, st, ctx, fix.U, "moved by the clip correction")
+    cl_moved, (after, _) = _predicted(plant, problem, moved, CLIP_SEEDS[1])
+    before = clipping_loss(cl, seed=CLIP_SEEDS[1])[0]
+    keep = after < before
+    J0, J1 = _nominal_cost(cl), _nominal_cost(cl_moved)
+    record.update({"moved_predicted_cost": fix.predicted_after, "iterations": fix.iterations,
+                   "check_optimized": before, "check_moved": after, "kept": "moved" if keep else "optimized",
+                   "nominal_cost_optimized": J0, "nominal_cost_moved": J1})
+    ctx.log(f"clip correction: predicted closed-loop cost (fresh random numbers, each on its own ROM) "
+            f"{before:.6g} optimized -> {after:.6g} moved (nominal J {J0:.6g} -> {J1:.6g}): "
+            f"{'moved nominal kept' if keep else 'optimized nominal kept'}")
+    ctx.took("clip_correction_s", t0)
+    return (moved if keep else current), record
+
+
 def _meta(st: DesignSettings, timings: dict[str, float], final: DesignPass, obj: Objective, F_nom: np.ndarray,
-          margins: list[dict[str, Any]], experiments: int) -> dict[str, Any]:
-    """The design file's metadata (docs/reference/design-file.md)."""
-    nom, ident = final.nominal, final.identification
+          margins: list[dict[str, Any]], experiments: int, optimized: NominalResult) -> dict[str, Any]:
+    """The design file's metadata (docs/reference/design-file.md); `optimized`: the nominal of
+    the optimizer's last pass (the final pass's unless the clip correction moved it)."""
+    nom, ident = optimized, final.identification
     opt = nom.mean_only
     k0, k1 = obj.window
     return {

@@ -44,10 +44,18 @@ def margin_redesigns(problem: Problem, st) -> int:
     return st.margin_iterations if problem.input_limited and st.limit_margin > 0 else 0
 
 
+def clip_correction_pass(problem: Problem, st) -> bool:
+    """Whether the design may add the clip correction's pass (`pipeline._with_clip_correction`):
+    `st.clip_correction` and a problem that limits an input (the pass runs when the ROM
+    predicts that the limits' clipping adds 1 % or more to the closed-loop cost)."""
+    return bool(st.clip_correction) and problem.input_limited
+
+
 def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
     """Estimated run-steps per stage and the largest matrices of a design with settings `st`
     (resolved: `DesignSettings.for_plant`); each pass of the limit-margin loop repeats the
-    stages, so it multiplies them."""
+    stages, so it multiplies them; the clip correction may add one pass around a given nominal
+    (a rollout, the belief statistics, an identification: counted when it may run)."""
     N, lags = problem.n_steps, st.p + st.q
     n_u, n_w = channels(plant)
     n_ch = n_u + identified_noise_channels(plant, problem.w_std)    # many channels: r_w combinations
@@ -68,12 +76,16 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
                  "validation": 0}
     passes = 1 + margin_redesigns(problem, st)
     steps = {k: passes * v for k, v in steps.items()}
+    clip = clip_correction_pass(problem, st)
+    if clip:
+        extra = {"nominal": N, "belief": st.ensemble * N if st.belief else 0, "identification": ident}
+        steps = {k: v + extra.get(k, 0) for k, v in steps.items()}
     matrices = {"hankel": (st.p * int(plant.n_y), st.q * n_ch),
                 "field_basis": (int(plant.n_field), None),
                 "sensitivity_normal": (N * n_u, N * n_u) if jac == "sensitivity" else None,
                 "ensemble": (st.ensemble, int(plant.n_x)) if st.belief else None}
     return {"run_steps": {**steps, "total": sum(steps.values())}, "matrices": matrices, "n_u": n_u, "n_w": n_w,
-            "jacobian": jac, "n_w_identified": n_ch - n_u, "passes": passes}
+            "jacobian": jac, "n_w_identified": n_ch - n_u, "passes": passes, "clip_correction": clip}
 
 
 def _plan_09(st, N: int, n_u: int, n_ch: int, starts: int, ident: int) -> dict[str, int]:
@@ -124,6 +136,8 @@ def log_plan(plant: Plant, problem: Problem, st, log: Callable[[str], None]) -> 
     m = plan["matrices"]
     big = [f"{name} {r} x {c}" for name, v in m.items() if v is not None for r, c in [v] if c is not None]
     passes = f", {plan['passes']} passes of the stages (limit margin)" if plan["passes"] > 1 else ""
+    if plan.get("clip_correction"):
+        passes += ", with the clip correction's pass if the limits clip the feedback"
     log(f"plan ({st.experiment_plan}): about {format_run_steps(plan['run_steps'])} run-steps{passes}; largest matrices: "
         f"{', '.join(big)}; field basis rows {m['field_basis'][0]}")
     for line in plan_warnings(plan, problem.n_steps):

@@ -33,10 +33,13 @@ ROM_FROM = 5
 #: Markov parameters between them interpolated), no belief refinement (it moved J_b by 1e-6
 #: relative) and 50 members for the belief statistics, and in the mean-only optimizer kept models
 #: of the inputs only and a settle stop (`sep_control.design.jacobians.KeptRomJacobian`,
-#: `sep_control.design.stages`)
+#: `sep_control.design.stages`), and under input limits the clip correction
+#: (`sep_control.design.saturation`)
 PLANS: dict[str, dict[str, Any]] = {
-    "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2, "impulse_stride": 1},
-    "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0, "impulse_stride": 2},
+    "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2, "impulse_stride": 1,
+            "clip_correction": False},
+    "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0, "impulse_stride": 2,
+            "clip_correction": True},
 }
 DEFAULT_PLAN = "0.8"
 
@@ -97,6 +100,11 @@ class DesignSettings:
         Keep this many closed-loop input stds inside u_min/u_max (0: none).
     margin_iterations : int
         Nominal + LQG redesigns with the tightened limits.
+    clip_correction : bool, optional
+        With input limits: move the nominal to where the ROM predicts the lowest expected
+        closed-loop cost with the limits clipping the feedback (`sep_control.design.saturation`),
+        then identify and design again there; kept when the ROM predicts it cheaper (None: the
+        plan's, off for 0.8, on for 0.9).
     disturbance : {"input", "output", "noise", "none", "input+noise", "noise+output", "input+output"}
         Disturbance states of the ROM filter for offset-free tracking (`sep_estimator.disturbance`):
         input biases along the detectable input directions, forcings along the noise channels'
@@ -136,6 +144,7 @@ class DesignSettings:
     chunks: int = 4
     limit_margin: float = 0.0
     margin_iterations: int = 2
+    clip_correction: bool | None = None
     disturbance: str = "input"
     disturbance_std: float | list[float] | None = None
     disturbance_dims: int | list[int] | None = None
@@ -170,6 +179,8 @@ class DesignSettings:
         if not 0.0 < self.relinearize_rtol <= 0.1:
             raise ValueError(f"relinearize_rtol must be in (0, 0.1], got {self.relinearize_rtol}: a model kept "
                              "through the large early steps makes a chord method, which stops short of the optimum")
+        if not isinstance(self.clip_correction, (bool, np.bool_)):
+            raise ValueError(f"clip_correction must be true or false, got {self.clip_correction!r}")
         if self.margin_iterations < 0:
             raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
         if not 0.0 < self.field_map_tol < 1.0:

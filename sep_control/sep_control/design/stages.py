@@ -19,9 +19,9 @@ import numpy as np
 from sep_estimator.enkf import EnKFResult
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Problem
-from sep_plant.protocol import Plant, nominal_states
+from sep_plant.protocol import Plant, fields, nominal_states
 
-from sep_control.design.belief import run_belief
+from sep_control.design.belief import objective_of, run_belief
 from sep_control.design.field_map import compressed_lqg
 from sep_control.design.gains import GainsResult, design_lqg
 from sep_control.design.jacobians import (AutoJacobian, Jacobian, KeptRomJacobian, RomJacobian,
@@ -314,6 +314,26 @@ def design_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageCo
                 U0: np.ndarray | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DesignPass:
     """The four stages in order: nominal, identification, gains, field map."""
     nominal = nominal_stage(plant, problem, st, ctx, U0, bounds)
+    identified = identification_stage(plant, st, nominal, ctx, problem)
+    gains = gains_stage(identified, problem, st, ctx)
+    return DesignPass(nominal, identified, field_map_stage(gains, st, ctx))
+
+
+def fixed_nominal_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: StageContext, U: np.ndarray,
+                       why: str) -> DesignPass:
+    """The stages around a given nominal U, not optimized (`why` says where it came from): one
+    rollout for its cost, the belief statistics (EnKF, `st.ensemble` members), the identification
+    at U, the gains and the field map."""
+    t0 = time.perf_counter()
+    with ctx.meter.stage("nominal"):
+        J = float(objective_of(plant, problem).cost(fields(plant, nominal_states(plant, U)), U))
+    opt = OptimizationResult(np.array(U, dtype=float), J, [J], method=st.method, stop=why)
+    belief = None
+    if not getattr(plant, "state_is_opaque", False):
+        with ctx.meter.stage("belief"):
+            belief = run_belief(plant, opt.U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
+    ctx.took("optimize_s", t0)
+    nominal = NominalResult(opt.U, opt, None, belief, "given")
     identified = identification_stage(plant, st, nominal, ctx, problem)
     gains = gains_stage(identified, problem, st, ctx)
     return DesignPass(nominal, identified, field_map_stage(gains, st, ctx))
