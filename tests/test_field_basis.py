@@ -290,3 +290,24 @@ def test_design_compresses_its_field_map_and_keeps_its_gains():
     np.testing.assert_array_equal(lqg.rom.G.g, d.rom.G.g)
     np.testing.assert_array_equal(lqg.field_std, d.lqg.field_std)
     np.testing.assert_array_equal(lqg.kf.P_prior, d.lqg.kf.P_prior)
+
+
+def test_the_designs_svd_falls_back_to_gesvd_where_gesdd_does_not_converge(monkeypatch):
+    """LAPACK's gesdd failed on a finite 140 x 201 residual block of a 201-node plant's field
+    basis; the design's SVD then takes gesvd (and still refuses a matrix with NaN or Inf)."""
+    from sep_control.design import svd as module
+
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((14, 20)) @ np.diag(np.logspace(0, -18, 20))
+    real = np.linalg.svd
+
+    def failing(x, full_matrices=True, **kw):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(module.np.linalg, "svd", failing)
+    U, S, Vt = module.svd(a)
+    assert U.shape == (14, 14) and Vt.shape == (14, 20)
+    np.testing.assert_allclose((U * S) @ Vt, a, atol=1e-12)
+    np.testing.assert_allclose(S, real(a, compute_uv=False), rtol=1e-10, atol=1e-14)
+    with pytest.raises(np.linalg.LinAlgError):
+        module.svd(np.full((3, 3), np.nan))

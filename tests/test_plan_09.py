@@ -95,6 +95,20 @@ def test_settle_stop_takes_the_step_and_ends_the_run():
     assert h[-1] == settled.cost                                    # the small step was taken
 
 
+def test_settle_stop_waits_for_the_nominal_to_be_within_its_band():
+    """A small decrease does not end the run while the nominal's field is out of its band: with
+    a band no input reaches, the settle stop never fires and the run is the one without it."""
+    scen = reference().with_plant(n_x=20)
+    problem = scen.problem.replace(n_steps=24, band_window=None, lqr_k_switch=None)
+    runs = {}
+    for band, settle in ((1e-6, 0.0), (1e-6, 0.5), (1e3, 0.5)):
+        opts = OptimizerOptions(max_iter=8, settle=settle, show_progress=False)
+        runs[band, settle] = Optimizer(scen.plant, problem.replace(band=band), opts, SensitivityJacobian()).run()
+    free, waited, settled = runs[1e-6, 0.0], runs[1e-6, 0.5], runs[1e3, 0.5]
+    assert not waited.stop.startswith("settled") and waited.history == free.history
+    assert settled.stop.startswith("settled") and settled.iterations < waited.iterations
+
+
 def _rd_problem(N: int) -> Problem:
     return Problem(n_steps=N, target=0.3, band=0.05, w_std=0.003, v_std=0.02, u_init=0.2, r_u=0.01)
 

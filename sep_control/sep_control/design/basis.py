@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sep_control.design.svd import svd
+
 
 class IncrementalBasis:
     """Orthonormal basis of the snapshots added so far (columns of `phi`)."""
@@ -74,7 +76,7 @@ class IncrementalBasis:
             # every singular value of E is at most its Frobenius norm: nothing to add, and no SVD
             # (most blocks once the basis holds the responses: 3/4 of them at the reference)
             return C
-        U, S, Vt = np.linalg.svd(E, full_matrices=False) if xp is np else _svd_wide(xp, E)
+        U, S, Vt = svd(E) if xp is np else _svd_wide(xp, E)
         S_host = S if xp is np else S.get()
         # the kept directions are a leading run: S is sorted, and so are the caps on their number
         k = int(np.count_nonzero(S_host > self.tol * self.scale))
@@ -172,6 +174,6 @@ def truncate(phi: np.ndarray, coefficients: np.ndarray, tol: float) -> tuple[np.
     singular values below tol * sigma_1 (phi' orthonormal, r' <= r)."""
     if coefficients.size == 0 or phi.shape[1] == 0:
         return phi[:, :0], coefficients[:0]
-    U, S, _ = np.linalg.svd(coefficients, full_matrices=False)
+    U, S, _ = svd(coefficients)
     r = int(np.count_nonzero(S > tol * S[0])) if S[0] > 0 else 0
     return phi @ U[:, :r], U[:, :r].T @ coefficients

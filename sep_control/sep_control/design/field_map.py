@@ -19,6 +19,7 @@ import numpy as np
 from sep_estimator.ltv import LQG, KalmanSchedule, LTVModel, PODFieldMap, psd_factor
 
 from sep_control.design.gains import GainsResult, estimate_covariances, regained
+from sep_control.design.svd import svd
 
 #: relative tolerance of the design's field map against the ROM state's spread
 #: (`compress_field_map`, `state_spread`). Measured on the four shipped scenarios (200 closed-loop
@@ -46,7 +47,7 @@ def compress_field_map(G: PODFieldMap, X: np.ndarray, tol: float) -> PODFieldMap
     What is dropped moves the field by less than tol times its largest spread, both the
     reconstructed mean and the std."""
     gL = G.g @ psd_factor(X)                                   # (N+1, r_f, n)
-    U, S, _ = np.linalg.svd(np.concatenate(list(gL), axis=1), full_matrices=False)
+    U, S, _ = svd(np.concatenate(list(gL), axis=1))
     r = int(np.count_nonzero(S > tol * S[0])) if S.size and S[0] > 0 else 0
     Ur = U[:, :max(r, 1)] if G.rank else U[:, :0]
     return PODFieldMap(np.ascontiguousarray(G.Phi @ Ur), np.ascontiguousarray(np.matmul(Ur.T, G.g)))

@@ -45,6 +45,8 @@ from sep_estimator.ltv import DenseFieldMap, LTVModel, PODFieldMap
 from sep_plant.initial import sample_initial_states
 from sep_plant.protocol import Plant, fields, outputs, rollout
 
+from sep_control.design.svd import svd
+
 #: sampled initial states whose free responses the IC modes are fitted to
 SAMPLES = 64
 #: at most this many IC states
@@ -167,7 +169,7 @@ def extended_field_map(G, Gc: np.ndarray):
         N1, n_f, n_c = Gc.shape
         cols = np.moveaxis(Gc, 0, 1).reshape(n_f, -1)                   # (n_field, (N+1) n_c)
         resid = cols - Phi @ (Phi.T @ cols)
-        Ur, S, _ = np.linalg.svd(resid, full_matrices=False)
+        Ur, S, _ = svd(resid)
         scale = float(np.linalg.norm(cols, 2)) if cols.size else 0.0
         r = int(np.count_nonzero(S > BASIS_TOL * scale)) if scale > 0 else 0
         Phi_c = Ur[:, :r]

@@ -33,6 +33,7 @@ from sep_plant.protocol import Plant, noise_channels, nominal_states
 from sep_control.compute.progress import progress
 from sep_control.design.basis import truncate
 from sep_control.design.noise_sketch import sketch_for
+from sep_control.design.svd import svd
 # the experiments' names, also for the callers that take them from here
 from sep_control.design.impulse import (FIELD_TOL, SCHEMES, MarkovData, experiment_chunks,  # noqa: F401
                                         extend_nominal, impulse_experiments)
@@ -217,7 +218,7 @@ def tv_era(data: MarkovData, N: int, p: int, q: int, n_r: int, rel_tol: float = 
         q_k = min(q, k)
         if q_k == 0:
             continue
-        Us, S, Vt = np.linalg.svd(_hankel(Y, k, p, q_k, 0), full_matrices=False)
+        Us, S, Vt = svd(_hankel(Y, k, p, q_k, 0))
         sv[k, :S.size] = S
         n = int(min(n_r, np.sum(S > rel_tol * S[0]))) if S[0] > 0 else 0
         dims[k] = n
