@@ -18,7 +18,7 @@ from core_helpers import coarse_scenario, flat
 from sep_control.cli.design import _on_off
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.design.plan import design_plan
-from sep_control.design.saturation import ClosedLoopRom, RomClosedLoop
+from sep_control.design.saturation import ClosedLoopRom, RomClosedLoop, rate_violation
 from sep_control.evaluation.montecarlo import simulate
 
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
@@ -110,3 +110,29 @@ def test_the_plans_defaults_the_option_and_the_plan_estimate():
     off = design_plan(sc.plant, sc.problem, DesignSettings(**FAST).for_plant(sc.plant))
     assert on["clip_correction"] and not off["clip_correction"]
     assert on["run_steps"]["total"] > off["run_steps"]["total"]
+
+
+def test_rate_violation_and_its_gradient():
+    rng = np.random.default_rng(2)
+    U, du = rng.standard_normal((12, 3)), np.array([0.3, 0.5, 1.0])
+    V, g = rate_violation(U, du)
+    excess = np.maximum(np.abs(np.diff(U, axis=0)) - du, 0.0)
+    assert V == pytest.approx(np.sum(excess**2)) and V > 0
+    P, h = rng.standard_normal(U.shape), 1e-6
+    fd = (rate_violation(U + h * P, du)[0] - rate_violation(U - h * P, du)[0]) / (2 * h)
+    assert np.sum(g * P) == pytest.approx(fd, rel=1e-6)
+    assert rate_violation(np.zeros((5, 3)), du) == (0.0, pytest.approx(np.zeros((5, 3))))
+
+
+def test_with_rate_limits_the_moved_nominal_respects_them():
+    """The nominal the correction moves obeys |u_k - u_{k-1}| <= du_max, as the optimizer's does
+    (the plant then clips none of the open loop's inputs)."""
+    sc = coarse_scenario(30, 80, **LIMITS)
+    sc = dataclasses.replace(sc, problem=sc.problem.replace(du_max=0.02))
+    d = _design(sc, clip_correction=True)
+    rec = d.meta["clip_correction"]
+    assert rec["kept"] == "moved", rec
+    du = np.abs(np.diff(d.nominal.u, axis=0))
+    assert du.max() <= 0.02 + 1e-12
+    lo, hi = sc.problem.limits(d.info.n_u)
+    assert np.all(d.nominal.u >= lo - 1e-12) and np.all(d.nominal.u <= hi + 1e-12)

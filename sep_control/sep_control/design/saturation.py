@@ -34,6 +34,7 @@ from scipy.optimize import minimize
 
 from sep_estimator.ltv import LQG
 from sep_plant.problem import Objective, Problem
+from sep_plant.protocol import rate_clip_sequence
 
 #: runs of the ROM Monte Carlo (ROM-sized arrays only: 500 runs x 250 steps x 22 states is 1 MB a step's history)
 SAMPLES = 500
@@ -204,9 +205,31 @@ def clipping_loss(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0) -> t
     return mc.cost(zero), mc.cost(zero, limits=False)
 
 
+def rate_violation(U: np.ndarray, du_max: np.ndarray) -> tuple[float, np.ndarray]:
+    """V = sum_k |max(|u_k - u_{k-1}| - du_max, 0)|^2 over k >= 1 and its gradient dV/dU (N, n_u)."""
+    D = np.diff(U, axis=0)
+    v = np.maximum(np.abs(D) - du_max, 0.0)
+    gD = 2.0 * v * np.sign(D)
+    g = np.zeros_like(U)
+    g[1:] += gD
+    g[:-1] -= gD
+    return float(np.sum(v * v)), g
+
+
+#: the rate penalty's weights (continuation): rho_0 = C / (N n_u du_max^2), C the predicted cost
+#: (a violation of du_max at every step then costs about C), then RATE_RHO_GROWTH times that
+RATE_RHO_GROWTH = 100.0
+
+
 def correct_nominal(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0,
                     max_iter: int = MAX_ITER) -> Correction:
-    """Minimize the ROM Monte Carlo's expected closed-loop cost over Delta, lo <= ubar + Delta <= hi."""
+    """Minimize the ROM Monte Carlo's expected closed-loop cost over Delta, lo <= ubar + Delta <= hi.
+
+    With rate limits the nominal must respect them too (the optimizer's nominal does): a
+    quadratic penalty rho V(ubar + Delta) on their violation (`rate_violation`) joins the cost,
+    minimized at rho_0 then at RATE_RHO_GROWTH rho_0 (max_iter / 2 iterations each), and what is
+    left of the violation is clipped forward in time (`rate_clip_sequence`, as the optimizer's
+    trials are); the predicted cost returned is that of the feasible nominal."""
     mc = RomClosedLoop(cl, samples, seed)
     ub = cl.u_nom
     zero = np.zeros_like(ub)
@@ -215,12 +238,23 @@ def correct_nominal(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0,
     hi = np.broadcast_to(cl.hi, ub.shape) - ub
     bounds = [(None if not np.isfinite(a) else float(a), None if not np.isfinite(b) else float(b))
               for a, b in zip(lo.ravel(), hi.ravel())]
+    rate = cl.du_max
+    rho0 = 0.0 if rate is None else before / (ub.size * float(np.max(rate)) ** 2)
+    rhos = [0.0] if rate is None else [rho0, RATE_RHO_GROWTH * rho0]
+    x, nit = zero.ravel(), 0
+    for rho in rhos:
+        def fun(d: np.ndarray, rho: float = rho) -> tuple[float, np.ndarray]:
+            J, g = mc.cost_and_gradient(d.reshape(ub.shape))
+            if rho:
+                V, gV = rate_violation(ub + d.reshape(ub.shape), rate)
+                J, g = J + rho * V, g + rho * gV
+            return J, g.ravel()
 
-    def fun(d: np.ndarray) -> tuple[float, np.ndarray]:
-        J, g = mc.cost_and_gradient(d.reshape(ub.shape))
-        return J, g.ravel()
-
-    res = minimize(fun, zero.ravel(), jac=True, method="L-BFGS-B", bounds=bounds,
-                   options={"maxiter": max_iter})
-    delta = res.x.reshape(ub.shape)
-    return Correction(np.clip(ub + delta, cl.lo, cl.hi), before, float(res.fun), unclipped, int(res.nit))
+        res = minimize(fun, x, jac=True, method="L-BFGS-B", bounds=bounds,
+                       options={"maxiter": max_iter // len(rhos)})
+        x, nit = res.x, nit + int(res.nit)
+    U = np.clip(ub + x.reshape(ub.shape), cl.lo, cl.hi)
+    if rate is None:
+        return Correction(U, before, float(res.fun), unclipped, nit)
+    U = rate_clip_sequence(U, rate)
+    return Correction(U, before, mc.cost(U - ub), unclipped, nit)
