@@ -109,6 +109,10 @@ def test_the_plans_defaults_the_option_and_the_plan_estimate():
     on = design_plan(sc.plant, sc.problem, DesignSettings(**FAST, clip_correction=True).for_plant(sc.plant))
     off = design_plan(sc.plant, sc.problem, DesignSettings(**FAST).for_plant(sc.plant))
     assert on["clip_correction"] and not off["clip_correction"]
+    free = flat(**SMALL)                  # rate limits alone clip the feedback too
+    rate_only = DesignSettings(**FAST, clip_correction=True).for_plant(free.plant)
+    assert not design_plan(free.plant, free.problem, rate_only)["clip_correction"]
+    assert design_plan(free.plant, free.problem.replace(du_max=0.05), rate_only)["clip_correction"]
     assert on["run_steps"]["total"] > off["run_steps"]["total"]
 
 

@@ -89,7 +89,7 @@ SETTINGS_OPTIONS = (
     ("--experiment-plan", "experiment_plan", dict(choices=["0.8", "0.9"]),
      "which experiments the design runs: 0.8 = sep 0.8.0's plan (its designs bit for bit; the default); 0.9 = "
      "a coarse first model kept while its steps pay, forward impulses, a spot check before the optimizer's "
-     "last model is reused, no belief refinement, 50 EnKF members, the clip correction under input limits "
+     "last model is reused, no belief refinement, 50 EnKF members, the clip correction under input or rate limits "
      "(0.17-0.21x the plant run-steps on the reference, plate, rod and Burgers; docs/benchmarks.md)", False),
     ("--chunks", "chunks", dict(type=int),
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
@@ -101,7 +101,7 @@ SETTINGS_OPTIONS = (
      "u in [0, 0.6] any c that binds costs the band (docs/robustness.md)", False),
     ("--margin-iterations", "margin_iterations", dict(type=int), "nominal + LQG redesigns with the margin", False),
     ("--clip-correction", "clip_correction", dict(type=lambda text: _on_off(text), metavar="{on,off}"),
-     "with input limits: move the nominal to where a Monte Carlo of the closed loop on the ROM (no plant steps) "
+     "with input or rate limits: move the nominal to where a Monte Carlo of the closed loop on the ROM (no plant steps) "
      "predicts the lowest cost with the limits clipping the feedback, then identify and design again there "
      "(kept only when the ROM predicts it cheaper; the FMU rod: ROM-LQG cost 9.74 -> 8.08, docs/method.md)", False),
     ("--fd-eps", "fd_eps", dict(type=float), "sensitivity experiment amplitude", False),

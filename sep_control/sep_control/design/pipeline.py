@@ -43,7 +43,7 @@ from sep_control import __version__
 from sep_control.design.belief import objective_of
 from sep_control.design.gains import design_lqg, input_spread
 from sep_control.design.settings import DesignSettings
-from sep_control.design.plan import format_run_steps, log_plan, margin_redesigns
+from sep_control.design.plan import clip_correction_pass, format_run_steps, log_plan, margin_redesigns
 from sep_control.design.runsteps import RunStepMeter, metered
 from sep_control.design.saturation import ClosedLoopRom, clipping_loss, correct_nominal
 from sep_control.design.stages import DesignPass, NominalResult, StageContext, design_pass, fixed_nominal_pass
@@ -205,7 +205,7 @@ def _with_clip_correction(plant: Plant, problem: Problem, st: DesignSettings, ct
     """The nominal moved to where the ROM predicts the lowest closed-loop cost under the limits'
     clipping (`sep_control.design.saturation`), the stages again around it, and the pass the
     ROM Monte Carlo of fresh random numbers predicts cheaper; the record for the design file."""
-    if not (st.resolved().clip_correction and problem.input_limited):
+    if not clip_correction_pass(problem, st.resolved()):
         return current, None
     t0 = time.perf_counter()
     cl, (clipped, free) = _predicted(plant, problem, current, CLIP_SEEDS[0])

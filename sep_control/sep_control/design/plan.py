@@ -46,9 +46,9 @@ def margin_redesigns(problem: Problem, st) -> int:
 
 def clip_correction_pass(problem: Problem, st) -> bool:
     """Whether the design may add the clip correction's pass (`pipeline._with_clip_correction`):
-    `st.clip_correction` and a problem that limits an input (the pass runs when the ROM
-    predicts that the limits' clipping adds 1 % or more to the closed-loop cost)."""
-    return bool(st.clip_correction) and problem.input_limited
+    `st.clip_correction` and a problem that limits an input or its rate (the pass runs when the
+    ROM predicts that the limits' clipping adds 1 % or more to the closed-loop cost)."""
+    return bool(st.clip_correction) and (problem.input_limited or problem.rate_limited)
 
 
 def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:

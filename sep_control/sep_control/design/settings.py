@@ -33,7 +33,7 @@ ROM_FROM = 5
 #: Markov parameters between them interpolated), no belief refinement (it moved J_b by 1e-6
 #: relative) and 50 members for the belief statistics, and in the mean-only optimizer kept models
 #: of the inputs only and a settle stop (`sep_control.design.jacobians.KeptRomJacobian`,
-#: `sep_control.design.stages`), and under input limits the clip correction
+#: `sep_control.design.stages`), and under input or rate limits the clip correction
 #: (`sep_control.design.saturation`)
 PLANS: dict[str, dict[str, Any]] = {
     "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2, "impulse_stride": 1,
@@ -101,7 +101,7 @@ class DesignSettings:
     margin_iterations : int
         Nominal + LQG redesigns with the tightened limits.
     clip_correction : bool, optional
-        With input limits: move the nominal to where the ROM predicts the lowest expected
+        With input or rate limits: move the nominal to where the ROM predicts the lowest expected
         closed-loop cost with the limits clipping the feedback (`sep_control.design.saturation`),
         then identify and design again there; kept when the ROM predicts it cheaper (None: the
         plan's, off for 0.8, on for 0.9).
