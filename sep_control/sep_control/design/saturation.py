@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from sep_estimator.ltv import LQG
+from sep_estimator.ltv import LQG, psd_factor
 from sep_plant.problem import Objective, Problem
 from sep_plant.protocol import rate_clip_sequence
 
@@ -75,14 +75,9 @@ class _Noise:
     def __init__(self, rom, W: np.ndarray, V: np.ndarray, M: int, seed: int):
         rng = np.random.default_rng(seed)
         N, n = rom.A.shape[0], rom.A.shape[1]
-        self.x0 = (rng.standard_normal((M, n)) @ _factor(rom.initial_covariance()).T)
-        self.w = rng.standard_normal((N, M, W.shape[0])) @ _factor(W).T
-        self.v = rng.standard_normal((N + 1, M, V.shape[0])) @ _factor(V).T
-
-
-def _factor(P: np.ndarray) -> np.ndarray:
-    w, U = np.linalg.eigh(0.5 * (P + P.T))
-    return U * np.sqrt(np.maximum(w, 0.0))
+        self.x0 = (rng.standard_normal((M, n)) @ psd_factor(rom.initial_covariance()).T)
+        self.w = rng.standard_normal((N, M, W.shape[0])) @ psd_factor(W).T
+        self.v = rng.standard_normal((N + 1, M, V.shape[0])) @ psd_factor(V).T
 
 
 class RomClosedLoop:
