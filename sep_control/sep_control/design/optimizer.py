@@ -35,6 +35,7 @@ from sep_control.design.belief import belief_cost, objective_of, run_belief
 from sep_control.design.jacobians import Jacobian, Linearized
 from sep_control.design.linearization import Linearization, Point
 from sep_control.design.tvera import Identification
+from sep_control.evaluation.metrics import in_band
 
 METHODS = ("gn", "gd")
 #: `refresh_on_stall`: an accepted step that lowers the objective by less than this share of what
@@ -201,7 +202,7 @@ class Optimizer:
             result.iterations = it + 1
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(J=f"{at.J:.6g}")
-            if rel < o.settle and getattr(self.strategy, "full_model", lambda _: True)(lin) and self._in_band(at):
+            if rel < o.settle and getattr(self.strategy, "full_model", lambda _: True)(lin) and bool(in_band(at.residual_field, self.obj)):
                 result.stop = f"settled: the step lowered the objective by less than {o.settle:g} (taken)"
                 break
             if it == last and lin.identification is None:
@@ -250,12 +251,6 @@ class Optimizer:
         o = self.options
         b = run_belief(self.plant, U, self.problem, o.members, o.enkf_seed, o.memory_budget, X=X)
         return Point(U, belief_cost(b, U, self.obj), X, b.mean, b)
-
-    def _in_band(self, p: Point) -> bool:
-        """Whether p's field stays within target +- band over every hold (the band window)."""
-        F = p.residual_field
-        return all(float(np.max(np.abs(F[a:b + 1] - self.obj.targets(a, b)))) <= band
-                   for a, b, band in self.obj.segments)
 
     @staticmethod
     def _linearize(made: Linearized, result: OptimizationResult) -> Linearization:

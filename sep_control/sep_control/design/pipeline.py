@@ -45,7 +45,7 @@ from sep_control.design.gains import design_lqg, input_spread
 from sep_control.design.settings import DesignSettings
 from sep_control.design.plan import clip_correction_pass, format_run_steps, log_plan, margin_redesigns
 from sep_control.design.runsteps import RunStepMeter, metered
-from sep_control.design.saturation import ClosedLoopRom, clipping_loss, correct_nominal
+from sep_control.design.saturation import ClosedLoopRom, RomClosedLoop, correct_nominal
 from sep_control.design.stages import DesignPass, NominalResult, StageContext, design_pass, fixed_nominal_pass
 from sep_control.design.tvera import Identification
 
@@ -188,11 +188,10 @@ CLIP_LOSS_MIN = 0.01
 CLIP_SEEDS = (0, 1)
 
 
-def _predicted(plant: Plant, problem: Problem, p: DesignPass, seed: int) -> tuple[ClosedLoopRom, tuple[float, float]]:
-    """Pass p's closed loop on its ROM, and the ROM Monte Carlo's cost (with the limits, without them)."""
+def _closed_loop(plant: Plant, problem: Problem, p: DesignPass) -> ClosedLoopRom:
+    """Pass p's closed loop on its ROM (its LQG, nominal input and the nominal's field)."""
     X = p.identification.identification.X_ext[: problem.n_steps + 1]
-    cl = ClosedLoopRom.of(p.lqg, p.nominal.U, fields(plant, X), objective_of(plant, problem), problem)
-    return cl, clipping_loss(cl, seed=seed)
+    return ClosedLoopRom.of(p.lqg, p.nominal.U, fields(plant, X), objective_of(plant, problem), problem)
 
 
 def _nominal_cost(cl: ClosedLoopRom) -> float:
@@ -208,28 +207,31 @@ def _with_clip_correction(plant: Plant, problem: Problem, st: DesignSettings, ct
     if not clip_correction_pass(problem, st.resolved()):
         return current, None
     t0 = time.perf_counter()
-    cl, (clipped, free) = _predicted(plant, problem, current, CLIP_SEEDS[0])
+    cl = _closed_loop(plant, problem, current)
+    mc, zero = RomClosedLoop(cl, seed=CLIP_SEEDS[0]), np.zeros_like(cl.u_nom)
+    clipped, free = mc.cost(zero), mc.cost(zero, limits=False)
     record: dict[str, Any] = {"predicted_cost": clipped, "predicted_cost_unclipped": free}
     if clipped - free <= CLIP_LOSS_MIN * clipped:
         ctx.log(f"clip correction: the limits add {clipped - free:.3g} to the predicted closed-loop cost "
                 f"{clipped:.6g} (ROM Monte Carlo), under {CLIP_LOSS_MIN:.0%}: nominal kept")
         record["kept"] = "optimized"
         return current, record
-    fix = correct_nominal(cl, seed=CLIP_SEEDS[0])
+    fix = correct_nominal(mc, clipped)
     if np.array_equal(fix.U, current.nominal.U):
         ctx.log(f"clip correction: the limits add {clipped - free:.3g} to the predicted closed-loop cost "
                 f"{clipped:.6g} (ROM Monte Carlo), and no move inside them lowers it: nominal kept")
         record.update({"iterations": fix.iterations, "kept": "optimized"})
         return current, record
     ctx.log(f"clip correction: the limits clip the feedback; ROM Monte Carlo closed-loop cost {clipped:.6g} "
-            f"(without limits {free:.6g}), moved nominal {fix.predicted_after:.6g} ({fix.iterations} L-BFGS-B "
+            f"(without limits {free:.6g}), moved nominal {fix.predicted:.6g} ({fix.iterations} L-BFGS-B "
             f"iterations, {time.perf_counter() - t0:.1f} s); identifying again there")
     moved = fixed_nominal_pass(plant, problem, st, ctx, fix.U, "moved by the clip correction")
-    cl_moved, (after, _) = _predicted(plant, problem, moved, CLIP_SEEDS[1])
-    before = clipping_loss(cl, seed=CLIP_SEEDS[1])[0]
+    cl_moved = _closed_loop(plant, problem, moved)
+    before = RomClosedLoop(cl, seed=CLIP_SEEDS[1]).cost(zero)
+    after = RomClosedLoop(cl_moved, seed=CLIP_SEEDS[1]).cost(zero)
     keep = after < before
     J0, J1 = _nominal_cost(cl), _nominal_cost(cl_moved)
-    record.update({"moved_predicted_cost": fix.predicted_after, "iterations": fix.iterations,
+    record.update({"moved_predicted_cost": fix.predicted, "iterations": fix.iterations,
                    "check_optimized": before, "check_moved": after, "kept": "moved" if keep else "optimized",
                    "nominal_cost_optimized": J0, "nominal_cost_moved": J1})
     ctx.log(f"clip correction: predicted closed-loop cost (fresh random numbers, each on its own ROM) "

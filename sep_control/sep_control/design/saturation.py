@@ -56,6 +56,11 @@ class ClosedLoopRom:
     W: np.ndarray            # (n_w, n_w) the ROM's process noise covariance
     V: np.ndarray            # (n_y, n_y)
 
+    @property
+    def rom(self):
+        """The ROM the LQG was designed on (its filter's model without disturbance states)."""
+        return self.lqg.rom if self.lqg.rom is not None else self.lqg.model
+
     @classmethod
     def of(cls, lqg: LQG, u_nom: np.ndarray, f_nom: np.ndarray, objective: Objective,
            problem: Problem) -> "ClosedLoopRom":
@@ -86,7 +91,7 @@ class RomClosedLoop:
     def __init__(self, cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0):
         self.cl = cl
         lqg = cl.lqg
-        self.rom = rom = lqg.rom if lqg.rom is not None else lqg.model
+        self.rom = rom = cl.rom
         self.zm = lqg.model
         N = rom.A.shape[0]
         n_r = rom.A.shape[1]
@@ -109,8 +114,8 @@ class RomClosedLoop:
         return self._run(delta, limits, grad=False)[0]
 
     def cost_and_gradient(self, delta: np.ndarray) -> tuple[float, np.ndarray]:
-        J, g = self._run(delta, True, grad=True)
-        return J, g
+        """The cost with the limits and its gradient dJ/dDelta (N, n_u)."""
+        return self._run(delta, True, grad=True)
 
     def _run(self, delta: np.ndarray, limits: bool, grad: bool):
         rom, zm, cl, nz = self.rom, self.zm, self.cl, self.noise
@@ -122,9 +127,7 @@ class RomClosedLoop:
         zmin = np.zeros((M, zm.A.shape[1]))
         aD = np.zeros(self.n_r)
         J = np.zeros(M)
-        keep = grad
-        if keep:
-            X, Z, U, MB, MR, ZH = [], [], [], [], [], []
+        X, U, MB, MR = [], [], [], []      # what the reverse pass needs (grad only)
         p = None
         for k in range(N + 1):
             if k >= 1:
@@ -139,9 +142,8 @@ class RomClosedLoop:
             if rate is not None and p is not None:
                 u = np.clip(b, p - rate, p + rate)
                 mr = (b > p - rate) & (b < p + rate)
-            if keep:
-                X.append(x); Z.append(zmin); ZH.append(zhat); U.append(u)
-                MB.append((v > lo) & (v < hi)); MR.append(mr)
+            if grad:
+                X.append(x); U.append(u); MB.append((v > lo) & (v < hi)); MR.append(mr)
             p = u
             J += r_u * np.einsum("mu,mu->m", u, u)
             du = u - ub[k] - delta[k]
@@ -187,17 +189,8 @@ class Correction:
     """The result of `correct_nominal`."""
 
     U: np.ndarray            # (N, n_u) the moved nominal ubar + Delta
-    predicted_before: float  # the ROM Monte Carlo's closed-loop cost at Delta = 0 (limits on)
-    predicted_after: float   # ... at the optimum Delta (the same random numbers)
-    unclipped: float         # ... at Delta = 0 without limits: the floor the clipping adds to
-    iterations: int
-
-
-def clipping_loss(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0) -> tuple[float, float]:
-    """(the ROM Monte Carlo's closed-loop cost with the limits, without them) at the nominal."""
-    mc = RomClosedLoop(cl, samples, seed)
-    zero = np.zeros_like(cl.u_nom)
-    return mc.cost(zero), mc.cost(zero, limits=False)
+    predicted: float         # the ROM Monte Carlo's closed-loop cost there (its random numbers)
+    iterations: int          # L-BFGS-B's
 
 
 def rate_violation(U: np.ndarray, du_max: np.ndarray) -> tuple[float, np.ndarray]:
@@ -216,19 +209,17 @@ def rate_violation(U: np.ndarray, du_max: np.ndarray) -> tuple[float, np.ndarray
 RATE_RHO_GROWTH = 100.0
 
 
-def correct_nominal(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0,
-                    max_iter: int = MAX_ITER) -> Correction:
-    """Minimize the ROM Monte Carlo's expected closed-loop cost over Delta, lo <= ubar + Delta <= hi.
+def correct_nominal(mc: RomClosedLoop, before: float, max_iter: int = MAX_ITER) -> Correction:
+    """Minimize the ROM Monte Carlo's expected closed-loop cost over Delta, lo <= ubar + Delta <= hi,
+    from Delta = 0, where it is `before` (`mc.cost` of zeros).
 
     With rate limits the nominal must respect them too (the optimizer's nominal does): a
     quadratic penalty rho V(ubar + Delta) on their violation (`rate_violation`) joins the cost,
     minimized at rho_0 then at RATE_RHO_GROWTH rho_0 (max_iter / 2 iterations each), and what is
     left of the violation is clipped forward in time (`rate_clip_sequence`, as the optimizer's
     trials are); the predicted cost returned is that of the feasible nominal."""
-    mc = RomClosedLoop(cl, samples, seed)
+    cl = mc.cl
     ub = cl.u_nom
-    zero = np.zeros_like(ub)
-    before, unclipped = mc.cost(zero), mc.cost(zero, limits=False)
     lo = np.broadcast_to(cl.lo, ub.shape) - ub
     hi = np.broadcast_to(cl.hi, ub.shape) - ub
     bounds = [(None if not np.isfinite(a) else float(a), None if not np.isfinite(b) else float(b))
@@ -236,7 +227,7 @@ def correct_nominal(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0,
     rate = cl.du_max
     rho0 = 0.0 if rate is None else before / (ub.size * float(np.max(rate)) ** 2)
     rhos = [0.0] if rate is None else [rho0, RATE_RHO_GROWTH * rho0]
-    x, nit = zero.ravel(), 0
+    x, nit = np.zeros(ub.size), 0
     for rho in rhos:
         def fun(d: np.ndarray, rho: float = rho) -> tuple[float, np.ndarray]:
             J, g = mc.cost_and_gradient(d.reshape(ub.shape))
@@ -250,6 +241,6 @@ def correct_nominal(cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0,
         x, nit = res.x, nit + int(res.nit)
     U = np.clip(ub + x.reshape(ub.shape), cl.lo, cl.hi)
     if rate is None:
-        return Correction(U, before, float(res.fun), unclipped, nit)
+        return Correction(U, float(res.fun), nit)
     U = rate_clip_sequence(U, rate)
-    return Correction(U, before, mc.cost(U - ub), unclipped, nit)
+    return Correction(U, mc.cost(U - ub), nit)

@@ -186,11 +186,18 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
                 f"({refined.iterations} iterations, {refined.seconds:.2f} s; stopped: {refined.stop})")
     ctx.took("optimize_s", t0)
     last = refined if refined is not None else opt
-    belief = last.belief
-    if belief is None and not getattr(plant, "state_is_opaque", False):   # the EnKF adds and scales states
-        with ctx.meter.stage("belief"):
-            belief = run_belief(plant, last.U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
+    belief = last.belief if last.belief is not None else _belief_statistics(plant, last.U, problem, st, ctx)
     return NominalResult(last.U, opt, refined, belief, kind)
+
+
+def _belief_statistics(plant: Plant, U: np.ndarray, problem: Problem, st: DesignSettings,
+                       ctx: StageContext) -> EnKFResult | None:
+    """The EnKF belief along U (`st.ensemble` members) for the design file's statistics; None for
+    a plant whose states are opaque (the EnKF adds and scales states)."""
+    if getattr(plant, "state_is_opaque", False):
+        return None
+    with ctx.meter.stage("belief"):
+        return run_belief(plant, U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
 
 
 def identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResult,
@@ -328,10 +335,7 @@ def fixed_nominal_pass(plant: Plant, problem: Problem, st: DesignSettings, ctx: 
     with ctx.meter.stage("nominal"):
         J = float(objective_of(plant, problem).cost(fields(plant, nominal_states(plant, U)), U))
     opt = OptimizationResult(np.array(U, dtype=float), J, [J], method=st.method, stop=why)
-    belief = None
-    if not getattr(plant, "state_is_opaque", False):
-        with ctx.meter.stage("belief"):
-            belief = run_belief(plant, opt.U, problem, st.ensemble, st.enkf_seed, st.memory_budget)
+    belief = _belief_statistics(plant, opt.U, problem, st, ctx)
     ctx.took("optimize_s", t0)
     nominal = NominalResult(opt.U, opt, None, belief, "given")
     identified = identification_stage(plant, st, nominal, ctx, problem)
