@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rd_plant import ReactionDiffusionPlant
+from sep_control.design.impulse import impulse_experiments
 from sep_control.design.noise_sketch import SKETCH_FROM, SKETCH_PROBES, NoiseSketch, sketch_for, trace_std_error
 from sep_control.design.pipeline import DesignSettings, run_design
 from sep_control.design.tvera import identify, markov_relative_error
@@ -90,3 +92,20 @@ def test_validation_of_a_many_channel_design_steps_the_inputs_only():
     # the nominal over N + lags steps, two rollouts of N steps
     assert meter.total == validation_run_steps(plant, N, lags) == 2 * N * 3 * lags + N + lags + 2 * N
     assert np.isfinite(out["markov_rel_error"])
+
+
+def test_strided_impulses_hold_a_sketch_over_the_stride():
+    # a linear, time-invariant plant: every start step's responses are the same, so strided
+    # impulses must give what impulses at every start step give, noise columns included; a
+    # linear interpolation of the sketch's columns would mix two start steps' combinations
+    plant = ReactionDiffusionPlant(n_x=81, a=0.0, b=0.0)              # n_w = 81 > SKETCH_FROM
+    U = np.full((12, plant.n_u), 0.2)
+    held = sketch_for(plant.n_w, 0.003, hold=2)
+    assert held.directions(5).tolist() == held.directions(4).tolist() != held.directions(6).tolist()
+    every = impulse_experiments(plant, U, 6, 3, 1e-2, scheme="forward", noise=held)
+    strided = impulse_experiments(plant, U, 6, 3, 1e-2, scheme="forward", noise=held, stride=2)
+    np.testing.assert_allclose(strided.Y, every.Y, rtol=0, atol=1e-9 * np.abs(every.Y).max())
+    with pytest.raises(ValueError, match="held over the stride"):
+        impulse_experiments(plant, U, 6, 3, 1e-2, noise=sketch_for(plant.n_w, 0.003), stride=2)
+    # and an identification with strided impulses holds its sketch itself
+    assert identify(plant, U, 3, 3, 10, noise_std=0.003, stride=2).data.noise.hold == 2

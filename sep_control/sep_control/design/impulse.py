@@ -125,7 +125,9 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     `stride` > 1: impulses only at the start steps `strided_starts` (every stride-th one and the
     last), the Markov parameters of the others interpolated linearly in j at each lag
     (`interpolate_starts`): about 1/stride of the experiments, an error of O(stride^2) times
-    the second difference of Y_{j+l,j} in j (the plant's time variation along the nominal).
+    the second difference of Y_{j+l,j} in j (the plant's time variation along the nominal). A
+    sketch's noise columns are held from the start step before instead (`hold_starts`; the sketch
+    must hold its combinations over the stride, `NoiseSketch.hold`).
     """
     from sep_control.compute.engine import InProcess
 
@@ -142,6 +144,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     if noise is not None:
         if noise.n_w != n_w:
             raise ValueError(f"a noise sketch of {noise.n_w} channels for a plant with {n_w}")
+        if stride > 1 and noise.hold != stride:
+            raise ValueError(f"strided impulses (stride {stride}) need a sketch held over the stride, got hold {noise.hold}")
         n_w = noise.rank
     n_ch = n_u + n_w
     n_y, n_f = int(plant.n_y), int(plant.n_field)
@@ -164,9 +168,14 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                        show_progress=show_progress and not in_process)
     if meter is not None:
         meter.add(experiment_run_steps(len(starts), n_ch, lags, scheme, len(groups)))
-    Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
+    Y_raw, Yc_raw, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
+    Y, Yc = Y_raw, Yc_raw
     if stride > 1:
         Y, Yc = interpolate_starts(Y, starts), interpolate_starts(Yc, starts)
+        if noise is not None:
+            # a sketch's columns: each start step's own combinations (`NoiseSketch.hold`), so the
+            # steps between hold the start step's responses instead of mixing two starts' probes
+            Y[..., n_u:], Yc[..., n_u:] = hold_starts(Y_raw[..., n_u:], starts), hold_starts(Yc_raw[..., n_u:], starts)
     return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * len(starts) * n_ch, n_u, noise)
 
 
@@ -186,6 +195,12 @@ def interpolate_starts(Z: np.ndarray, starts: np.ndarray) -> np.ndarray:
     lo = starts[np.maximum(np.searchsorted(starts, j, "right") - 1, 0)]
     w = np.where(hi > lo, (j - lo) / np.maximum(hi - lo, 1), 0.0).reshape((-1,) + (1,) * (Z.ndim - 1))
     return (1.0 - w) * Z[lo] + w * Z[hi]
+
+
+def hold_starts(Z: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Z (N, ...) with the rows j not in `starts` set to the row of the start step a <= j before
+    them (`starts` sorted, holding 0): a zero-order hold in j."""
+    return Z[starts[np.searchsorted(starts, np.arange(Z.shape[0]), "right") - 1]]
 
 
 def experiment_run_steps(N: int, n_ch: int, lags: int, scheme: str = "central", groups: int = 1) -> int:

@@ -21,7 +21,11 @@ start step j instead (a randomized trace/covariance sketch):
 so that B^_j W B^_j' = c^2 B_w,j W^{1/2} Omega_j Omega_j' W^{1/2} B_w,j', whose expectation
 over Omega_j is Q_j (E[Omega Omega'] = (r_w / n_e) I): an unbiased estimate of the covariance,
 with fresh combinations at every start step, so that the filter, which sums Q_j over many
-steps, averages their errors. The ROM keeps B^ (n_w columns): the Kalman filter, the design
+steps, averages their errors. Strided impulses (`impulse_stride` s > 1) keep each start step's
+combinations for the s - 1 steps after it (`hold`): the steps between are not impulsed, and their
+noise columns are the held start step's responses (`sep_control.design.impulse.hold_starts`), so
+the lift uses the combinations those responses were measured on (a linear interpolation between
+two start steps would mix responses to two different Omega_j). The ROM keeps B^ (n_w columns): the Kalman filter, the design
 file and the online nodes see the plant's own noise channels, W unchanged. The sketch's
 sampling error is reported as the relative standard error of tr Q^_j from its r_w probes
 (`trace_std_error`). Plants with at most SKETCH_FROM channels (every shipped scenario) are
@@ -39,7 +43,8 @@ import numpy as np
 SKETCH_FROM = 64
 #: random combinations per start step (measured effect: docs/benchmarks.md)
 SKETCH_PROBES = 32
-#: seed of the combinations (start step j uses SeedSequence(SKETCH_SEED, spawn_key=(j,)))
+#: seed of the combinations (start step j uses SeedSequence(SKETCH_SEED, spawn_key=(j,)); held: the
+#: key of j - j mod hold)
 SKETCH_SEED = 20260433
 
 
@@ -49,6 +54,7 @@ class NoiseSketch:
 
     w_std: tuple[float, ...]
     rank: int
+    hold: int = 1          # start step j uses the combinations of j - j mod hold (strided impulses)
 
     @property
     def n_w(self) -> int:
@@ -58,7 +64,7 @@ class NoiseSketch:
         """(Omega_j (n_e, r_w), the channels with w_std > 0)."""
         std = np.asarray(self.w_std)
         live = np.flatnonzero(std > 0)
-        rng = np.random.default_rng(np.random.SeedSequence(SKETCH_SEED, spawn_key=(int(j),)))
+        rng = np.random.default_rng(np.random.SeedSequence(SKETCH_SEED, spawn_key=(int(j) - int(j) % self.hold,)))
         G = rng.standard_normal((live.size, self.rank))
         Q, R = np.linalg.qr(G)
         return Q * np.sign(np.diag(R))[None, :], live     # Haar: the sign fix of QR
@@ -97,15 +103,15 @@ class NoiseSketch:
         return out
 
 
-def sketch_for(n_w: int, w_std, probes: int | None = None) -> NoiseSketch | None:
+def sketch_for(n_w: int, w_std, probes: int | None = None, hold: int = 1) -> NoiseSketch | None:
     """The sketch of `n_w` noise channels of stds `w_std` (scalar or n_w; None: 1), or None when
     they are identified one by one: n_w <= SKETCH_FROM, `probes` 0, or no fewer probes than
-    channels with noise."""
+    channels with noise. `hold`: the impulse stride (each start step's combinations held over it)."""
     r = SKETCH_PROBES if probes is None else int(probes)
     std = np.broadcast_to(np.asarray(1.0 if w_std is None else w_std, dtype=float), (n_w,))
     if r <= 0 or n_w <= SKETCH_FROM or r >= int(np.count_nonzero(std > 0)):
         return None
-    return NoiseSketch(tuple(float(v) for v in std), r)
+    return NoiseSketch(tuple(float(v) for v in std), r, int(hold))
 
 
 def identified_noise_channels(plant, w_std) -> int:

@@ -150,7 +150,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     ftol = FIELD_TOL if field_tol is None else field_tol
     skipped = inputs_only and not getattr(plant, "noise_on_inputs", True) and noise_channels(plant) > 0
     noise = None if skipped or getattr(plant, "noise_on_inputs", True) else \
-        sketch_for(noise_channels(plant), noise_std, noise_probes)
+        sketch_for(noise_channels(plant), noise_std, noise_probes, hold=stride)
     extra = {} if stride == 1 and not skipped else dict(stride=stride, inputs_only=skipped)
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
                                memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine,
