@@ -16,7 +16,7 @@ identified), the Markov relative error, and a `--runs`-run closed-loop Monte Car
 ROM-LQG (seed 1) on the plant with its own noise: cost, in band, 2 sigma coverage. No assertions.
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_noise_channels.py [--nodes 201] [--steps 150]
-        [--runs 200] [--w-std 0.003] [--exact] [--plan 0.8] [--probes 32]
+        [--runs 200] [--w-std 0.003] [--exact] [--plan 0.9] [--probes 32]
 """
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def main() -> None:
     ap.add_argument("--nodes", type=int, default=201)
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--runs", type=int, default=200)
-    ap.add_argument("--plan", default="0.8", choices=["0.8", "0.9"])
+    ap.add_argument("--plan", default="0.9", choices=["0.8", "0.9"])
     ap.add_argument("--w-std", type=float, default=0.003, help="process-noise std per channel")
     ap.add_argument("--probes", type=int, default=noise_sketch.SKETCH_PROBES)
     ap.add_argument("--exact", action="store_true", help="also the every-node plant identified channel by channel")

@@ -274,7 +274,7 @@ def main() -> int:
                     "stage's row) to stderr as they come")
     ap.add_argument("--threads", type=int, default=1, help="BLAS threads of the design's host work (default 1)")
     ap.add_argument("--experiment-plan", choices=["0.8", "0.9"], default=None,
-                    help="the design's experiment plan (default: the scenario's, i.e. 0.8; see `sep design --help`)")
+                    help="the design's experiment plan (default: the scenario's, i.e. 0.9; see `sep design --help`)")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     for v in args.block_nodes:

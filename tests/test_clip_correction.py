@@ -24,7 +24,8 @@ from sep_control.evaluation.montecarlo import simulate
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
 # heaters that only heat: the nominal holds some of them at 0, where half the feedback is cut off
 LIMITS = dict(u_min=0.0, u_max=0.6)
-FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1)
+# plan 0.8's experiments: the same designs with and without the correction (off unless asked)
+FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1, experiment_plan="0.8")
 
 
 def _design(sc, **kw):
@@ -99,7 +100,8 @@ def test_without_limits_the_correction_changes_nothing():
 
 
 def test_the_plans_defaults_the_option_and_the_plan_estimate():
-    assert DesignSettings().resolved().clip_correction is False
+    assert DesignSettings().resolved().clip_correction is True              # the default plan, 0.9
+    assert DesignSettings(experiment_plan="0.8").resolved().clip_correction is False
     assert DesignSettings(experiment_plan="0.9").resolved().clip_correction is True
     assert DesignSettings(experiment_plan="0.9", clip_correction=False).resolved().clip_correction is False
     with pytest.raises(ValueError, match="clip_correction"):

@@ -35,7 +35,9 @@ from sep_estimator.design_file import save_design
 
 s = load_scenario(None).with_plant(n_x=40)
 with threadpool_limits(1):
-    d = run_design(s.plant, s.problem, DesignSettings(), show_progress=False, log=lambda m: None)
+    # plan 0.8 (0.8.0's experiments) where the tree has plans; 0.8.0 itself has only that one
+    plan = {"experiment_plan": "0.8"} if "experiment_plan" in DesignSettings.__dataclass_fields__ else {}
+    d = run_design(s.plant, s.problem, DesignSettings(**plan), show_progress=False, log=lambda m: None)
     save_design(sys.argv[1], d)
     mc = simulate(s.plant, d, "rom_lqg", 3, 24)
 np.savez(sys.argv[2], U=mc.U, Y=mc.Y, F=mc.F, F_hat=mc.F_hat)

@@ -25,7 +25,8 @@ from sep_plant.ros import contract as c
 
 SMALL = dict(n_x=20, n_steps=40, k_band=24, lqr_k_switch=20)
 LIMITS = dict(u_min=0.0, u_max=0.6)
-FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1)
+# plan 0.8: the limit-margin designs below are compared with one without the clip correction
+FAST = dict(p=5, q=5, n_r=10, ensemble=20, belief_iter=1, experiment_plan="0.8")
 
 
 @pytest.fixture(scope="module")

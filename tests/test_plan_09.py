@@ -70,7 +70,8 @@ def test_a_strided_identification_records_its_stride_and_fits_its_markov_paramet
 
 
 def test_impulse_stride_is_a_plan_key_and_is_checked():
-    assert DesignSettings().impulse_stride == 1
+    assert DesignSettings(experiment_plan="0.8").impulse_stride == 1
+    assert DesignSettings().impulse_stride == 2                          # the default plan, 0.9
     assert DesignSettings(experiment_plan="0.9").impulse_stride == 2
     assert DesignSettings(experiment_plan="0.9", impulse_stride=1).impulse_stride == 1
     assert DesignSettings.from_meta({"settings": {}}).impulse_stride == 1      # files before the key

@@ -115,7 +115,8 @@ def test_the_design_reuses_the_optimizers_last_identification():
     from sep_control.design.stages import PROPOSAL_ROM
     from sep_control.design.tvera import SCHEMES
 
-    st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False, relinearize_rtol=SAME_INPUT_RTOL)
+    st = DesignSettings(jacobian="rom", p=8, q=8, n_r=16, belief=False, relinearize_rtol=SAME_INPUT_RTOL,
+                        experiment_plan="0.8")
     d = run_design(P, S, st, show_progress=False, log=lambda m: None)
     lins = d.meta["optimizer"]["linearizations"]
     # far from the optimum coarse proposal models (forward: one run per impulse), near it the
@@ -138,7 +139,7 @@ def test_keeping_the_identification_for_small_steps_reaches_the_same_design():
     from sep_control.design.pipeline import DesignSettings, run_design
     from sep_control.design.tvera import markov_relative_error
 
-    base = dict(jacobian="rom", p=8, q=8, n_r=16)
+    base = dict(jacobian="rom", p=8, q=8, n_r=16, experiment_plan="0.8")    # plan 0.8's RomJacobian
     every = run_design(P, S, DesignSettings(**base, relinearize_rtol=SAME_INPUT_RTOL), show_progress=False,
                        log=lambda m: None)
     kept = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
@@ -268,7 +269,7 @@ def test_auto_switches_from_sensitivity_to_one_identification_near_the_optimum()
     from sep_control.design.jacobians import NEAR_OPTIMUM
     from sep_control.design.pipeline import DesignSettings, run_design
 
-    base = dict(p=8, q=8, n_r=16, belief=False)
+    base = dict(p=8, q=8, n_r=16, belief=False, experiment_plan="0.8")     # plan 0.8's 'auto' rule
     auto = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
     sens = run_design(P, S, DesignSettings(**base, jacobian="sensitivity"), show_progress=False,
                       log=lambda m: None)
@@ -292,7 +293,7 @@ def test_coarse_proposal_models_reach_the_same_design():
     from sep_control.design.stages import PROPOSAL_ROM
     from sep_control.design.tvera import SCHEMES
 
-    base = dict(jacobian="rom", p=8, q=8, n_r=16)
+    base = dict(jacobian="rom", p=8, q=8, n_r=16, experiment_plan="0.8")    # plan 0.8's RomJacobian
     coarse = run_design(P, S, DesignSettings(**base), show_progress=False, log=lambda m: None)
     full = run_design(P, S, DesignSettings(**base, coarse_proposals=False), show_progress=False,
                       log=lambda m: None)
@@ -334,7 +335,8 @@ def test_a_belief_refinement_that_takes_no_step_runs_the_enkf_once(monkeypatch):
     monkeypatch.setattr(design_mod, "run_belief", lambda *a, **k: runs.append(1) or orig(*a, **k))
     # J_b = 1 at the start, and every trial raises it
     monkeypatch.setattr(opt_mod, "belief_cost", lambda b, U, obj: 1.0 if len(runs) == 1 else 1.001)
-    d = run_design(P, S, DesignSettings(p=8, q=8, n_r=16), show_progress=False, log=lambda m: None)
+    d = run_design(P, S, DesignSettings(p=8, q=8, n_r=16, experiment_plan="0.8"), show_progress=False,
+                   log=lambda m: None)
     assert design_mod.BELIEF_TRIALS == 1
     assert d.meta["optimizer"]["belief_history"] == [1.0]
     assert len(runs) == 2                               # the start, one trial; none afterwards

@@ -38,7 +38,7 @@ def test_design_records_run_steps_per_stage_and_the_plan_estimates_them():
     scen = reference().with_plant(n_x=20)
     plant, problem = scen.plant, scen.problem
     lines: list[str] = []
-    st = DesignSettings(p=6, q=6, n_r=8, ensemble=8, max_iter=3)
+    st = DesignSettings(p=6, q=6, n_r=8, ensemble=8, max_iter=3, experiment_plan="0.8")
     d = run_design(plant, problem, st, show_progress=False, log=lines.append)
     rs = d.meta["run_steps"]
     assert rs["total"] == sum(v for k, v in rs.items() if k != "total") > 0
@@ -69,9 +69,11 @@ def test_plan_warns_on_many_noise_channels_naming_them():
 
 
 def test_experiment_plans_resolve_their_keys():
-    assert DesignSettings().impulse_scheme == "central" and DesignSettings().ensemble == 200
+    old = DesignSettings(experiment_plan="0.8")
+    assert old.impulse_scheme == "central" and old.ensemble == 200
     new = DesignSettings(experiment_plan="0.9")
     assert (new.impulse_scheme, new.ensemble) == ("forward", 50)
+    assert DesignSettings().experiment_plan == "0.9"                     # the default plan
     assert DesignSettings(experiment_plan="0.9", ensemble=100).ensemble == 100
     assert DesignSettings.from_meta({"settings": {}}).experiment_plan == "0.8"
 
@@ -94,7 +96,8 @@ def test_spot_check_of_a_model_at_its_own_input_is_its_markov_error():
 def test_plan_09_design_counts_fewer_run_steps_and_records_its_plan():
     scen = reference().with_plant(n_x=20)
     kw = dict(p=6, q=6, n_r=8, max_iter=4)
-    old = run_design(scen.plant, scen.problem, DesignSettings(**kw), show_progress=False, log=lambda m: None)
+    old = run_design(scen.plant, scen.problem, DesignSettings(experiment_plan="0.8", **kw), show_progress=False,
+                     log=lambda m: None)
     lines: list[str] = []
     new = run_design(scen.plant, scen.problem, DesignSettings(experiment_plan="0.9", **kw), show_progress=False,
                      log=lines.append)
@@ -109,7 +112,9 @@ def test_plan_counts_the_limit_margin_passes():
     from dataclasses import replace
 
     scen = reference()
-    st, margin = DesignSettings(), DesignSettings(limit_margin=1.0, margin_iterations=2)
+    # plan 0.8: no clip correction (plan 0.9 runs it only without a margin: one pass more)
+    st, margin = DesignSettings(experiment_plan="0.8"), DesignSettings(limit_margin=1.0, margin_iterations=2,
+                                                                       experiment_plan="0.8")
     free = design_plan(scen.plant, scen.problem, st)
     assert free["passes"] == 1 and design_plan(scen.plant, scen.problem, margin)["passes"] == 1
     limited = replace(scen.problem, u_min=0.0, u_max=0.6)

@@ -85,12 +85,14 @@ SETTINGS_OPTIONS = (
     ("--impulse-stride", "impulse_stride", dict(type=int),
      "TV-ERA impulses at every stride-th start step (and the last); the Markov parameters of the start steps "
      "between are interpolated linearly (about 1/stride of the identification's plant steps; default: the "
-     "plan's, 1 for 0.8, 2 for 0.9; the design logs the Markov error of its model)", False),
+     "plan's, 1 for 0.8, 2 for 0.9; the design logs the Markov error of its model, and identifies its final model "
+     "again at every start step where the strided data resolve under half of the ROM's kept states)", False),
     ("--experiment-plan", "experiment_plan", dict(choices=["0.8", "0.9"]),
-     "which experiments the design runs: 0.8 = sep 0.8.0's plan (its designs bit for bit; the default); 0.9 = "
-     "a coarse first model kept while its steps pay, forward impulses, a spot check before the optimizer's "
-     "last model is reused, no belief refinement, 50 EnKF members, the clip correction under input or rate limits "
-     "(0.17-0.21x the plant run-steps on the reference, plate, rod and Burgers; docs/benchmarks.md)", False),
+     "which experiments the design runs: 0.9 (the default) = a coarse first model kept while its steps pay, "
+     "forward impulses at every second start step, a settle stop, a spot check before the optimizer's last model "
+     "is reused, no belief refinement, 50 EnKF members, the clip correction under input or rate limits "
+     "(0.17-0.21x sep 0.8.0's plant run-steps on the reference, plate, rod and Burgers; docs/benchmarks.md); "
+     "0.8 = sep 0.8.0's plan (its designs bit for bit)", False),
     ("--chunks", "chunks", dict(type=int),
      "TV-ERA impulse experiments in this many chunks of start steps (tasks for --dask). The chunks "
      "fix how the field basis is merged, so the design depends on --chunks (at the field basis' "
@@ -252,6 +254,8 @@ def design_summary(design) -> dict:
         "max_dev_per_hold": m["validation"].get("max_dev_per_hold"),     # a recipe's holds
         "hold_bands": [b for _, _, b in design.objective.holds] if design.objective.holds else None,
         "markov_rel_error": m["validation"]["markov_rel_error"],
+        # strided impulses: the share of the kept ROM states they resolve (`stride_check`; None: every start step)
+        "stride_resolved_share": m["validation"].get("stride_resolved_share"),
         "timings": m["timings"],
         "run_steps": m.get("run_steps"),              # plant run-steps per stage (None: files before 0.9)
         "clip_correction": m.get("clip_correction"),  # what the clip correction predicted and kept (None: not run)

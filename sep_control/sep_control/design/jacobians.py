@@ -120,7 +120,8 @@ class RomJacobian:
             return Linearized(self._on(self.kept, obj, at), "rom (kept)", 0)
         far = self.proposal is not None and not self.settled
         self.kept = (self.proposal if far else self.rom).identify(plant, at.U)
-        return Linearized(self._on(self.kept, obj, at), "rom (proposal)" if far else "rom",
+        coarse = far and self.proposal != self.rom      # without coarse proposals the first model is a full one
+        return Linearized(self._on(self.kept, obj, at), "rom (proposal)" if coarse else "rom",
                           self.kept.data.experiments)
 
     def relinearize(self, plant: Plant, obj: Objective, at: Point, lin: Linearization,

@@ -205,6 +205,9 @@ def _with_clip_correction(plant: Plant, problem: Problem, st: DesignSettings, ct
     clipping (`sep_control.design.saturation`), the stages again around it, and the pass the
     ROM Monte Carlo of fresh random numbers predicts cheaper; the record for the design file."""
     if not clip_correction_pass(problem, st.resolved()):
+        if st.resolved().clip_correction and margin_redesigns(problem, st):
+            ctx.log(f"clip correction: not run (limit_margin {st.limit_margin:g}: the nominal stays inside the "
+                    f"tightened limits)")
         return current, None
     t0 = time.perf_counter()
     cl = _closed_loop(plant, problem, current)
@@ -262,6 +265,7 @@ def _meta(st: DesignSettings, timings: dict[str, float], final: DesignPass, obj:
                       "limit_margins": margins, "experiments_before_last_margin_pass": experiments},
         "validation": {"markov_rel_error": ident.markov_rel_error, "impulse_amplitude": ident.identification.delta,
                        **({} if ident.spot_rel_error is None else {"spot_markov_rel_error": ident.spot_rel_error}),
+                       **({} if ident.stride_resolved is None else {"stride_resolved_share": ident.stride_resolved}),
                        "max_dev_in_band_window": float(np.max(np.abs(F_nom[k0:k1 + 1] - obj.targets(k0, k1)))),
                        **({} if obj.holds is None else {"max_dev_per_hold": [
                            float(np.max(np.abs(F_nom[a:b + 1] - obj.targets(a, b)))) for a, b, _ in obj.holds]})},

@@ -47,8 +47,11 @@ def margin_redesigns(problem: Problem, st) -> int:
 def clip_correction_pass(problem: Problem, st) -> bool:
     """Whether the design may add the clip correction's pass (`pipeline._with_clip_correction`):
     `st.clip_correction` and a problem that limits an input or its rate (the pass runs when the
-    ROM predicts that the limits' clipping adds 1 % or more to the closed-loop cost)."""
-    return bool(st.clip_correction) and (problem.input_limited or problem.rate_limited)
+    ROM predicts that the limits' clipping adds 1 % or more to the closed-loop cost), and no
+    limit margin: a margin is the other answer to the same clipping, and a nominal moved inside
+    the plain limits would leave the tightened ones the user asked for."""
+    return bool(st.clip_correction) and (problem.input_limited or problem.rate_limited) and \
+        not margin_redesigns(problem, st)
 
 
 def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
@@ -63,9 +66,8 @@ def design_plan(plant: Plant, problem: Problem, st) -> dict[str, Any]:
     ident = experiment_run_steps(starts, n_ch, lags, st.impulse_scheme) + N + lags
     jac = st.resolved_jacobian_for(plant, N)
     belief = (st.belief_iter + 1) * st.ensemble * N if st.belief else 0
-    if st.experiment_plan != "0.8" and st.method == "gn" and (jac == "rom" or st.jacobian == "auto"):
+    if st.experiment_plan != "0.8" and st.method == "gn" and jac == "rom":
         steps = _plan_09(st, N, n_u, n_ch, starts, ident)
-        jac = "rom"
         steps["belief"] = belief
     else:
         if jac == "rom":

@@ -41,7 +41,7 @@ PLANS: dict[str, dict[str, Any]] = {
     "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0, "impulse_stride": 2,
             "clip_correction": True},
 }
-DEFAULT_PLAN = "0.8"
+DEFAULT_PLAN = "0.9"
 
 #: keys of older design files and scenario `design:` sections, and what they are called now
 RENAMED = {"seed": "enkf_seed"}
@@ -80,8 +80,8 @@ class DesignSettings:
     impulse_scheme : {"central", "forward"}, optional
         TV-ERA impulses: +- pairs, or one run each against an unperturbed copy (None: the plan's).
     experiment_plan : {"0.8", "0.9"}
-        Which experiments the design runs (`PLANS`): "0.8" (default) reproduces sep 0.8.0's designs
-        bit for bit; "0.9" spends fewer plant run-steps (docs/benchmarks.md).
+        Which experiments the design runs (`PLANS`): "0.9" (default) spends 0.17-0.42x sep 0.8.0's
+        plant run-steps (docs/benchmarks.md); "0.8" reproduces sep 0.8.0's designs bit for bit.
     field_map_tol : float
         Field map: drop directions moving the field by less than this times its spread.
     enkf_seed : int
@@ -290,7 +290,10 @@ class DesignSettings:
 
     def resolved_jacobian_for(self, plant: Plant, n_steps: int) -> str:
         """`resolved_jacobian`, and the ROM one also when the sensitivity experiments (N n_u runs
-        in one batch) would not fit the memory budget."""
+        in one batch) would not fit the memory budget, or for Gauss-Newton under plan 0.9 (its
+        coarse kept models take fewer run-steps than sensitivities at every horizon)."""
+        if self.jacobian == "auto" and self.method == "gn" and self.experiment_plan != "0.8":
+            return "rom"
         jac = self.resolved_jacobian(n_steps)
         if self.jacobian == "auto" and jac == "sensitivity" and \
                 n_steps * int(plant.n_u) > runs_per_batch(int(plant.n_x), int(plant.n_field), self.memory_budget):

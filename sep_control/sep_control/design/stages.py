@@ -32,6 +32,7 @@ from sep_control.design.optimizer import OptimizationResult, Optimizer, Optimize
 from sep_control.design.runsteps import RunStepMeter
 from sep_control.design.settings import DesignSettings
 from sep_control.design.spotcheck import SPOT_BLOCKS, SPOT_STARTS, SPOT_TOL, spot_error
+from sep_control.design.stride_check import RESOLVED_MIN, resolved_share
 from sep_control.design.tvera import Identification, extend_nominal, markov_relative_error
 
 #: Levenberg-Marquardt trials per belief-space iteration. Each is an EnKF run, and the Gauss-Newton
@@ -119,6 +120,7 @@ class IdentificationStage:
     reused: bool                  # the optimizer's last identification (made at this input), not a new one
     markov_rel_error: float       # `markov_relative_error` of the model on its own experiments
     spot_rel_error: float | None = None   # plan 0.9: its error at the final input (`spotcheck`), when reused from elsewhere
+    stride_resolved: float | None = None  # strided impulses: the share of kept states they resolve (`stride_check`)
 
 
 @dataclass
@@ -157,11 +159,8 @@ def nominal_stage(plant: Plant, problem: Problem, st: DesignSettings, ctx: Stage
     """Stage 1: the open-loop nominal (mean-only optimum, then the belief-space refinement),
     from U0 (None: u_init) inside `bounds` (None: the problem's limits)."""
     t0 = time.perf_counter()
-    kind = st.resolved_jacobian_for(plant, problem.n_steps)
-    planned = st.experiment_plan != "0.8" and st.method == "gn"
-    if planned and st.jacobian == "auto":
-        kind = "rom"            # plan 0.9: the coarse kept models take fewer run-steps than sensitivities
-    planned = planned and kind == "rom"
+    kind = st.resolved_jacobian_for(plant, problem.n_steps)     # plan 0.9 + gn + auto: "rom"
+    planned = st.experiment_plan != "0.8" and st.method == "gn" and kind == "rom"
     max_iter = PLAN_MAX_ITER if planned and st.max_iter is None else st.max_iter
     options = OptimizerOptions(method=st.method, max_iter=max_iter, tol=st.tol, step_size=st.step_size,
                                bounds=bounds, show_progress=ctx.show_progress, refresh_on_stall=planned,
@@ -229,7 +228,14 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
                 f"({'<=' if reused else '>'} {SPOT_TOL:g}: {'reused' if reused else 'identified again'})")
     if not reused:
         ident = st.rom(ctx.engine, problem).identify(plant, U, ctx.show_progress)
-    elif not np.array_equal(ident.U, U):
+    resolved = resolved_share(ident) if ident.stride > 1 else None
+    if resolved is not None and resolved < RESOLVED_MIN:
+        # the filter's model keeps states below the interpolation's error: impulse every start step
+        ctx.log(f"TV-ERA: the strided impulses (impulse_stride {ident.stride}) resolve {resolved:.0%} of the "
+                f"kept ROM states (< {RESOLVED_MIN:.0%}: the interpolation's error sets the rest, by Weyl's "
+                f"bound); identifying again with impulses at every start step")
+        ident, reused = replace(st.rom(ctx.engine, problem), stride=1).identify(plant, U, ctx.show_progress), False
+    elif reused and not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=nominal_states(plant, extend_nominal(U, st.p + st.q)),
                         U=U.copy())     # the same linear model; the nominal of the final input
     ctx.took("identify_s", t0)
@@ -239,7 +245,7 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     ctx.log(f"TV-ERA: n_r = {int(ident.model.dims.max())} (cap {st.n_r}), {ident.data.experiments} impulse "
             f"experiments{_stride_note(ident.stride)}{_reuse_note(ident.U, U) if reused else ''}, Markov relative "
             f"error {err:.2e}")
-    return IdentificationStage(ident, reused, err, spot if reused else None)
+    return IdentificationStage(ident, reused, err, spot if reused else None, resolved)
 
 
 def describe_sketch(ident: Identification) -> str:

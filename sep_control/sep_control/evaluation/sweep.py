@@ -35,7 +35,8 @@ def rom_sweep(plant, design, oracle, orders: Sequence[int], runs: int, seed: int
     plant : Plant
         The nonlinear plant.
     design : Design
-        The design whose nominal, settings (p, q, sv_tol, impulse scheme) and problem are used.
+        The design whose nominal, settings (p, q, sv_tol, impulse scheme; impulses at every start
+        step) and problem are used.
     oracle : LQG or None
         The full-order oracle LQG (`sep_control.evaluation.oracle.oracle_lqg`); None: no
         ``cost_oracle`` (rows carry None).
@@ -62,6 +63,9 @@ def rom_sweep(plant, design, oracle, orders: Sequence[int], runs: int, seed: int
     engine, progress = engine or InProcess(), progress or RunSteps(0, "", enabled=False)
     settings = DesignSettings.from_meta(design.meta)
     settings.n_r = max(orders)
+    # impulses at every start step: strided ones leave the higher orders' states to the
+    # interpolation's error (`sep_control.design.stride_check`), which the sweep would then compare
+    settings.impulse_stride = 1
     N = design.n_steps
     ident = identify_rom(plant, design.nominal.u, settings, engine=engine, problem=design.problem)
     progress.add(impulse_run_steps(plant, N, settings.p + settings.q, settings.impulse_scheme,
