@@ -168,14 +168,13 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                        show_progress=show_progress and not in_process)
     if meter is not None:
         meter.add(experiment_run_steps(len(starts), n_ch, lags, scheme, len(groups)))
-    Y_raw, Yc_raw, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
-    Y, Yc = Y_raw, Yc_raw
+    Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
     if stride > 1:
-        Y, Yc = interpolate_starts(Y, starts), interpolate_starts(Yc, starts)
-        if noise is not None:
-            # a sketch's columns: each start step's own combinations (`NoiseSketch.hold`), so the
-            # steps between hold the start step's responses instead of mixing two starts' probes
-            Y[..., n_u:], Yc[..., n_u:] = hold_starts(Y_raw[..., n_u:], starts), hold_starts(Yc_raw[..., n_u:], starts)
+        # a sketch's columns are held: each start step's own combinations (`NoiseSketch.hold`),
+        # which a linear interpolation between two start steps would mix
+        cut = n_u if noise is not None else n_ch
+        Y, Yc = (np.concatenate([interpolate_starts(Z[..., :cut], starts), hold_starts(Z[..., cut:], starts)], axis=-1)
+                 for Z in (Y, Yc))
     return MarkovData(Y, Yc, phi, delta, SCHEMES[scheme] * len(starts) * n_ch, n_u, noise)
 
 

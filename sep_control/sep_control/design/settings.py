@@ -80,7 +80,7 @@ class DesignSettings:
     impulse_scheme : {"central", "forward"}, optional
         TV-ERA impulses: +- pairs, or one run each against an unperturbed copy (None: the plan's).
     experiment_plan : {"0.8", "0.9"}
-        Which experiments the design runs (`PLANS`): "0.9" (default) spends 0.17-0.42x sep 0.8.0's
+        Which experiments the design runs (`PLANS`): "0.9" (default) spends 0.094-0.38x sep 0.8.0's
         plant run-steps (docs/benchmarks.md); "0.8" reproduces sep 0.8.0's designs bit for bit.
     field_map_tol : float
         Field map: drop directions moving the field by less than this times its spread.

@@ -215,26 +215,30 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     # which moved by ~1e-4 relative (within relinearize_rtol): the Markov parameters move by that
     # much, far below the forward impulses' own O(delta) error
     rtol = SAME_INPUT_RTOL if st.experiment_plan == "0.8" else st.relinearize_rtol
-    reused = ident is not None and same_input(ident.U, U, rtol) and ident.made_with(st.impulse_scheme, p=st.p,
-                                                                                   q=st.q)
+    full = ident is not None and ident.made_with(st.impulse_scheme, p=st.p, q=st.q)
+    # the stride check first (no plant steps): a model the strided data do not resolve is neither
+    # reused nor spot-checked, and its stride is not tried again at the final input
+    resolved = resolved_share(ident) if full and ident.stride > 1 else None
+    unresolved = resolved is not None and resolved < RESOLVED_MIN
+    reused = full and not unresolved and same_input(ident.U, U, rtol)
     spot = None
-    if not reused and st.experiment_plan != "0.8" and ident is not None and \
-            ident.made_with(st.impulse_scheme, p=st.p, q=st.q):
+    if not reused and not unresolved and st.experiment_plan != "0.8" and full:
         with ctx.meter.stage("validation"):
             spot = spot_error(plant, ident, U)
         reused = spot <= SPOT_TOL
         ctx.log(f"TV-ERA: the optimizer's last model, checked at the final input by impulses at "
                 f"{SPOT_BLOCKS} x {SPOT_STARTS} start steps: Markov relative error {spot:.2e} "
                 f"({'<=' if reused else '>'} {SPOT_TOL:g}: {'reused' if reused else 'identified again'})")
-    if not reused:
+    if not reused and not unresolved:
         ident = st.rom(ctx.engine, problem).identify(plant, U, ctx.show_progress)
-    resolved = resolved_share(ident) if ident.stride > 1 else None
-    if resolved is not None and resolved < RESOLVED_MIN:
+        resolved = resolved_share(ident) if ident.stride > 1 else None
+        unresolved = resolved is not None and resolved < RESOLVED_MIN
+    if unresolved:
         # the filter's model keeps states below the interpolation's error: impulse every start step
-        ctx.log(f"TV-ERA: the strided impulses (impulse_stride {ident.stride}) resolve {resolved:.0%} of the "
+        ctx.log(f"TV-ERA: the strided impulses (impulse_stride {st.impulse_stride}) resolve {resolved:.0%} of the "
                 f"kept ROM states (< {RESOLVED_MIN:.0%}: the interpolation's error sets the rest, by Weyl's "
                 f"bound); identifying again with impulses at every start step")
-        ident, reused = replace(st.rom(ctx.engine, problem), stride=1).identify(plant, U, ctx.show_progress), False
+        ident = replace(st.rom(ctx.engine, problem), stride=1).identify(plant, U, ctx.show_progress)
     elif reused and not np.array_equal(ident.U, U):
         ident = replace(ident, X_ext=nominal_states(plant, extend_nominal(U, st.p + st.q)),
                         U=U.copy())     # the same linear model; the nominal of the final input
