@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from sep_plant import topics as T
 from sep_plant.noise import DEFAULT_SEED
 
 from sep_control.cli.common import (EXIT_FAILED, EXIT_OK, add_compute_options, add_deprecated, controller_name, fail,
@@ -30,6 +31,22 @@ from sep_control.cli.demo_report import episode_metrics, print_metrics, run_anal
 from sep_control.cli.processes import Children, executable
 from sep_control.compute.progress import bars_wanted
 from sep_control.control.controllers import NODE_CONTROLLERS
+
+#: the controllers' output topics the recorder must have matched before the plant starts, and how long
+#: the demo waits for that
+CONTROLLER_TOPICS = (T.COMMAND, T.STATE_ESTIMATE, T.FIELD_ESTIMATE)
+RECORDER_READY_S = 30.0
+
+
+def _appears(path: Path, timeout: float) -> bool:
+    """Whether `path` exists within `timeout` seconds (polled)."""
+    end = time.monotonic() + timeout
+    while not path.exists():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
+
 
 HELP = "design (or reuse), run plant + controller over ROS 2 topics, record and report one episode"
 DESCRIPTION = __doc__.split("\n\n")[0] + """
@@ -179,12 +196,18 @@ class DemoRun:
             kids.stop_all()
 
     def start_nodes(self, kids: Children, design, design_file: Path) -> None:
-        """The recorder (if recording) and the controller node(s), before the plant."""
+        """The recorder (if recording) and the controller node(s), before the plant; with a
+        recorder, returns once it has matched the controllers' output topics (the plant's wait
+        for subscribers covers only its own topics, and a lockstep episode can end before a late
+        match: a bag without the controllers' topics)."""
         args, files = self.args, self.files
+        ready = kids.log_dir / 'record.ready'
         if self.record:
             if self.bag.exists():
                 shutil.rmtree(self.bag)
-            kids.start('record', [self.exes['record'], '--out', str(self.bag)])
+            ready.unlink(missing_ok=True)
+            kids.start('record', [self.exes['record'], '--out', str(self.bag), '--ready-file', str(ready),
+                                  '--ready-topics', *CONTROLLER_TOPICS])
         ctl = ['--ros-args', '-p', f'design_file:={design_file}',
                '-p', f'controller:={args.controller}']
         if args.three:
@@ -195,6 +218,9 @@ class DemoRun:
                                '-p', f'estimate_timeout_s:={timeout}'])
         else:
             kids.start('lqg', [self.exes['lqg'], *ctl, '-p', f'summary_file:={files["lqg"]}'])
+        if self.record and not _appears(ready, RECORDER_READY_S):
+            log(f'warning: the recorder matched the controllers\' topics not within {RECORDER_READY_S:g} s; '
+                f'starting the episode anyway (the bag may miss their first messages)')
         log(f'running plant ({args.mode}'
             + (f', real_time_factor {args.real_time_factor:g}' if args.mode == 'realtime' else '')
             + f', seed {args.seed} run {args.run}) + ' + ' + '.join(self.controllers)
