@@ -258,16 +258,18 @@ def test_a_non_finite_device_state_is_caught_without_a_check_per_line_solve(one_
         run_belief(dev, U, s.problem, 8, 0, X=Xbar * 0 + s.plant.initial_state(1))
 
 
-def test_the_field_basis_on_the_device_equals_the_hosts():
-    """`IncrementalBasis` with its Phi on the device (SVD through a QR there): the same rank and
-    span, coefficients that rebuild the snapshots to round-off; `merge` too."""
+@pytest.mark.parametrize("method", ["gram", "svd"])
+def test_the_field_basis_on_the_device_equals_the_hosts(method):
+    """`IncrementalBasis` with its Phi on the device (Gram matrices and CholeskyQR2 there, or
+    0.8.0's SVD through a QR): the same rank and span, coefficients that rebuild the snapshots to
+    round-off; `merge` too."""
     from sep_control.design.basis import IncrementalBasis
 
     rng = np.random.default_rng(3)
     n = 500
     modes = np.linalg.qr(rng.standard_normal((n, 12)))[0] * np.logspace(0, -6, 12)
     blocks = [rng.standard_normal((9, 12)) @ modes.T for _ in range(5)]
-    host, dev = IncrementalBasis(n, 1e-8), IncrementalBasis(n, 1e-8, xp=guard)
+    host, dev = IncrementalBasis(n, 1e-8, method=method), IncrementalBasis(n, 1e-8, xp=guard, method=method)
     for D in blocks:
         ch = host.add(D)
         cd = dev.add(guard.asarray(D))

@@ -4,7 +4,7 @@ exactly like the dense one it replaces."""
 import numpy as np
 import pytest
 
-from sep_control.design.basis import IncrementalBasis, truncate
+from sep_control.design.basis import METHODS, IncrementalBasis, truncate
 from sep_estimator.ltv import (AUTO_FLOAT32_BYTES, DenseFieldMap, Float32Reconstruction, PODFieldMap, in_precision,
                                resolve_precision)
 
@@ -14,9 +14,9 @@ def low_rank(rng, n, m, rank, decay=1.0):
     return U @ np.diag(decay ** np.arange(rank)) @ rng.standard_normal((rank, m))
 
 
-def stream(X, block, tol=1e-12):
+def stream(X, block, tol=1e-12, method="gram"):
     """Add the columns of X in blocks; return the basis and the (r, m) coefficients."""
-    b = IncrementalBasis(X.shape[0], tol)
+    b = IncrementalBasis(X.shape[0], tol, method=method)
     parts = [(i, b.add(X[:, i:i + block].T)) for i in range(0, X.shape[1], block)]
     C = np.zeros((b.rank, X.shape[1]))
     for i, c in parts:
@@ -24,24 +24,27 @@ def stream(X, block, tol=1e-12):
     return b, C
 
 
-def test_streamed_basis_reproduces_the_snapshots_and_finds_their_rank():
+@pytest.mark.parametrize("method", METHODS)
+def test_streamed_basis_reproduces_the_snapshots_and_finds_their_rank(method):
     rng = np.random.default_rng(0)
     X = low_rank(rng, 400, 300, 17)
-    b, C = stream(X, 23)
+    b, C = stream(X, 23, method=method)
     assert b.rank == 17
     np.testing.assert_allclose(b.phi.T @ b.phi, np.eye(17), atol=1e-13)
     np.testing.assert_allclose(b.phi @ C, X, atol=1e-12 * np.abs(X).max())
 
 
-def test_what_is_dropped_is_below_the_tolerance():
+@pytest.mark.parametrize("method", METHODS)
+def test_what_is_dropped_is_below_the_tolerance(method):
     rng = np.random.default_rng(1)
     X = low_rank(rng, 300, 200, 40, decay=0.5)           # singular values 1, 0.5, 0.25, ...
     for tol in (1e-4, 1e-8):
-        b, C = stream(X, 10, tol)
+        b, C = stream(X, 10, tol, method)
         err = np.linalg.norm(b.phi @ C - X, axis=0).max() / np.linalg.norm(X, axis=0).max()
         assert err < 30 * tol and b.rank < 40
+        np.testing.assert_allclose(b.phi.T @ b.phi, np.eye(b.rank), atol=1e-12)
     # truncation to the span the coefficients use
-    b, C = stream(X, 10, 1e-14)
+    b, C = stream(X, 10, 1e-14, method)
     Phi, C2 = truncate(b.phi, C, 1e-6)
     assert Phi.shape[1] < b.rank
     assert np.linalg.norm(Phi @ C2 - X) <= 1e-5 * np.linalg.norm(X)
@@ -128,14 +131,15 @@ def test_identified_field_map_is_compact_and_its_rank_does_not_grow_with_the_gri
         assert np.abs(G.matrix(k) - Gf).max() <= 1e-6 * np.abs(Gf).max()
 
 
-def test_a_block_inside_the_span_adds_nothing_and_needs_no_svd(monkeypatch):
+@pytest.mark.parametrize("method", METHODS)
+def test_a_block_inside_the_span_adds_nothing_and_needs_no_svd(monkeypatch, method):
     """Once the basis holds the responses, a block whose residual's Frobenius norm is below
     tol * scale (a bound on every singular value) is projected only: no SVD, no new direction."""
     import sep_control.design.basis as basis_mod
 
     rng = np.random.default_rng(5)
     X = low_rank(rng, 300, 40, 6)
-    b = IncrementalBasis(300, 1e-10)
+    b = IncrementalBasis(300, 1e-10, method=method)
     b.add(X[:, :20].T)
     assert b.rank == 6
     svds = []
@@ -148,9 +152,47 @@ def test_a_block_inside_the_span_adds_nothing_and_needs_no_svd(monkeypatch):
     assert svds == [1] and b.rank == 9
 
 
-def test_basis_rejects_wrong_length():
+def test_basis_rejects_wrong_length_and_an_unknown_method():
     with pytest.raises(ValueError, match="length"):
         IncrementalBasis(5).add(np.zeros((2, 4)))
+    with pytest.raises(ValueError, match="gram, svd"):
+        IncrementalBasis(5, method="qr")
+
+
+def test_gram_basis_keeps_directions_down_to_the_tolerance_across_sixteen_decades():
+    """A block whose singular values run from 1 to 1e-16 (beyond what one Gram matrix resolves,
+    about 1e-5.5 of its largest): the rounds find every direction above the tolerance, as the
+    SVD does, and the coefficients rebuild the block to it."""
+    rng = np.random.default_rng(7)
+    n, b = 2000, 40
+    modes = np.linalg.qr(rng.standard_normal((n, b)))[0] * np.logspace(0, -16, b)
+    D = np.linalg.qr(rng.standard_normal((b, b)))[0] @ modes.T
+    for tol in (1e-8, 1e-12):
+        g, s = IncrementalBasis(n, tol, method="gram"), IncrementalBasis(n, tol, method="svd")
+        Cg, Cs = g.add(D), s.add(D)
+        scale = np.linalg.norm(D, axis=1).max()        # the tolerance is relative to the largest snapshot
+        assert g.rank == s.rank == int(np.count_nonzero(np.logspace(0, -16, b) > tol * scale))
+        np.testing.assert_allclose(g.phi.T @ g.phi, np.eye(g.rank), atol=1e-12)
+        assert np.abs(Cg @ g.phi.T - D).max() <= 2 * tol * scale
+        # the same projection of the data (the directions at the tolerance's edge are round-off)
+        assert np.abs(g.phi @ (g.phi.T @ D.T) - s.phi @ (s.phi.T @ D.T)).max() <= 2 * tol * scale
+
+
+def test_both_methods_identify_the_same_field_responses():
+    """An identification with the Gram basis (experiment plan 0.9) and with 0.8.0's SVD one: the
+    same rank, the same output Markov parameters, field responses equal far below the basis'
+    tolerance (1e-8 of the largest response)."""
+    from core_helpers import flat
+    from sep_control.design import tvera
+
+    s = flat(n_x=800, n_steps=40, k_band=24, lqr_k_switch=19)
+    U = np.full((40, 5), 0.2) + 0.01 * np.random.default_rng(3).standard_normal((40, 5))
+    g = tvera.identify(s.plant, U, 6, 6, 16, chunks=4, field_basis="gram").data
+    v = tvera.identify(s.plant, U, 6, 6, 16, chunks=4, field_basis="svd").data
+    assert abs(g.basis.shape[1] - v.basis.shape[1]) <= 1
+    np.testing.assert_array_equal(g.Y, v.Y)
+    np.testing.assert_allclose(g.basis.T @ g.basis, np.eye(g.basis.shape[1]), atol=1e-12)
+    assert np.abs(g.Yf - v.Yf).max() <= 1e-9 * np.abs(v.Yf).max()
 
 
 def test_experiments_split_by_a_memory_budget_give_the_same_data():
@@ -189,7 +231,8 @@ def test_chunk_bases_merge_to_the_one_chunk_basis():
     assert np.abs(Yf4 - Yf1).max() <= 1e-7 * np.abs(Yf1).max()
 
 
-def test_merge_streams_coefficients_like_add():
+@pytest.mark.parametrize("method", METHODS)
+def test_merge_streams_coefficients_like_add(method):
     """`merge(phi, C)` adds the snapshots phi C as `add` adds them block by block, without
     forming them: the same rank, an orthonormal basis, the same projection of the data, and the
     residual of every snapshot below the tolerance."""
@@ -197,7 +240,7 @@ def test_merge_streams_coefficients_like_add():
     n, r, m = 500, 40, 640
     phi = np.linalg.qr(rng.standard_normal((n, r)))[0]
     C = rng.standard_normal((r, m)) * np.logspace(0, -12, r)[:, None]
-    a, b = IncrementalBasis(n, 1e-8), IncrementalBasis(n, 1e-8)
+    a, b = IncrementalBasis(n, 1e-8, method=method), IncrementalBasis(n, 1e-8, method=method)
     a.merge(phi, C)
     X = (phi @ C).T
     for i in range(0, m, 64):

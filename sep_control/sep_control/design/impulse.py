@@ -97,7 +97,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                         field_tol: float = FIELD_TOL, memory_budget: int | None = None,
                         scheme: str = "central", chunks: int = 1, engine=None,
                         U_ext: np.ndarray | None = None, noise: NoiseSketch | None = None,
-                        start: int = 0, inputs_only: bool = False, stride: int = 1) -> MarkovData:
+                        start: int = 0, inputs_only: bool = False, stride: int = 1,
+                        field_basis: str = "gram") -> MarkovData:
     """Impulse responses for every input step j < N and channel c.
 
     scheme "central": (y(+delta) - y(-delta)) / (2 delta), 2 N n_ch experiments; "forward":
@@ -128,6 +129,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     the second difference of Y_{j+l,j} in j (the plant's time variation along the nominal). A
     sketch's noise columns are held from the start step before instead (`hold_starts`; the sketch
     must hold its combinations over the stride, `NoiseSketch.hold`).
+    `field_basis`: how the basis finds new directions (`IncrementalBasis` `method`: "gram", or
+    0.8.0's "svd"). `field_lags` 0: no field responses (no basis), the outputs only.
     """
     from sep_control.compute.engine import InProcess
 
@@ -158,7 +161,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     meter = None if in_process else meter_of(plant)
     shared = dict(plant=engine.ship(plant if in_process else unmetered(plant)), U_ext=U_ext, lags=lags,
                   field_lags=field_lags, delta=delta, groups=groups, n_u=n_u, n_w=n_w, scheme=scheme,
-                  field_tol=field_tol, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
+                  field_tol=field_tol, field_basis=field_basis, bar_desc="TV-ERA experiments" if (in_process and show_progress) else None,
                   n_chunks=len(plan), noise=noise, start=start)
     tasks = [(i, j0, j1, Xbar_ext[j0:j1]) if stride == 1 else
              (i, j0, j1, Xbar_ext[j0:j1], starts[(starts >= j0) & (starts < j1)] - j0) for i, (j0, j1) in enumerate(plan)]
@@ -168,7 +171,7 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
                        show_progress=show_progress and not in_process)
     if meter is not None:
         meter.add(experiment_run_steps(len(starts), n_ch, lags, scheme, len(groups)))
-    Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol)
+    Y, Yc, phi = _merge_chunks(plan, parts, (N, lags, n_y, n_ch), field_lags, n_f, field_tol, field_basis)
     if stride > 1:
         # a sketch's columns are held: each start step's own combinations (`NoiseSketch.hold`),
         # which a linear interpolation between two start steps would mix
@@ -224,12 +227,12 @@ def _channel_groups(plant: Plant, n_ch: int, lags: int, scheme: str, memory_budg
 
 
 def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, int, int, int], field_lags: int,
-                  n_f: int, field_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  n_f: int, field_tol: float, field_basis: str = "gram") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The chunks' (Y, phi, Yc) as one: Y of `shape` (N, lags, n_y, n_ch), the field coefficients
     on the merged basis Phi, and Phi (see `impulse_experiments`)."""
     N, n_ch = shape[0], shape[3]
     Y = np.zeros(shape)
-    basis = IncrementalBasis(n_f, field_tol, xp=namespace(*(phi for _, phi, _ in parts)))
+    basis = IncrementalBasis(n_f, field_tol, xp=namespace(*(phi for _, phi, _ in parts)), method=field_basis)
     flat = [Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1) if phi.shape[1] else np.zeros((0, 0))
             for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
     # the tolerance is against the largest response of all chunks, whatever their order
@@ -252,7 +255,7 @@ def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, in
 
 def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
                    groups: list[np.ndarray], n_u: int, n_w: int, scheme: str, field_tol: float,
-                   bar_desc: str | None = None, n_chunks: int = 1, noise: NoiseSketch | None = None,
+                   field_basis: str = "gram", bar_desc: str | None = None, n_chunks: int = 1, noise: NoiseSketch | None = None,
                    start: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One experiment chunk (start steps j0..j1-1, every channel group): returns its output
     Markov parameters Y (j1-j0, lags, n_y, n_ch), its field basis phi (n_f, r_c) and the field
@@ -267,7 +270,7 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     n_ch = n_u + n_w
     n = j1 - j0
     Y = np.zeros((n, lags, n_y, n_ch))
-    basis = IncrementalBasis(n_f, field_tol, xp=array_module_of(plant))
+    basis = IncrementalBasis(n_f, field_tol, xp=array_module_of(plant), method=field_basis)
     blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
     desc = None if bar_desc is None else (bar_desc if n_chunks == 1 else f"{bar_desc} {i + 1}/{n_chunks}")
     bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))

@@ -271,7 +271,8 @@ class DesignSettings:
         return RomSettings(p=self.p, q=self.q, n_r=self.n_r, sv_tol=self.sv_tol, impulse=self.impulse,
                            scheme=self.impulse_scheme, memory_budget=self.memory_budget, chunks=self.chunks,
                            engine=engine, noise_std=None if problem is None else problem.w_std,
-                           stride=self.impulse_stride)
+                           stride=self.impulse_stride,
+                           field_basis="svd" if self.experiment_plan == "0.8" else "gram")
 
     def resolved_jacobian(self, n_steps: int) -> str:
         """'auto': the Jacobian whose experiments take fewer plant steps per iteration. The

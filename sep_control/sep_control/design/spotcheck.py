@@ -50,7 +50,7 @@ def spot_error(plant: Plant, ident: Identification, U: np.ndarray) -> float:
     num = den = 0.0
     for j0 in spot_starts(N, lags, ident.q):
         j1 = min(N, j0 + SPOT_STARTS)
-        data = impulse_experiments(plant, U[j0:j1], lags, 1, ident.delta, X_ext[j0:j1 + lags],
+        data = impulse_experiments(plant, U[j0:j1], lags, 0, ident.delta, X_ext[j0:j1 + lags],
                                    scheme=ident.scheme, U_ext=U_ext[j0:], noise=noise, start=j0)
         valid = (np.arange(j0, j1)[:, None] + np.arange(1, lags + 1)[None, :]) <= N
         num += float(np.sum((Yr[j0:j1] - data.Y)[valid] ** 2))

@@ -82,20 +82,22 @@ class RomSettings:
     noise_probes: int | None = None  # combinations of a sketch (`noise_sketch`; None: SKETCH_PROBES, 0: none)
     stride: int = 1                 # impulses at every stride-th start step, the rest interpolated
     inputs_only: bool = False       # impulse the inputs only, not the plant's noise channels (no B_w)
+    field_basis: str = "gram"       # how the field basis finds new directions ("svd": 0.8.0's)
 
     def identify(self, plant: Plant, U: np.ndarray, show_progress: bool = False) -> Identification:
         """`identify` around the nominal input U with these settings."""
         return identify(plant, U, self.p, self.q, self.n_r, self.sv_tol, self.impulse, show_progress,
                         field_tol=self.field_tol, memory_budget=self.memory_budget, scheme=self.scheme,
                         chunks=self.chunks, engine=self.engine, noise_std=self.noise_std,
-                        noise_probes=self.noise_probes, stride=self.stride, inputs_only=self.inputs_only)
+                        noise_probes=self.noise_probes, stride=self.stride, inputs_only=self.inputs_only,
+                        field_basis=self.field_basis)
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,
              impulse: float = 0.01, show_progress: bool = False, field_tol: float | None = None,
              memory_budget: int | None = None, scheme: str = "central", chunks: int = 1,
              engine=None, noise_std=None, noise_probes: int | None = None, stride: int = 1,
-             inputs_only: bool = False) -> Identification:
+             inputs_only: bool = False, field_basis: str = "gram") -> Identification:
     """TV-ERA around the nominal input U: impulse experiments, then the realization (`tv_era`).
 
     The nominal is extended p+q steps past N (last input held) so every Hankel matrix up to
@@ -137,6 +139,8 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
         interpolated linearly (`sep_control.design.impulse.interpolate_starts`).
     inputs_only : bool
         Impulse the n_u inputs only (a model for the optimizer's steps: no B_w).
+    field_basis : {"gram", "svd"}
+        How the field basis finds new directions (`sep_control.design.basis`; "svd": 0.8.0's).
 
     Returns
     -------
@@ -154,7 +158,7 @@ def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: floa
     extra = {} if stride == 1 and not skipped else dict(stride=stride, inputs_only=skipped)
     data = impulse_experiments(plant, U, lags, q, delta, X_ext, show_progress=show_progress, field_tol=ftol,
                                memory_budget=memory_budget, scheme=scheme, chunks=chunks, engine=engine,
-                               noise=noise, **extra)
+                               noise=noise, field_basis=field_basis, **extra)
     model, sv = tv_era(data, N, p, q, n_r, sv_tol, show_progress=show_progress, field_tol=ftol)
     return Identification(model, sv, data, delta, X_ext, np.array(U, dtype=float), scheme, ftol, p, q, stride,
                           skipped)

@@ -79,7 +79,7 @@ def validate(plant: Plant, design, lags: int = 60, amplitude: float = 0.01, seed
     delta = float(design.meta.get("validation", {}).get("impulse_amplitude", 0.01 * rms_u))
 
     chunks = 4 if engine is None else max(4, 2 * engine.workers)
-    data = impulse_experiments(plant, U, lags, 1, delta, chunks=chunks, engine=engine,
+    data = impulse_experiments(plant, U, lags, 0, delta, chunks=chunks, engine=engine,
                                inputs_only=validated_noise_channels(plant) == 0)
     progress.add(impulse_run_steps(plant, N, lags))
     Yr, Ye = rom.markov_all(lags), data.Y_inputs
