@@ -70,9 +70,9 @@ def main() -> int:
     check("float64 is the default dtype", lambda: str(xp.zeros(3).dtype))
     check("products with an empty basis (n x 0)", lambda: (d.T @ xp.zeros((40, 0))).shape)
 
-    def basis(n_f: int = 1_000_000, b: int = 144, blocks: int = 3):
+    def basis(n_f: int = 1_000_000, b: int = 144, blocks: int = 3, method: str = "gram"):
         from sep_control.design.basis import IncrementalBasis
-        B = IncrementalBasis(n_f, 1e-8, xp=xp)
+        B = IncrementalBasis(n_f, 1e-8, xp=xp, method=method)
         modes = xp.asarray(rng.standard_normal((300, n_f)) / np.sqrt(n_f))
         times = []
         for _ in range(blocks):
@@ -85,8 +85,9 @@ def main() -> int:
             err = float(xp.abs(C @ B.phi.T - D).max() / xp.abs(D).max())
         return (f"rank {B.rank}, add of {b} x {n_f:.0e} blocks {', '.join(f'{t:.2f}' for t in times)} s, "
                 f"rebuild error {err:.1e}")
-    check("field basis on the device (10^6-long blocks: SVD via QR, QR, projections)",
-          basis if not args.emulated else (lambda: basis(20_000, 36)))
+    for method, what in (("gram", "Gram matrices, CholeskyQR2"), ("svd", "plan 0.8: SVD via QR, QR")):
+        check(f"field basis on the device (10^6-long blocks, {method}: {what}, projections)",
+              (lambda m=method: basis(method=m)) if not args.emulated else (lambda m=method: basis(20_000, 36, method=m)))
 
     def gflops():
         B = xp.asarray(rng.standard_normal((2000, 20000)))

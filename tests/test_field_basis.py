@@ -178,6 +178,35 @@ def test_gram_basis_keeps_directions_down_to_the_tolerance_across_sixteen_decade
         assert np.abs(g.phi @ (g.phi.T @ D.T) - s.phi @ (s.phi.T @ D.T)).max() <= 2 * tol * scale
 
 
+@pytest.mark.parametrize("tol", [1e-8, 1e-13, 1e-15])
+def test_gram_basis_stays_orthonormal_at_tolerances_near_round_off(tol):
+    """Chunk bases whose snapshots span sixteen decades, merged, and blocks streamed in, at
+    tolerances down to round-off: no direction is taken from the projections' round-off (the
+    Gram rounds stop at sqrt(b) eps |E|), so the basis stays orthonormal and holds the data, with
+    about the rank the SVD method finds."""
+    rng = np.random.default_rng(11)
+    n, r_c = 4000, 110
+    shared = np.linalg.qr(rng.standard_normal((n, 3 * r_c)))[0]
+    g, v = IncrementalBasis(n, tol, method="gram"), IncrementalBasis(n, tol, method="svd")
+    X = []
+    for c in range(4):           # overlapping chunks: each its own mix of the shared directions
+        cols = rng.choice(3 * r_c, r_c, replace=False)
+        phi = np.linalg.qr(shared[:, cols] @ np.linalg.qr(rng.standard_normal((r_c, r_c)))[0])[0]
+        coef = rng.standard_normal((r_c, 200)) * np.logspace(0, -15, r_c)[:, None]
+        g.merge(phi, coef)
+        v.merge(phi, coef)
+        X.append(phi @ coef)
+    D = (shared[:, :60] @ (rng.standard_normal((60, 40)) * np.logspace(0, -15, 60)[:, None])).T
+    g.add(D)
+    v.add(D)
+    np.testing.assert_allclose(g.phi.T @ g.phi, np.eye(g.rank), atol=1e-12)
+    assert abs(g.rank - v.rank) <= max(3, v.rank // 20), (g.rank, v.rank)
+    data = np.hstack(X + [D.T])
+    scale = np.linalg.norm(data, axis=0).max()
+    res = data - g.phi @ (g.phi.T @ data)
+    assert np.linalg.norm(res, axis=0).max() <= max(30 * tol, 1e-13) * scale
+
+
 def test_both_methods_identify_the_same_field_responses():
     """An identification with the Gram basis (experiment plan 0.9) and with 0.8.0's SVD one: the
     same rank, the same output Markov parameters, field responses equal far below the basis'

@@ -21,19 +21,23 @@ same way, streaming their coefficients instead of the n_f-long vectors.
 b x b Gram matrix instead of an SVD of the b x n_f residual (LAPACK's SVD and QR of a wide block
 are bandwidth-bound: 0.77 s for 64 x 65,536 on one core, against 0.02 s for E E'):
 
-    E E' = U Lambda U',  W = E' U_k Lambda_k^{-1/2}  (the directions above GRAM_RESOLVE lambda_1,
-    nearly orthonormal),  W -= Phi Phi' W,  W = Q R (CholeskyQR2),  E <- E - (E Q) Q'  and again
-    while |E|_F > tol * scale / 2 (each round resolves about 6 decades), then the small SVD
-    E Q = U_2 S_2 W_2' keeps S_2 > tol * scale: Phi <- [Phi, Q W_2],  C <- [C, U_2 S_2].
+    C = D Phi,  E = D - C Phi'  (once: the directions found in E are projected off Phi again,
+    and E's coefficients are taken on them, so E's round-off along Phi changes nothing)
+    E E' = U Lambda U',  W = E' U_k Lambda_k^{-1/2}  (eigenvalues above GRAM_RESOLVE lambda_1 and
+    (tol * scale / 2)^2: nearly orthonormal),  W -= Phi Phi' W,  W = Q R (CholeskyQR2),
+    another round on E - (E Q) Q' where lambda_1 spans more than GRAM_RESOLVE resolves,
+    E Q = U_2 S_2 W_2' (b x K) keeps S_2 > tol * scale:  Phi <- [Phi, Q W_2],  C <- [C, U_2 S_2]
 
-It keeps what the SVD keeps up to directions at the tolerance's edge, and skips the second
-projection of a block whose first residual is already below the tolerance. "svd" is 0.8.0's
-arithmetic (experiment plan 0.8), bit for bit on the host.
+It keeps what the SVD keeps up to directions at the tolerance's edge (an identification's field
+responses agree to 4e-14, `bench/bench_field_basis.py`); `merge` finds a chunk's part outside
+Phi the same way, without a QR. "svd" is 0.8.0's arithmetic (experiment plan 0.8).
 
 `xp`: the array module Phi lives in. On a device (`sep_plant.device`) the snapshots arrive
-there and Phi stays there: the n_f-long work (the projections, the SVD of the residual block,
-the QR of the new directions) runs on the device, and only the coefficients (b x r) and the
-singular values come to the host. With numpy the operations are those of 0.8.0, bit for bit.
+there and Phi stays there: the n_f-long work (the projections, the Gram matrices and
+CholeskyQR2, or "svd"'s SVD of the residual block through a QR and the QR of the new
+directions) runs on the device, and only the small matrices (b x b, b x K, k x k) and the
+coefficients (b x r) come to the host. With numpy and "svd" the operations are those of 0.8.0,
+bit for bit.
 Pure numpy (or a numpy-compatible module): no ROS import.
 """
 from __future__ import annotations
@@ -51,6 +55,11 @@ METHODS = ("gram", "svd")
 GRAM_RESOLVE = 1e-11
 #: rounds of `_gram_range` (each resolves sqrt(GRAM_RESOLVE) ~ 3e-6 of what the last one left)
 GRAM_ROUNDS = 4
+#: a projection's round-off, in sqrt(b) eps |D|_F: `_gram_range` takes no direction below it
+GRAM_NOISE = 64.0
+#: the largest condition number CholeskyQR2 is trusted with (Q'Q - I ~ (eps cond^2)^2 after the
+#: second pass; beyond ~eps^{-1/2} = 6.7e7 the first Cholesky loses the small directions)
+CHOLQR_COND = 1e6
 
 
 class IncrementalBasis:
@@ -143,9 +152,9 @@ class IncrementalBasis:
             E = D - C @ phi.T
         else:                                    # no products with an empty basis (a device's rule)
             C, E = xp.zeros((D.shape[0], 0)), D
-        if self._inside(E):
+        if self._inside(E) or self._room() == 0:
             return C
-        Q, EQ = _gram_range(xp, E, theta / 2, phi)
+        Q, EQ = _gram_range(xp, E, theta / 2, phi, float(xp.linalg.norm(D)))
         if Q.shape[1] == 0:
             return C
         U2, S2, W2t = svd(_host(xp, EQ))                      # E on the found directions (b, K)
@@ -199,13 +208,15 @@ class IncrementalBasis:
         Q B to GRAM_MERGE_FLOOR (Q from `_gram_range` on A's columns; into an empty basis phi
         itself, Q = phi and B = I), and the streaming runs on the columns of Z = B coefficients."""
         xp, own = self.xp, self.phi
+        if self._room() == 0:
+            return
         if self._cols == 0:
             Q, Z = phi, coefficients
         else:
             # one projection: the directions found in A are projected off Phi again
             A = phi - own @ (own.T @ phi)
             # what is dropped of A moves a snapshot phi c by at most the floor times |c| <= scale
-            Q, AQ = _gram_range(xp, A.T, GRAM_MERGE_FLOOR * self.tol, own)
+            Q, AQ = _gram_range(xp, A.T, GRAM_MERGE_FLOOR * self.tol, own, float(np.sqrt(phi.shape[1])))
             Z = _host(xp, AQ).T @ coefficients     # (K, m): the residual snapshots on Q
         sub = IncrementalBasis(Q.shape[1], self.tol, max_rank=self._room(), method=self.method)
         for i in range(0, Z.shape[1], block):
@@ -235,22 +246,28 @@ def _host(xp, a) -> np.ndarray:
     return a if xp is np else a.get()
 
 
-def _gram_range(xp, E, floor: float, against):
+def _gram_range(xp, E, floor: float, against, size: float):
     """Orthonormal directions Q (n, K), orthogonal to `against` (n, r), that hold every direction
     of the rows of E (b, n) with a singular value above `floor` (the singular values of
     E - (E Q) Q' are all below it, up to what a Gram matrix resolves in GRAM_ROUNDS rounds), and
     E Q (b, K). One round on R (what the rounds before left of E): the eigenpairs
     (lambda_i, u_i) of R R' above max(GRAM_RESOLVE lambda_1, floor^2) give the directions
     R' u_i / sqrt(lambda_i), projected off `against` and the rounds before and made orthonormal
-    (CholeskyQR2), Q_i; another round runs on R - (R Q_i) Q_i' only where GRAM_RESOLVE lambda_1
-    was above floor^2 (directions between the two may be left) and |R|_F^2 - |R Q_i|_F^2 may
-    exceed floor^2. Cost per round: n b^2 (R R'), 4 n b K (the directions, R Q_i), 4 n r K (the
-    projection), 4 n K^2 (the QR)."""
+    (`_orthonormal`), Q_i; another round runs on R - (R Q_i) Q_i' only where GRAM_RESOLVE
+    lambda_1 was above floor^2 (directions between the two may be left) and |R|_F^2 - |R Q_i|_F^2
+    may exceed floor^2. `floor` is raised to the round-off the projection that made E left in it,
+    GRAM_NOISE sqrt(b) eps `size` (size = |D|_F, the block before the projection): below it a
+    residual holds no direction, only round-off, mostly along `against`, which one projection
+    would not remove from a direction made of little else.
+    Cost per round: n b^2 (R R'), 4 n b K (the directions, R Q_i), 4 n r K (the projection),
+    4 n K^2 (the QR)."""
     b, found, R = E.shape[0], [], E
     eps = np.finfo(float).eps
     for _ in range(GRAM_ROUNDS):
         G = _host(xp, R @ R.T)
         total = float(np.trace(G))
+        if not found:
+            floor = max(floor, GRAM_NOISE * np.sqrt(b) * eps * size)
         if total <= floor ** 2:
             break
         lam, U = np.linalg.eigh(G)
@@ -260,10 +277,9 @@ def _gram_range(xp, E, floor: float, against):
         if k == 0:
             break
         W = R.T @ xp.asarray(U[:, :k] / np.sqrt(lam[:k]))   # (n, k): orthonormal to ~eps lambda_1/lambda_k
-        for B, _ in ((against, None), *found):
-            if B.shape[1]:
-                W -= B @ (B.T @ W)
-        Q = _cholqr2(xp, W)
+        Q = _orthonormal(xp, W, [against] + [Q for Q, _ in found])
+        if Q.shape[1] == 0:
+            break
         RQ = R @ Q
         found.append((Q, RQ))
         left = total - float(xp.sum(RQ * RQ))                 # |R - R Q Q'|_F^2, to ~b eps |R|^2
@@ -277,17 +293,41 @@ def _gram_range(xp, E, floor: float, against):
     return xp.hstack([Q for Q, _ in found]), xp.hstack([RQ for _, RQ in found])
 
 
+def _orthonormal(xp, W, against: list):
+    """W (n, k) projected off the orthonormal blocks `against` and made orthonormal: CholeskyQR2
+    (W is nearly orthonormal by construction); where it fails (W'W not positive definite or W
+    worse conditioned than CholeskyQR2 handles), the leading left singular vectors of W (those
+    above sqrt(eps) of the largest: a rank-revealing fallback, on the host), projected again."""
+    def project(V):
+        for B in against:
+            if B.shape[1]:
+                V -= B @ (B.T @ V)
+        return V
+
+    W = project(W)
+    Q = _cholqr2(xp, W)
+    if Q is not None:
+        return Q
+    U, s, _ = np.linalg.svd(_host(xp, W), full_matrices=False)
+    keep = s > np.sqrt(np.finfo(float).eps) * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, bool)
+    V = project(xp.asarray(U[:, keep]))
+    Q = _cholqr2(xp, V)
+    return Q if Q is not None else xp.asarray(np.linalg.qr(_host(xp, V))[0])
+
+
 def _cholqr2(xp, W):
     """The Q of a well-conditioned tall W (n, k) by CholeskyQR2 (W'W = L L', W <- W L'^{-1},
     twice: orthonormal to round-off for cond(W) << eps^{-1/2}; gemm-bound, where a Householder
-    QR of a tall block is bandwidth-bound); a Householder QR on the host if W'W is not positive
-    definite."""
+    QR of a tall block is bandwidth-bound); None where W'W is not positive definite or W's
+    condition number exceeds CHOLQR_COND."""
     k = W.shape[1]
-    for _ in range(2):
+    for i in range(2):
         try:
             L = np.linalg.cholesky(_host(xp, W.T @ W))
         except np.linalg.LinAlgError:
-            return xp.asarray(np.linalg.qr(_host(xp, W))[0])
+            return None
+        if i == 0 and np.linalg.cond(L) > CHOLQR_COND:
+            return None
         W = W @ xp.asarray(scipy.linalg.solve_triangular(L, np.eye(k), lower=True).T)
     return W
 

@@ -33,8 +33,9 @@ ROM_FROM = 5
 #: Markov parameters between them interpolated), no belief refinement (it moved J_b by 1e-6
 #: relative) and 50 members for the belief statistics, and in the mean-only optimizer kept models
 #: of the inputs only and a settle stop (`sep_control.design.jacobians.KeptRomJacobian`,
-#: `sep_control.design.stages`), and under input or rate limits the clip correction
-#: (`sep_control.design.saturation`)
+#: `sep_control.design.stages`), under input or rate limits the clip correction
+#: (`sep_control.design.saturation`), and the field basis' Gram method (`sep_control.design.basis`;
+#: set in `DesignSettings.rom`)
 PLANS: dict[str, dict[str, Any]] = {
     "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2, "impulse_stride": 1,
             "clip_correction": False},
