@@ -11,7 +11,7 @@
 #      plate 256^2 / block 100^3 steps, and a small design + Monte Carlo, GPU against CPU
 #   2. plate 256^2 (150): the design and a 100-run Monte Carlo on the GPU, per-stage table
 #   3. block 100^3 = 10^6 states (what is left of TOTAL = 470 s, at least 120): the same, with the
-#      opt-in experiment plan 0.9 (about a third of the run-steps; BLOCK_PLAN=0.8 for 0.8.0's)
+#      default experiment plan 0.9 (about a third of the run-steps; BLOCK_PLAN=0.8 for 0.8.0's)
 # A step that hits its timeout prints its sampled profile (where its time went) before it stops.
 # A dry run without a GPU (the tests' emulator, small rows, short limits):
 #     DEVICE=emulated PLATE_ROW=plate:64 BLOCK_ROW=block:24 TOTAL=200 bash bench/device_run.sh

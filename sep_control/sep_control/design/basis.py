@@ -45,6 +45,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
+from sep_plant.plants.backend import to_host
+
 from sep_control.design.svd import svd
 
 #: how a block's new directions are found (module docstring): "svd" is 0.8.0's arithmetic
@@ -115,10 +117,7 @@ class IncrementalBasis:
         U, S, Vt = svd(E) if xp is np else _svd_wide(xp, E)
         S_host = S if xp is np else S.get()
         # the kept directions are a leading run: S is sorted, and so are the caps on their number
-        k = int(np.count_nonzero(S_host > self.tol * self.scale))
-        k = min(k, self.n - self._cols)                          # never more directions than n
-        if self.max_rank is not None:
-            k = min(k, max(0, self.max_rank - self._cols))
+        k = min(int(np.count_nonzero(S_host > self.tol * self.scale)), self._room())
         if k == 0:
             return C
         # the smallest kept directions (S near tol * scale) carry the projection's round-off at
@@ -157,7 +156,7 @@ class IncrementalBasis:
         Q, EQ = _gram_range(xp, E, theta / 2, phi, float(xp.linalg.norm(D)))
         if Q.shape[1] == 0:
             return C
-        U2, S2, W2t = svd(_host(xp, EQ))                      # E on the found directions (b, K)
+        U2, S2, W2t = svd(to_host(EQ))                      # E on the found directions (b, K)
         k = min(int(np.count_nonzero(S2 > theta)), self._room())
         if k == 0:
             return C
@@ -182,10 +181,10 @@ class IncrementalBasis:
             return
         xp = self.xp
         self.scale = max(self.scale, float(np.sqrt(np.einsum("ij,ij->j", coefficients, coefficients)).max()))
-        own = self.phi
         if self.method == "gram":
             self._merge_gram(phi, coefficients, block)
             return
+        own = self.phi
         if xp is not np and self._cols == 0:         # no products with an empty basis on a device
             A = phi.copy()
         else:
@@ -194,9 +193,7 @@ class IncrementalBasis:
         Q, R = np.linalg.qr(A) if xp is np else _qr(xp, A)
         Z = (R if xp is np else R.get()) @ coefficients     # (r_c, m): the residual snapshots on Q
         room = None if self.max_rank is None else max(0, self.max_rank - self._cols)
-        sub = IncrementalBasis(phi.shape[1], self.tol, max_rank=room, method=self.method)
-        for i in range(0, Z.shape[1], block):
-            sub.add(Z[:, i:i + block].T, scale=self.scale)      # the tolerance against our scale
+        sub = self._streamed(Z, room, block)
         if sub.rank:
             V = Q @ (sub.phi if xp is np else xp.asarray(sub.phi))
             if xp is np or self._cols:
@@ -217,12 +214,18 @@ class IncrementalBasis:
             A = phi - own @ (own.T @ phi)
             # what is dropped of A moves a snapshot phi c by at most the floor times |c| <= scale
             Q, AQ = _gram_range(xp, A.T, GRAM_MERGE_FLOOR * self.tol, own, float(np.sqrt(phi.shape[1])))
-            Z = _host(xp, AQ).T @ coefficients     # (K, m): the residual snapshots on Q
-        sub = IncrementalBasis(Q.shape[1], self.tol, max_rank=self._room(), method=self.method)
-        for i in range(0, Z.shape[1], block):
-            sub.add(Z[:, i:i + block].T, scale=self.scale)      # the tolerance against our scale
+            Z = to_host(AQ).T @ coefficients     # (K, m): the residual snapshots on Q
+        sub = self._streamed(Z, self._room(), block)
         if sub.rank:
             self._grow(Q @ xp.asarray(sub.phi))    # orthonormal, and orthogonal to the basis
+
+    def _streamed(self, Z: np.ndarray, max_rank: int | None, block: int) -> "IncrementalBasis":
+        """A host basis of the columns of Z (residual snapshots in a merge's coordinates), added
+        `block` at a time with the tolerance against this basis' scale."""
+        sub = IncrementalBasis(Z.shape[0], self.tol, max_rank=max_rank, method=self.method)
+        for i in range(0, Z.shape[1], block):
+            sub.add(Z[:, i:i + block].T, scale=self.scale)
+        return sub
 
     def _grow(self, V: np.ndarray) -> None:
         need = self._cols + V.shape[1]
@@ -239,11 +242,6 @@ class IncrementalBasis:
 #: this fraction of the tolerance (each direction it drops moves a snapshot by at most that
 #: fraction of tol * scale)
 GRAM_MERGE_FLOOR = 1e-3
-
-
-def _host(xp, a) -> np.ndarray:
-    """A (small) array on the host."""
-    return a if xp is np else a.get()
 
 
 def _gram_range(xp, E, floor: float, against, size: float):
@@ -263,11 +261,10 @@ def _gram_range(xp, E, floor: float, against, size: float):
     4 n K^2 (the QR)."""
     b, found, R = E.shape[0], [], E
     eps = np.finfo(float).eps
+    floor = max(floor, GRAM_NOISE * np.sqrt(b) * eps * size)
     for _ in range(GRAM_ROUNDS):
-        G = _host(xp, R @ R.T)
+        G = to_host(R @ R.T)
         total = float(np.trace(G))
-        if not found:
-            floor = max(floor, GRAM_NOISE * np.sqrt(b) * eps * size)
         if total <= floor ** 2:
             break
         lam, U = np.linalg.eigh(G)
@@ -308,11 +305,11 @@ def _orthonormal(xp, W, against: list):
     Q = _cholqr2(xp, W)
     if Q is not None:
         return Q
-    U, s, _ = np.linalg.svd(_host(xp, W), full_matrices=False)
+    U, s, _ = np.linalg.svd(to_host(W), full_matrices=False)
     keep = s > np.sqrt(np.finfo(float).eps) * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, bool)
     V = project(xp.asarray(U[:, keep]))
     Q = _cholqr2(xp, V)
-    return Q if Q is not None else xp.asarray(np.linalg.qr(_host(xp, V))[0])
+    return Q if Q is not None else xp.asarray(np.linalg.qr(to_host(V))[0])
 
 
 def _cholqr2(xp, W):
@@ -323,7 +320,7 @@ def _cholqr2(xp, W):
     k = W.shape[1]
     for i in range(2):
         try:
-            L = np.linalg.cholesky(_host(xp, W.T @ W))
+            L = np.linalg.cholesky(to_host(W.T @ W))
         except np.linalg.LinAlgError:
             return None
         if i == 0 and np.linalg.cond(L) > CHOLQR_COND:
