@@ -86,15 +86,19 @@ class _Noise:
 
 
 class RomClosedLoop:
-    """J(Delta) and dJ/dDelta of the ROM Monte Carlo (module docstring) for one design."""
+    """J(Delta) and dJ/dDelta of the ROM Monte Carlo (module docstring) for one design.
+
+    What does not depend on Delta is formed once per design (the correction's L-BFGS-B calls
+    the Monte Carlo a few hundred times): w_k B_w,k' - ubar_k B_k' (common random numbers) and
+    the transposed matrices. The filter's update goes through the n_y outputs (C x, then L):
+    cheaper than through C' L' (n_r x n_z) when n_y is small."""
 
     def __init__(self, cl: ClosedLoopRom, samples: int = SAMPLES, seed: int = 0):
         self.cl = cl
         lqg = cl.lqg
         self.rom = rom = cl.rom
-        self.zm = lqg.model
-        N = rom.A.shape[0]
-        n_r = rom.A.shape[1]
+        self.zm = zm = lqg.model
+        N, n_r = rom.A.shape[0], rom.A.shape[1]
         obj = cl.objective
         n_f = cl.f_nom.shape[1]
         self.w = np.asarray(obj.q, float) / n_f
@@ -103,11 +107,17 @@ class RomClosedLoop:
         self.ee = np.einsum("kf,kf->k", e, e)
         self.ge = np.stack([rom.G.project(k, e[k]) for k in range(N + 1)])      # G_k' e_k (N+1, n_r)
         self.gram = np.stack([rom.G.gram(k) for k in range(N + 1)])             # (N+1, n_r, n_r)
-        self.Bw = rom.noise_input
-        self.noise = _Noise(rom, cl.W, cl.V, samples, seed)
         self.N, self.n_r, self.M = N, n_r, samples
         self.K = lqg.K
         self.L = lqg.kf.L
+        self.AT, self.BT = rom.A.transpose(0, 2, 1).copy(), rom.B.transpose(0, 2, 1).copy()
+        self.CT, self.CzT = rom.C.transpose(0, 2, 1).copy(), zm.C.transpose(0, 2, 1).copy()
+        self.AzT, self.BzT = zm.A.transpose(0, 2, 1).copy(), zm.B.transpose(0, 2, 1).copy()
+        self.LT, self.KT = self.L.transpose(0, 2, 1).copy(), self.K.transpose(0, 2, 1).copy()
+        noise = _Noise(rom, cl.W, cl.V, samples, seed)
+        self.x0, self.v = noise.x0, noise.v
+        self.cw = (np.einsum("kmw,kiw->kmi", noise.w, rom.noise_input)         # w_k B_w,k' - ubar_k B_k'
+                   - np.einsum("ku,kiu->ki", cl.u_nom, rom.B)[:, None, :])
 
     def cost(self, delta: np.ndarray, limits: bool = True) -> float:
         """The expected closed-loop objective of the nominal moved by delta (N, n_u)."""
@@ -118,27 +128,36 @@ class RomClosedLoop:
         return self._run(delta, True, grad=True)
 
     def _run(self, delta: np.ndarray, limits: bool, grad: bool):
-        rom, zm, cl, nz = self.rom, self.zm, self.cl, self.noise
+        rom, zm, cl = self.rom, self.zm, self.cl
         N, M, r_u = self.N, self.M, float(cl.objective.r_u)
         ub, w = cl.u_nom, self.w
         lo, hi = (cl.lo, cl.hi) if limits else (np.full_like(cl.lo, -np.inf), np.full_like(cl.hi, np.inf))
         rate = cl.du_max if limits else None
-        x = nz.x0.copy()
+        m = ub + delta                                            # the law's feed-forward
+        aD = np.zeros((N + 1, self.n_r))                          # the moved nominal's ROM state
+        for k in range(N):
+            aD[k + 1] = rom.A[k] @ aD[k] + rom.B[k] @ delta[k]
+        yD = np.einsum("kyi,ki->ky", rom.C[:N], aD[:N])           # C_k a^D_k
+        mBz = np.einsum("ku,kzu->kz", m, zm.B)                    # (ubar_k + Delta_k) B_z,k'
+        x = self.x0
         zmin = np.zeros((M, zm.A.shape[1]))
-        aD = np.zeros(self.n_r)
         J = np.zeros(M)
         X, U, MB, MR = [], [], [], []      # what the reverse pass needs (grad only)
         p = None
         for k in range(N + 1):
-            if k >= 1:
-                J += w[k] * (self.ee[k] + 2.0 * x @ self.ge[k] + np.einsum("mi,ij,mj->m", x, self.gram[k], x))
+            if k >= 1:     # (q_k / n_f) |e_k + G_k x_k|^2 = w_k (e_k'e_k + x_k'(G_k'G_k x_k + 2 G_k'e_k))
+                J += w[k] * (self.ee[k] + np.einsum("mi,mi->m", x, x @ self.gram[k] + 2.0 * self.ge[k]))
             if k == N:
                 break
-            y = (x - aD) @ rom.C[k].T + nz.v[k]
-            zhat = zmin + (y - zmin @ zm.C[k].T) @ self.L[k].T
-            v = ub[k] + delta[k] + zhat @ self.K[k].T
-            b = np.clip(v, lo, hi)
-            u, mr = b, None
+            innov = x @ self.CT[k]
+            innov -= zmin @ self.CzT[k]
+            innov += self.v[k] - yD[k]
+            zhat = innov @ self.LT[k]
+            zhat += zmin
+            v = zhat @ self.KT[k]
+            v += m[k]
+            u = b = np.clip(v, lo, hi)
+            mr = None
             if rate is not None and p is not None:
                 u = np.clip(b, p - rate, p + rate)
                 mr = (b > p - rate) & (b < p + rate)
@@ -146,10 +165,12 @@ class RomClosedLoop:
                 X.append(x); U.append(u); MB.append((v > lo) & (v < hi)); MR.append(mr)
             p = u
             J += r_u * np.einsum("mu,mu->m", u, u)
-            du = u - ub[k] - delta[k]
-            x = x @ rom.A[k].T + (u - ub[k]) @ rom.B[k].T + nz.w[k] @ self.Bw[k].T
-            aD = aD @ rom.A[k].T + delta[k] @ rom.B[k].T
-            zmin = zhat @ zm.A[k].T + du @ zm.B[k].T
+            x = x @ self.AT[k]
+            x += u @ self.BT[k]
+            x += self.cw[k]
+            zmin = zhat @ self.AzT[k]
+            zmin += u @ self.BzT[k]
+            zmin -= mBz[k]
         Jm = float(J.mean())
         if not grad:
             return Jm, None
@@ -158,26 +179,29 @@ class RomClosedLoop:
         gx = 2.0 * w[N] * (self.ge[N] + x @ self.gram[N])
         gz = np.zeros_like(zmin)
         gD = np.zeros(self.n_r)
-        gp = np.zeros_like(U[-1])
+        gp = None
         for k in range(N - 1, -1, -1):
-            gu = gx @ rom.B[k] + 2.0 * r_u * U[k] + gp
             gdu = gz @ zm.B[k]
+            gu = gx @ rom.B[k]
             gu += gdu
-            gdelta = -gdu.sum(axis=0) + gD @ rom.B[k]
-            gzhat = gz @ zm.A[k]
-            gxn, gDn = gx @ rom.A[k], gD @ rom.A[k]
+            gu += (2.0 * r_u) * U[k]
+            if gp is not None:
+                gu += gp
+            gdelta = gD @ rom.B[k] - gdu.sum(axis=0)
             if MR[k] is not None:
                 gb, gp = np.where(MR[k], gu, 0.0), np.where(MR[k], 0.0, gu)
             else:
-                gb, gp = gu, np.zeros_like(gu)
+                gb, gp = gu, None
             gv = np.where(MB[k], gb, 0.0)
             gdelta += gv.sum(axis=0)
+            gzhat = gz @ zm.A[k]
             gzhat += gv @ self.K[k]
             gy = gzhat @ self.L[k]
-            gz = gzhat - gy @ zm.C[k]
-            gxa = gy @ rom.C[k]
-            gx = gxn + gxa
-            gD = gDn - gxa.sum(axis=0)
+            gx = gx @ rom.A[k]
+            gx += gy @ rom.C[k]
+            gz = gzhat
+            gz -= gy @ zm.C[k]
+            gD = gD @ rom.A[k] - rom.C[k].T @ gy.sum(axis=0)
             if k >= 1:
                 gx += 2.0 * w[k] * (self.ge[k] + X[k] @ self.gram[k])
             g[k] = gdelta
