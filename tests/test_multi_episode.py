@@ -34,6 +34,9 @@ def start_graph(launcher, case, tmp_path, episodes: int, *, record: bool = False
                              'field_estimate', 'state_estimate', '--ready-topics', 'command', 'state_estimate')
         subscribers = 2
         plant.setdefault('wait_for_field_subscribers', 1)
+        # the lqg's two nodes and the recorder hold episode 0's announcement before y_0 (a recorder
+        # whose scenario reader matched after it would split the bag without episode 0)
+        plant.setdefault('wait_for_scenario_subscribers', 3)
         t_end = time.monotonic() + 60
         while not (tmp_path / 'ready').exists():
             assert time.monotonic() < t_end, rec.output()

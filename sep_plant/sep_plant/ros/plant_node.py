@@ -62,6 +62,9 @@ PARAMETERS = f"""parameters (set with --ros-args -p NAME:=VALUE or --params-file
   publish_field (bool, true)       publish the true field on field
   wait_for_subscribers (int, 1)    matched measurement subscribers needed before step 0
   wait_for_field_subscribers (int, 0)  matched field subscribers needed before step 0
+  wait_for_scenario_subscribers (int, 0)  matched scenario subscribers needed before step 0 (each
+                                   holds the announcement before y_0: a recorder of several
+                                   episodes, whose bag is split at the announcements)
   start_timeout_s (float, 30)      give up (exit 3) if they do not appear in time
   start_delay_s (float, 0.2)       settle time after they appeared (endpoint matching)
   autostart (bool, true)            configure and activate at start; false: wait unconfigured for the
@@ -91,6 +94,9 @@ def declare_parameters(node) -> dict:
                                          'matched measurement subscribers needed to start', lo=0, hi=1000),
          'wait_for_field_subscribers': declare(node, 'wait_for_field_subscribers', 0,
                                                'matched field subscribers needed to start', lo=0, hi=1000),
+         'wait_for_scenario_subscribers': declare(node, 'wait_for_scenario_subscribers', 0,
+                                                  'matched scenario subscribers needed to start (each holds '
+                                                  'the announcement before y_0)', lo=0, hi=1000),
          'start_timeout_s': declare(node, 'start_timeout_s', 30.0, 'seconds to wait for subscribers',
                                     lo=0.0, hi=86400.0),
          'start_delay_s': declare(node, 'start_delay_s', 0.2, 'settle time after the subscribers appeared',
@@ -301,24 +307,30 @@ class PlantNode(NodeBase):
         later episode (`first` false) only when they are not all there (a controller restarting)."""
         p = self.p
         need_y, need_f = p['wait_for_subscribers'], p['wait_for_field_subscribers']
+        need_s = p['wait_for_scenario_subscribers']
         # with subscribers required, also a command publisher (a command sent before
         # its writer matched our reader would be lost)
         ok = lambda: (self.pub_y.get_subscription_count() >= need_y
                       and self.pub_field.get_subscription_count() >= need_f
+                      and self.pub_scen.get_subscription_count() >= need_s
                       and (need_y == 0 or self.sub_cmd.get_publisher_count() >= 1))
         if not first and ok():
             return
-        if need_y or need_f:
+        if need_y or need_f or need_s:
             self.log.info(f'waiting for {need_y} measurement subscriber(s)'
-                          + (f', {need_f} field subscriber(s)' if need_f else '') + ' and a command publisher')
+                          + (f', {need_f} field subscriber(s)' if need_f else '')
+                          + (f', {need_s} scenario subscriber(s)' if need_s else '') + ' and a command publisher')
         if not self._spin_until(steady() + p['start_timeout_s'], ok):
             raise EpisodeError(
                 f"no controller: {self.pub_y.get_subscription_count()} of {need_y} measurement "
-                f"subscribers, {self.sub_cmd.get_publisher_count()} command publishers and "
-                f"{self.pub_field.get_subscription_count()} of {need_f} field "
+                f"subscribers, {self.sub_cmd.get_publisher_count()} command publishers, "
+                f"{self.pub_field.get_subscription_count()} of {need_f} field and "
+                f"{self.pub_scen.get_subscription_count()} of {need_s} scenario "
                 f"subscribers after start_timeout_s = {p['start_timeout_s']:g} s "
                 f"(is the estimator/lqg running in namespace {self.node.get_namespace()} with "
                 f"the same ROS_DOMAIN_ID?)")
+        if need_s:      # a reader matched during the wait gets the (latched) announcement: acknowledged first
+            flush_publishers([self.pub_scen], 1.0)
         self._spin_until(steady() + p['start_delay_s'])
 
     # ------------------------------------------------------------- lifecycle
