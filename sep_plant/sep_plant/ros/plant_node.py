@@ -322,13 +322,13 @@ class PlantNode(NodeBase):
                           + (f', {need_s} scenario subscriber(s)' if need_s else '') + ' and a command publisher')
         if not self._spin_until(steady() + p['start_timeout_s'], ok):
             raise EpisodeError(
-                f"no controller: {self.pub_y.get_subscription_count()} of {need_y} measurement "
+                f"peers missing: {self.pub_y.get_subscription_count()} of {need_y} measurement "
                 f"subscribers, {self.sub_cmd.get_publisher_count()} command publishers, "
                 f"{self.pub_field.get_subscription_count()} of {need_f} field and "
                 f"{self.pub_scen.get_subscription_count()} of {need_s} scenario "
                 f"subscribers after start_timeout_s = {p['start_timeout_s']:g} s "
-                f"(is the estimator/lqg running in namespace {self.node.get_namespace()} with "
-                f"the same ROS_DOMAIN_ID?)")
+                f"(are the estimator/lqg and the recorder running in namespace {self.node.get_namespace()} "
+                f"with the same ROS_DOMAIN_ID?)")
         if need_s:      # a reader matched during the wait gets the (latched) announcement: acknowledged first
             flush_publishers([self.pub_scen], 1.0)
         self._spin_until(steady() + p['start_delay_s'])
