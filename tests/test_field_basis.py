@@ -297,6 +297,31 @@ def test_merge_streams_coefficients_like_add(method):
         a.merge(phi2[:10], C2)
 
 
+def test_gram_merge_takes_only_the_directions_the_snapshots_use(monkeypatch):
+    """A chunk basis of 40 directions whose snapshots use 10 of them: the Gram merge finds those
+    10 from the range of the residual snapshots (A U_c S_c) and orthonormalizes no others, and the
+    basis holds every snapshot to the tolerance."""
+    from sep_control.design import basis as basis_mod
+
+    rng = np.random.default_rng(5)
+    n = 600
+    Q0 = np.linalg.qr(rng.standard_normal((n, 60)))[0]
+    b = IncrementalBasis(n, 1e-8, method="gram")
+    b.add((Q0[:, :20] @ rng.standard_normal((20, 50))).T)
+    phi = Q0[:, 20:]                                           # 40 directions outside the basis
+    C = np.zeros((40, 200))
+    C[:10] = rng.standard_normal((10, 200))                    # the snapshots use 10 of them
+    seen = []
+    orthonormal = basis_mod._orthonormal
+    monkeypatch.setattr(basis_mod, "_orthonormal", lambda xp, W, against: seen.append(W.shape[1]) or
+                        orthonormal(xp, W, against))
+    b.merge(phi, C)
+    assert b.rank == 30 and max(seen) == 10, (b.rank, seen)
+    np.testing.assert_allclose(b.phi.T @ b.phi, np.eye(b.rank), atol=1e-12)
+    X = phi @ C
+    assert np.abs(X - b.phi @ (b.phi.T @ X)).max() <= 1e-8 * np.abs(X).max()
+
+
 def test_compressed_field_map_drops_only_what_the_state_spread_does_not_reach():
     """compress_field_map: with X_k = L_k L_k', every |(G_k - G_k') L_k|_2 <= tol sigma_1 of
     [g_0 L_0 ... g_N L_N]; Phi' stays orthonormal; the directions the spread reaches are kept."""

@@ -24,13 +24,16 @@ are bandwidth-bound: 0.77 s for 64 x 65,536 on one core, against 0.02 s for E E'
     C = D Phi,  E = D - C Phi'  (once: the directions found in E are projected off Phi again,
     and E's coefficients are taken on them, so E's round-off along Phi changes nothing)
     E E' = U Lambda U',  W = E' U_k Lambda_k^{-1/2}  (eigenvalues above GRAM_RESOLVE lambda_1 and
-    (tol * scale / 2)^2: nearly orthonormal),  W -= Phi Phi' W,  W = Q R (CholeskyQR2),
+    (tol * scale)^2: nearly orthonormal),  W -= Phi Phi' W,  W = Q R (CholeskyQR2),
     another round on E - (E Q) Q' where lambda_1 spans more than GRAM_RESOLVE resolves,
     E Q = U_2 S_2 W_2' (b x K) keeps S_2 > tol * scale:  Phi <- [Phi, Q W_2],  C <- [C, U_2 S_2]
 
-It keeps what the SVD keeps up to directions at the tolerance's edge (an identification's field
-responses agree to 4e-14, `bench/bench_field_basis.py`); `merge` finds a chunk's part outside
-Phi the same way, without a QR. "svd" is 0.8.0's arithmetic (experiment plan 0.8).
+It keeps what the SVD keeps up to directions at the tolerance's edge. `merge` finds the
+directions of a chunk's snapshots outside Phi the same way, without a QR, from the range of the
+residual snapshots as a whole (A U_c S_c, `_merge_gram`) rather than of every direction of the
+chunk's basis: an identification's field responses then agree with "svd"'s to 2.4e-9 (the
+tolerance is 1e-8) with 1-4 fewer directions (`bench/bench_field_basis.py`, docs/benchmarks.md).
+"svd" is 0.8.0's arithmetic (experiment plan 0.8).
 
 `xp`: the array module Phi lives in. On a device (`sep_plant.device`) the snapshots arrive
 there and Phi stays there: the n_f-long work (the projections, the Gram matrices and
@@ -73,7 +76,12 @@ class IncrementalBasis:
         self.n, self.tol = int(n), float(tol)
         self.max_rank = max_rank
         self.xp, self.method = xp, method
-        self._phi = xp.zeros((self.n, 0))
+        # "gram" keeps Phi's columns contiguous (column-major): a new direction is written, and a
+        # growth copied, in one piece, and a growth touches only the pages it fills (a row-major
+        # buffer is touched whole, O(n cap), at every doubling: 0.1 s at 16,384 x 512 here);
+        # "svd" keeps 0.8.0's row-major buffer, so that its products stay 0.8.0's bit for bit
+        self._order = "F" if method == "gram" else "C"
+        self._phi = xp.zeros((self.n, 0), order=self._order)
         self._cols = 0
         self.scale = 0.0
 
@@ -153,7 +161,7 @@ class IncrementalBasis:
             C, E = xp.zeros((D.shape[0], 0)), D
         if self._inside(E) or self._room() == 0:
             return C
-        Q, EQ = _gram_range(xp, E, theta / 2, phi, float(xp.linalg.norm(D)))
+        Q, EQ = _gram_range(xp, E, theta, phi, float(xp.linalg.norm(D)))
         if Q.shape[1] == 0:
             return C
         U2, S2, W2t = svd(to_host(EQ))                      # E on the found directions (b, K)
@@ -201,20 +209,26 @@ class IncrementalBasis:
             self._grow(np.linalg.qr(V)[0] if xp is np else _qr(xp, V)[0])
 
     def _merge_gram(self, phi, coefficients: np.ndarray, block: int) -> None:
-        """`merge` with "gram": phi's part outside the basis, A = (I - Phi Phi') phi, is
-        Q B to GRAM_MERGE_FLOOR (Q from `_gram_range` on A's columns; into an empty basis phi
-        itself, Q = phi and B = I), and the streaming runs on the columns of Z = B coefficients."""
+        """`merge` with "gram": the residual snapshots A c, A = (I - Phi Phi') phi, hold directions
+        above tol * scale only within the range of Y = A U_c S_c (c = U_c S_c V_c': the same
+        singular values as A c, in r_c columns); `_gram_range` on Y' finds them, Q, and the
+        streaming runs on the columns of Z = (A' Q)' c. Into an empty basis phi itself serves,
+        Q = phi and Z = c. (A's own directions down to a floor would be r_c of them, most of
+        them carrying nothing of the snapshots.)"""
         xp, own = self.xp, self.phi
         if self._room() == 0:
             return
         if self._cols == 0:
             Q, Z = phi, coefficients
         else:
-            # one projection: the directions found in A are projected off Phi again
+            # one projection: the directions found in Y are projected off Phi again
             A = phi - own @ (own.T @ phi)
-            # what is dropped of A moves a snapshot phi c by at most the floor times |c| <= scale
-            Q, AQ = _gram_range(xp, A.T, GRAM_MERGE_FLOOR * self.tol, own, float(np.sqrt(phi.shape[1])))
-            Z = to_host(AQ).T @ coefficients     # (K, m): the residual snapshots on Q
+            Uc, Sc, _ = svd(coefficients)
+            Y = A @ xp.asarray(Uc[:, :Sc.size] * Sc)                       # (n, min(r_c, m))
+            Q, _ = _gram_range(xp, Y.T, self.tol * self.scale, own, float(np.sqrt(np.sum(Sc * Sc))))
+            if Q.shape[1] == 0:
+                return
+            Z = to_host(A.T @ Q).T @ coefficients     # (K, m): the residual snapshots on Q
         sub = self._streamed(Z, self._room(), block)
         if sub.rank:
             self._grow(Q @ xp.asarray(sub.phi))    # orthonormal, and orthogonal to the basis
@@ -231,17 +245,11 @@ class IncrementalBasis:
         need = self._cols + V.shape[1]
         if need > self._phi.shape[1]:     # amortized growth of the column buffer
             cap = max(need, 2 * self._phi.shape[1], 16)
-            buf = self.xp.zeros((self.n, cap))
+            buf = self.xp.zeros((self.n, cap), order=self._order)
             buf[:, :self._cols] = self._phi[:, :self._cols]
             self._phi = buf
         self._phi[:, self._cols:need] = V
         self._cols = need
-
-
-#: `merge` with "gram": the part of a chunk's basis outside ours is kept down to singular values of
-#: this fraction of the tolerance (each direction it drops moves a snapshot by at most that
-#: fraction of tol * scale)
-GRAM_MERGE_FLOOR = 1e-3
 
 
 def _gram_range(xp, E, floor: float, against, size: float):
