@@ -12,7 +12,8 @@ calls). Prints a table, asserts nothing.
 
 `--stage sensitivity|impulse|belief` profiles one stage's experiments alone at u_init (the
 sensitivity normal equations, the TV-ERA impulse experiments, the EnKF belief), each cut at
-`--run-steps`, instead of the design from its start.
+`--run-steps`, instead of the design from its start. `--sort tottime` orders the table by each
+function's own time (what to shorten) instead of the time with its callees.
 """
 from __future__ import annotations
 
@@ -42,6 +43,8 @@ def main() -> int:
     ap.add_argument("--memory-budget", help="the design's memory budget (e.g. 8G: at plate 256^2 the "
                     "sensitivity Jacobian, as on a large host; default: this machine's)")
     ap.add_argument("--top", type=int, default=18, help="cProfile rows to print")
+    ap.add_argument("--sort", choices=["cumulative", "tottime"], default="cumulative",
+                    help="order of the cProfile table: time with callees (default) or a function's own")
     args = ap.parse_args()
 
     from threadpoolctl import threadpool_limits
@@ -114,7 +117,7 @@ def main() -> int:
     print(f"time {total:.2f} s, plant steps {plant_s:.2f} s ({1e9 * plant_s / max(1, run_steps * plant.n_x):.1f} "
           f"ns/node-step), rest {rest:.2f} s = {1e9 * rest / max(1, run_steps * plant.n_x):.2f} ns/node-step")
     s = io.StringIO()
-    pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(args.top)
+    pstats.Stats(prof, stream=s).sort_stats(args.sort).print_stats(args.top)
     print("\n".join(line for line in s.getvalue().splitlines() if line.strip())[-6000:])
     return 0
 

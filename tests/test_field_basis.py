@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from sep_control.design.basis import METHODS, IncrementalBasis, truncate
-from sep_estimator.ltv import (AUTO_FLOAT32_BYTES, DenseFieldMap, Float32Reconstruction, PODFieldMap, in_precision,
-                               resolve_precision)
+from sep_estimator.disturbance_model import PaddedFieldMap
+from sep_estimator.ltv import (AUTO_FLOAT32_BYTES, DenseFieldMap, Float32Reconstruction, IdentityFieldMap, PODFieldMap,
+                               in_precision, resolve_precision)
 
 
 def low_rank(rng, n, m, rank, decay=1.0):
@@ -67,6 +68,15 @@ def test_pod_field_map_equals_the_dense_one():
         np.testing.assert_allclose(pod.gram(k), dense.gram(k), atol=1e-12)
         np.testing.assert_allclose(pod.project(k, v), dense.project(k, v), atol=1e-12)
     np.testing.assert_allclose(pod.std_all(P), dense.std_all(P), rtol=1e-10)
+    # every step's G_k' v_k at once (one pass over Phi) is the step-by-step projection
+    V = rng.standard_normal((6, 50))
+    steps = np.stack([dense.project(k, V[k]) for k in range(6)])
+    np.testing.assert_allclose(pod.project_all(V), steps, atol=1e-12)
+    np.testing.assert_allclose(dense.project_all(V), steps, atol=1e-12)
+    padded = PaddedFieldMap(pod, 2)
+    np.testing.assert_allclose(padded.project_all(V), np.stack([padded.project(k, V[k]) for k in range(6)]),
+                               atol=1e-12)
+    np.testing.assert_array_equal(IdentityFieldMap(50).project_all(V), V)
 
 
 def test_float32_reconstruction_agrees_to_single_precision_and_keeps_the_rest_float64():
@@ -295,6 +305,25 @@ def test_merge_streams_coefficients_like_add(method):
     assert np.abs(res2).max() <= 1e-7 * np.abs(X2).max()
     with pytest.raises(ValueError, match="merge"):
         a.merge(phi2[:10], C2)
+
+
+@pytest.mark.parametrize("first", [True, False])
+def test_gram_merge_returns_the_chunk_basis_on_the_merged_one(first):
+    """What a "gram" merge returns is Phi' phi on the columns Phi has after it (into an empty
+    basis too), from the merge's own products: what `impulse._merge_chunks` takes the chunk's
+    coefficients over with; "svd" returns None (0.8.0's merge: the caller projects)."""
+    rng = np.random.default_rng(6)
+    n = 400
+    Q0 = np.linalg.qr(rng.standard_normal((n, 50)))[0]
+    b = IncrementalBasis(n, 1e-8, method="gram")
+    if not first:
+        b.add((Q0[:, :15] @ rng.standard_normal((15, 40))).T)
+    phi = np.linalg.qr(np.hstack([Q0[:, 10:15], Q0[:, 15:30] + 1e-3 * Q0[:, 35:]]))[0]    # overlaps
+    C = rng.standard_normal((20, 300)) * np.logspace(0, -6, 20)[:, None]
+    T = b.merge(phi, C)
+    assert T.shape == (b.rank, 20)
+    np.testing.assert_allclose(T, b.phi.T @ phi, atol=1e-12)
+    assert IncrementalBasis(n, 1e-8, method="svd").merge(phi, C) is None
 
 
 def test_gram_merge_takes_only_the_directions_the_snapshots_use(monkeypatch):

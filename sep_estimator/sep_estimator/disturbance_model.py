@@ -224,6 +224,10 @@ class PaddedFieldMap:
         p = self.base.project(k, v)
         return np.concatenate([p, np.zeros(p.shape[:-1] + (self.n_d,))], axis=-1)
 
+    def project_all(self, v: np.ndarray) -> np.ndarray:
+        p = self.base.project_all(v)
+        return np.concatenate([p, np.zeros(p.shape[:-1] + (self.n_d,))], axis=-1)
+
 
 def augment(rom: LTVModel, dist: Disturbance | None) -> LTVModel:
     """The model on z = [a; d] (the kinds: `sep_estimator.disturbance`).

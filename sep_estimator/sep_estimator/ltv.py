@@ -52,6 +52,9 @@ class FieldMap(Protocol):
     def project(self, k: int, v: np.ndarray) -> np.ndarray:
         """G_k' v for field vectors v (..., n_field) -> (..., n)."""
 
+    def project_all(self, v: np.ndarray) -> np.ndarray:
+        """G_k' v_k for every step at once: v (N+1, n_field) -> (N+1, n)."""
+
 
 class DenseFieldMap:
     """G_k stored as (N+1, n_field, n)."""
@@ -80,6 +83,10 @@ class DenseFieldMap:
     def project(self, k: int, v: np.ndarray) -> np.ndarray:
         """G_k' v for field vectors v (..., n_field) -> (..., n)."""
         return v @ self.G[k]
+
+    def project_all(self, v: np.ndarray) -> np.ndarray:
+        """G_k' v_k, v (N+1, n_field) -> (N+1, n)."""
+        return np.einsum("kfn,kf->kn", self.G, v)
 
 
 def psd_factor(P: np.ndarray) -> np.ndarray:
@@ -126,6 +133,11 @@ class PODFieldMap:
 
     def project(self, k: int, v: np.ndarray) -> np.ndarray:
         return (v @ self.Phi) @ self.g[k]
+
+    def project_all(self, v: np.ndarray) -> np.ndarray:
+        # one pass over Phi for every step (a product per step reads all n_field r numbers of Phi
+        # each time: 81 of them took 1.0 s at 65,536 x 330 on one core, one batched 0.1 s)
+        return np.einsum("kr,krn->kn", v @ self.Phi, self.g)
 
 
 class Float32Reconstruction(PODFieldMap):
@@ -197,6 +209,9 @@ class IdentityFieldMap:
         return np.eye(self.n)
 
     def project(self, k: int, v: np.ndarray) -> np.ndarray:
+        return v
+
+    def project_all(self, v: np.ndarray) -> np.ndarray:
         return v
 
 

@@ -94,6 +94,13 @@ class IncrementalBasis:
         """(n, r) orthonormal columns."""
         return self._phi[:, :self._cols]
 
+    def result(self) -> np.ndarray:
+        """Phi to keep once the streaming is done: in host memory "gram"'s column-major view itself
+        (contiguous; the buffer's columns past r were never touched, so their pages were never
+        mapped: a copy cost 0.2 s per chunk at 65,536 x 330), else a compact copy (a device's
+        buffer is allocated whole; "svd"'s row-major buffer is 0.8.0's)."""
+        return self.phi if self._order == "F" and self.xp is np else self.phi.copy()
+
     def add(self, D: np.ndarray, scale: float | None = None) -> np.ndarray:
         """Coefficients (b, r) of the snapshots D (b, n) on the basis after adding them.
 
@@ -171,27 +178,30 @@ class IncrementalBasis:
         if k == Q.shape[1]:                                   # every direction kept: no rotation
             self._grow(Q)
             return xp.hstack([C, EQ])
-        self._grow(Q @ xp.asarray(W2t[:k].T.copy()))          # orthonormal: Q and W_2 both are
+        self._grow((xp.asarray(W2t[:k]) @ Q.T).T)             # Q W_2, orthonormal: Q and W_2 both are
         return xp.hstack([C, xp.asarray(U2[:, :k] * S2[:k])])
 
-    def merge(self, phi: np.ndarray, coefficients: np.ndarray, block: int = 64) -> None:
+    def merge(self, phi: np.ndarray, coefficients: np.ndarray, block: int = 64) -> np.ndarray | None:
         """Add the snapshots phi @ coefficients (phi (n, r_c) orthonormal, coefficients (r_c, m)),
         as `add` would one block of `block` snapshots at a time, but without forming them: their
         part outside the basis is Q Z (Q (n, r_c) orthonormal, Z = R coefficients from the QR of
         phi's residual) and the streaming runs on the columns of Z, in r_c numbers each. How
         chunk bases (`sep_control.design.tvera`) become one: the same tolerance as within a chunk,
         against `scale` (set it beforehand to the largest snapshot of all chunks, so that the
-        order of the chunks does not decide what is dropped) or the largest snapshot so far."""
+        order of the chunks does not decide what is dropped) or the largest snapshot so far.
+
+        Returns, for "gram", Phi' phi (r, r_c) on the host (r: the rank after the merge), from
+        the products the merge makes anyway; None for "svd" (0.8.0's merge: the caller projects
+        phi itself)."""
         if phi.ndim != 2 or phi.shape[0] != self.n or coefficients.ndim != 2 or coefficients.shape[0] != phi.shape[1]:
             raise ValueError(f"merge: basis {phi.shape} and coefficients {np.shape(coefficients)} do not "
                              f"fit a basis of length {self.n}")
         if phi.shape[1] == 0 or coefficients.size == 0:
-            return
+            return None
         xp = self.xp
         self.scale = max(self.scale, float(np.sqrt(np.einsum("ij,ij->j", coefficients, coefficients)).max()))
         if self.method == "gram":
-            self._merge_gram(phi, coefficients, block)
-            return
+            return self._merge_gram(phi, coefficients, block)
         own = self.phi
         if xp is not np and self._cols == 0:         # no products with an empty basis on a device
             A = phi.copy()
@@ -207,31 +217,40 @@ class IncrementalBasis:
             if xp is np or self._cols:
                 V -= own @ (own.T @ V)             # orthogonal to the basis to round-off
             self._grow(np.linalg.qr(V)[0] if xp is np else _qr(xp, V)[0])
+        return None
 
-    def _merge_gram(self, phi, coefficients: np.ndarray, block: int) -> None:
+    def _merge_gram(self, phi, coefficients: np.ndarray, block: int) -> np.ndarray:
         """`merge` with "gram": the residual snapshots A c, A = (I - Phi Phi') phi, hold directions
         above tol * scale only within the range of Y = A U_c S_c (c = U_c S_c V_c': the same
         singular values as A c, in r_c columns); `_gram_range` on Y' finds them, Q, and the
         streaming runs on the columns of Z = (A' Q)' c. Into an empty basis phi itself serves,
         Q = phi and Z = c. (A's own directions down to a floor would be r_c of them, most of
-        them carrying nothing of the snapshots.)"""
+        them carrying nothing of the snapshots.) The transfer T stacks M = Phi' phi and
+        phi_sub' (A' Q)' (Q' phi = Q' A: Q is orthogonal to Phi), or phi_sub' into an empty basis."""
         xp, own = self.xp, self.phi
-        if self._room() == 0:
-            return
         if self._cols == 0:
-            Q, Z = phi, coefficients
+            if self._room() == 0:
+                return np.zeros((0, phi.shape[1]))
+            Q, Z, M, QtA = phi, coefficients, np.zeros((0, phi.shape[1])), None
         else:
+            M = own.T @ phi
+            if self._room() == 0:
+                return to_host(M)
             # one projection: the directions found in Y are projected off Phi again
-            A = phi - own @ (own.T @ phi)
+            A = phi - own @ M
+            M = to_host(M)
             Uc, Sc, _ = svd(coefficients)
             Y = A @ xp.asarray(Uc[:, :Sc.size] * Sc)                       # (n, min(r_c, m))
             Q, _ = _gram_range(xp, Y.T, self.tol * self.scale, own, float(np.sqrt(np.sum(Sc * Sc))))
             if Q.shape[1] == 0:
-                return
-            Z = to_host(A.T @ Q).T @ coefficients     # (K, m): the residual snapshots on Q
+                return M
+            QtA = to_host(A.T @ Q).T                  # (K, r_c)
+            Z = QtA @ coefficients                    # (K, m): the residual snapshots on Q
         sub = self._streamed(Z, self._room(), block)
-        if sub.rank:
-            self._grow(Q @ xp.asarray(sub.phi))    # orthonormal, and orthogonal to the basis
+        if not sub.rank:
+            return M
+        self._grow((xp.asarray(sub.phi.T) @ Q.T).T)    # Q phi_sub: orthonormal, and orthogonal to the basis
+        return np.vstack([M, sub.phi.T if QtA is None else sub.phi.T @ QtA])
 
     def _streamed(self, Z: np.ndarray, max_rank: int | None, block: int) -> "IncrementalBasis":
         """A host basis of the columns of Z (residual snapshots in a merge's coordinates), added
@@ -245,7 +264,7 @@ class IncrementalBasis:
         need = self._cols + V.shape[1]
         if need > self._phi.shape[1]:     # amortized growth of the column buffer
             cap = max(need, 2 * self._phi.shape[1], 16)
-            buf = self.xp.zeros((self.n, cap), order=self._order)
+            buf = _zeros(self.xp, (self.n, cap), self._order)
             buf[:, :self._cols] = self._phi[:, :self._cols]
             self._phi = buf
         self._phi[:, self._cols:need] = V
@@ -333,8 +352,25 @@ def _cholqr2(xp, W):
             return None
         if i == 0 and np.linalg.cond(L) > CHOLQR_COND:
             return None
-        W = W @ xp.asarray(scipy.linalg.solve_triangular(L, np.eye(k), lower=True).T)
+        # W L'^{-1} formed as (L^{-1} W')': column-major, as Phi's buffer keeps its columns
+        W = (xp.asarray(scipy.linalg.solve_triangular(L, np.eye(k), lower=True)) @ W.T).T
     return W
+
+
+def _zeros(xp, shape: tuple[int, int], order: str):
+    """A zeroed buffer for Phi. In host memory without transparent huge pages: numpy asks the
+    kernel for them on arrays of 4 MB or more, and a buffer whose columns are written a few at a
+    time then takes a huge-page fault (with compaction) every 2 MB; at plate 256^2 (one TV-ERA
+    identification, one core) the basis' growths and writes took 2.6 s with them, 0.8 s without."""
+    toggle = getattr(getattr(getattr(np, "_core", None), "multiarray", None), "_set_madvise_hugepage", None) \
+        if xp is np else None                  # numpy's switch (1.20 on); without it, numpy's default
+    if toggle is None:
+        return xp.zeros(shape, order=order)
+    before = toggle(False)
+    try:
+        return np.zeros(shape, order=order)
+    finally:
+        toggle(before)
 
 
 #: what the device's own QR failed with, once (then the host's QR serves: a slower, working design)

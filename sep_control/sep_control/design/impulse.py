@@ -237,20 +237,26 @@ def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, in
             for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
     # the tolerance is against the largest response of all chunks, whatever their order
     basis.scale = max((float(np.sqrt(np.einsum("ij,ij->j", m, m)).max()) for m in flat if m.size), default=0.0)
+    transfers = []
     for (j0, j1), (Yp, phi, _), m in zip(plan, parts, flat):
         Y[j0:j1] = Yp
         # each chunk's responses are streamed in again as coefficients (`IncrementalBasis.merge`):
         # entering phi_c as unit vectors would keep each chunk's own small directions (rank 172
         # instead of 63 at n_x = 1600 with 4 chunks)
-        basis.merge(phi, m)
+        transfers.append(basis.merge(phi, m))
     r = basis.rank
     Yc = np.zeros((N, field_lags, r, n_ch))
-    for (j0, j1), (_, phi, Yc_local) in zip(plan, parts):
+    for (j0, j1), (_, phi, Yc_local), T in zip(plan, parts, transfers):
         if phi.shape[1]:
-            # phi_c on Phi: (phi' Phi)' Yc per (j, lag), a batched BLAS product (einsum's own loop
-            # took 7x longer at Allen-Cahn's r ~ 1000)
-            Yc[j0:j1] = np.matmul(to_host(phi.T @ basis.phi).T, Yc_local)
-    return Y, Yc, to_host(basis.phi).copy()
+            # phi_c on Phi, Phi' phi_c: "gram"'s merge gave it on the columns there were then (the
+            # product with all of Phi took 0.9 s per identification at plate 256^2), only the
+            # columns later merges added are left to project on; "svd" projects on all (0.8.0's)
+            done = 0 if T is None else T.shape[0]
+            later = to_host(phi.T @ basis.phi[:, done:]).T if done < r else np.zeros((0, phi.shape[1]))
+            T = later if T is None else np.vstack([T, later])
+            # per (j, lag) a batched BLAS product (einsum's own loop took 7x longer at Allen-Cahn's r ~ 1000)
+            Yc[j0:j1] = np.matmul(T, Yc_local)
+    return Y, Yc, to_host(basis.result())
 
 
 def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags: int, delta: float,
@@ -285,7 +291,7 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
         Cr = np.zeros((C.shape[0], r))
         Cr[:, :C.shape[1]] = C
         Yc[j[:, None], lag[:, None] - 1, :, chs[None, :]] = Cr.reshape(len(j), len(chs), r)
-    return Y, basis.phi.copy(), Yc
+    return Y, basis.result(), Yc
 
 
 def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int, lags: int, field_lags: int,
@@ -361,24 +367,28 @@ class _Ring:
         active = (j_slot >= 0) & (lag >= 1) & (lag <= self.lags)
         if not np.any(active):
             return
-        j, lag = j_slot[active], lag[active]
-        sel = self._index(np.flatnonzero(np.repeat(active, rows)))
-        Yo = to_host_of(plant, plant.observe(self.X[sel])).reshape(len(j), rows, int(plant.n_y))
+        slots = np.flatnonzero(active)
+        j, lag = j_slot[slots], lag[slots]
+        n_y = int(plant.n_y)
+        Yo = to_host_of(plant, self._per_run_range(slots, lambda X: plant.observe(X).reshape(-1, rows, n_y)))
         Y[j[:, None], lag[:, None] - 1, :, chs[None, :]] = _difference(Yo, m, self.sides, self.delta)
         keep = lag <= field_lags
         if np.any(keep):
             n_f = int(plant.n_field)
-            fsel = self._index(np.flatnonzero(np.repeat(np.isin(j_slot, j[keep]) & active, rows)))
-            Ff = plant.field(self.X[fsel]).reshape(int(keep.sum()), rows, n_f)
-            D = _difference(Ff, m, self.sides, self.delta).reshape(-1, n_f)             # (keep m, n_f)
+            D = self._per_run_range(slots[keep], lambda X: _difference(
+                plant.field(X).reshape(-1, rows, n_f), m, self.sides, self.delta)).reshape(-1, n_f)   # (keep m, n_f)
             C = to_host_of(plant, basis.add(D))
             if self.xp is not np and not np.isfinite(C).all():     # a device state is checked here, once
                 raise FloatingPointError("impulse experiments on the device gave non-finite field responses")
             blocks.append((j[keep], lag[keep], chs, C))
 
-    def _index(self, idx: np.ndarray):
-        """Row indices for the runs' array (on a device: uploaded, as CuPy wants)."""
-        return idx if self.xp is np else self.xp.asarray(idx)
+    def _per_run_range(self, slots: np.ndarray, fn):
+        """fn over the runs of the (sorted) `slots`, applied to each range of consecutive slots'
+        runs in place (views of the batch: gathering the runs first copied every active run's
+        whole state, ~280 MB per step at plate 256^2, to read 5 sensors), results stacked along
+        the first axis in slot order. fn acts run by run (a plant's observe and field do)."""
+        parts = [fn(self.X[a * self.rows:b * self.rows]) for a, b in _ranges(slots)]
+        return parts[0] if len(parts) == 1 else self.xp.concatenate(parts)
 
 
 class _StridedRing(_Ring):

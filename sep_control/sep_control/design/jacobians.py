@@ -140,9 +140,9 @@ class RomJacobian:
     def accepted(self, moved: float, decrease: float) -> None:
         self.settled = near_optimum(moved, decrease)
 
-    @staticmethod
-    def _on(ident: Identification, obj: Objective, at: Point) -> RomLinearization:
-        return RomLinearization(ident, obj, at.residual_field, at.U)
+    def _on(self, ident: Identification, obj: Objective, at: Point) -> RomLinearization:
+        # plan 0.8 (the "svd" field basis) keeps 0.8.0's step-by-step projections, bit for bit
+        return RomLinearization(ident, obj, at.residual_field, at.U, one_pass=self.rom.field_basis != "svd")
 
 
 class AutoJacobian:

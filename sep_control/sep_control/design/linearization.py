@@ -198,11 +198,11 @@ class RomLinearization:
     e_k = f_k - f* (the nominal's field, or the belief mean), w_k = q_k / n_f, D_j the diagonal of
     the Gauss-Newton matrix J'J (Levenberg-Marquardt scaling, as the dense solve uses). One
     backward Riccati pass with affine terms and one forward pass: O(N n_r^3), whatever n_x is;
-    G enters only through G_k' G_k and G_k' e_k (`FieldMap.gram`, `FieldMap.project`). The step
+    G enters only through G_k' G_k and G_k' e_k (`FieldMap.gram`, `FieldMap.project_all`). The step
     equals the dense solve of the same Jacobian (tests/test_rom_jacobian.py)."""
 
     def __init__(self, identification: Identification, obj: Objective, residual_field: np.ndarray,
-                 U: np.ndarray):
+                 U: np.ndarray, one_pass: bool = True):
         m = identification.model
         self.identification, self.model, self.U = identification, m, U
         self.experiments = identification.data.experiments
@@ -214,7 +214,11 @@ class RomLinearization:
         self.h = np.zeros((N + 1, n))
         for k in range(1, N + 1):
             self.H[k] = w[k] * m.G.gram(k)
-            self.h[k] = w[k] * m.G.project(k, e[k])
+        if one_pass:        # G_k' e_k for every k in one pass over Phi (`FieldMap.project_all`)
+            self.h[1:] = w[1:, None] * m.G.project_all(e)[1:]
+        else:               # step by step: 0.8.0's arithmetic (experiment plan 0.8)
+            for k in range(1, N + 1):
+                self.h[k] = w[k] * m.G.project(k, e[k])
         self.r_u = obj.r_u
         # diagonal of J'J: r_u + diag(B_j' P_{j+1} B_j), P_k = H_k + A_k' P_{k+1} A_k
         self.D = np.empty(U.shape)
