@@ -221,11 +221,13 @@ class PaddedFieldMap:
         return out
 
     def project(self, k: int, v: np.ndarray) -> np.ndarray:
-        p = self.base.project(k, v)
-        return np.concatenate([p, np.zeros(p.shape[:-1] + (self.n_d,))], axis=-1)
+        return self._padded(self.base.project(k, v))
 
     def project_all(self, v: np.ndarray) -> np.ndarray:
-        p = self.base.project_all(v)
+        return self._padded(self.base.project_all(v))
+
+    def _padded(self, p: np.ndarray) -> np.ndarray:
+        """G' v of the base map (..., n) with the disturbance states' zeros appended."""
         return np.concatenate([p, np.zeros(p.shape[:-1] + (self.n_d,))], axis=-1)
 
 
