@@ -377,7 +377,7 @@ class _Ring:
             n_f = int(plant.n_field)
             D = self._per_run_range(slots[keep], lambda X: _difference(
                 plant.field(X).reshape(-1, rows, n_f), m, self.sides, self.delta)).reshape(-1, n_f)   # (keep m, n_f)
-            C = to_host_of(plant, basis.add(D))
+            C = to_host_of(plant, basis.add(D, overwrite=True))          # D is this step's own
             if self.xp is not np and not np.isfinite(C).all():     # a device state is checked here, once
                 raise FloatingPointError("impulse experiments on the device gave non-finite field responses")
             blocks.append((j[keep], lag[keep], chs, C))
@@ -444,6 +444,6 @@ def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:
 def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
     """(experiments, m, n) impulse responses from the runs V (experiments, rows, n) of one slot:
     central (V[:m] - V[m:2m]) / 2 delta, forward (V[:m] - V[m]) / delta."""
-    if sides == 2:
-        return (V[:, :m] - V[:, m:]) / (2 * delta)
-    return (V[:, :m] - V[:, m:m + 1]) / delta
+    D = V[:, :m] - (V[:, m:] if sides == 2 else V[:, m:m + 1])
+    D /= 2 * delta if sides == 2 else delta          # in place: the same numbers, one n-long temporary
+    return D
