@@ -438,3 +438,47 @@ def test_the_designs_svd_falls_back_to_gesvd_where_gesdd_does_not_converge(monke
     np.testing.assert_allclose(S, real(a, compute_uv=False), rtol=1e-10, atol=1e-14)
     with pytest.raises(np.linalg.LinAlgError):
         module.svd(np.full((3, 3), np.nan))
+
+
+def test_gram_basis_in_place_residual_and_reserved_columns_give_the_same_basis():
+    """`add(D, overwrite=True)` forms the residual in D's memory (one dgemm) and `reserve`
+    allocates the columns ahead: the same coefficients and basis as a plain add into a growing
+    buffer (to round-off), the reserved buffer never regrown, and the caller's D left alone
+    without `overwrite`."""
+    rng = np.random.default_rng(12)
+    n = 700
+    X = low_rank(rng, n, 240, 60, decay=0.8)
+    plain, fast = IncrementalBasis(n, 1e-8, method="gram"), IncrementalBasis(n, 1e-8, method="gram", reserve=240)
+    buffer = fast._phi
+    for i in range(0, 240, 30):
+        D = X[:, i:i + 30].T.copy()
+        c_plain = plain.add(D)
+        np.testing.assert_array_equal(D, X[:, i:i + 30].T)           # not overwritten
+        c_fast = fast.add(D, overwrite=True)
+        np.testing.assert_allclose(c_fast, c_plain, atol=1e-12 * np.abs(X).max())
+        buffer = fast._phi if buffer.shape[1] == 0 else buffer
+        assert fast._phi is buffer                                    # reserved: no growth copies
+    assert fast.rank == plain.rank and fast._phi.shape[1] == 240
+    np.testing.assert_allclose(np.abs(fast.phi.T @ plain.phi), np.eye(fast.rank), atol=1e-9)
+    np.testing.assert_allclose(fast.phi.T @ fast.phi, np.eye(fast.rank), atol=1e-12)
+
+
+def test_gram_merge_into_an_empty_basis_keeps_the_chunk_basis_when_every_direction_counts():
+    """The first chunk merged into an empty basis, every one of its directions above the
+    tolerance: phi joins as it is (no rotation) and the transfer is the identity; with directions
+    the snapshots do not use, those are dropped and the transfer is Phi' phi."""
+    rng = np.random.default_rng(13)
+    n = 500
+    phi = np.linalg.qr(rng.standard_normal((n, 25)))[0]
+    full = IncrementalBasis(n, 1e-8, method="gram")
+    T = full.merge(phi, rng.standard_normal((25, 100)))
+    np.testing.assert_array_equal(full.phi, phi)
+    np.testing.assert_array_equal(T, np.eye(25))
+    C = np.zeros((25, 100))
+    C[:12] = rng.standard_normal((12, 100))
+    part = IncrementalBasis(n, 1e-8, method="gram")
+    T = part.merge(phi, C)
+    assert part.rank == 12
+    np.testing.assert_allclose(T, part.phi.T @ phi, atol=1e-12)
+    X = phi @ C
+    assert np.abs(X - part.phi @ (T @ C)).max() <= 1e-8 * np.abs(X).max()

@@ -51,6 +51,7 @@ import scipy.linalg.blas
 
 from sep_plant.plants.backend import to_host
 
+from sep_control.compute.budget import default_budget
 from sep_control.design.svd import svd
 
 #: how a block's new directions are found (module docstring): "svd" is 0.8.0's arithmetic
@@ -63,6 +64,8 @@ GRAM_RESOLVE = 1e-11
 GRAM_ROUNDS = 4
 #: a projection's round-off, in sqrt(b) eps |D|_F: `_gram_range` takes no direction below it
 GRAM_NOISE = 64.0
+#: the most bytes a basis reserves for its columns ahead (`IncrementalBasis` `reserve`)
+RESERVE_BYTES = 4 * 2 ** 30
 #: the largest condition number CholeskyQR2 is trusted with (Q'Q - I ~ (eps cond^2)^2 after the
 #: second pass; beyond ~eps^{-1/2} = 6.7e7 the first Cholesky loses the small directions)
 CHOLQR_COND = 1e6
@@ -71,7 +74,12 @@ CHOLQR_COND = 1e6
 class IncrementalBasis:
     """Orthonormal basis of the snapshots added so far (columns of `phi`)."""
 
-    def __init__(self, n: int, tol: float = 1e-12, max_rank: int | None = None, xp=np, method: str = "gram"):
+    def __init__(self, n: int, tol: float = 1e-12, max_rank: int | None = None, xp=np, method: str = "gram",
+                 reserve: int = 0):
+        """`reserve`: the most columns the basis is expected to reach (e.g. the number of snapshots
+        to come). Host "gram" allocates that many at once, up to RESERVE_BYTES (and the memory budget, `sep_control.compute.budget`): address space only,
+        its pages mapped as columns are written, and no growth copies (a growth faulted in and
+        copied the whole basis: 0.4 s of a plate 256^2 identification's merges)."""
         if method not in METHODS:
             raise ValueError(f"field basis method must be one of {', '.join(METHODS)}, got {method!r}")
         self.n, self.tol = int(n), float(tol)
@@ -84,6 +92,8 @@ class IncrementalBasis:
         self._order = "F" if method == "gram" else "C"
         self._phi = xp.zeros((self.n, 0), order=self._order)
         self._cols = 0
+        self._reserve = min(int(reserve), self.n, min(RESERVE_BYTES, default_budget()) // (8 * max(self.n, 1))) \
+            if method == "gram" and xp is np and reserve > 0 else 0
         self.scale = 0.0
 
     @property
@@ -231,7 +241,7 @@ class IncrementalBasis:
         above tol * scale only within the range of Y = A U_c S_c (c = U_c S_c V_c': the same
         singular values as A c, in r_c columns); `_gram_range` on Y' finds them, Q, and the
         streaming runs on the columns of Z = (A' Q)' c. Into an empty basis phi itself serves,
-        Q = phi and Z = c. (A's own directions down to a floor would be r_c of them, most of
+        Q = phi and Z = c, and where the streaming keeps every direction, phi joins as it is. (A's own directions down to a floor would be r_c of them, most of
         them carrying nothing of the snapshots.) The transfer T stacks M = Phi' phi and
         phi_sub' (A' Q)' (Q' phi = Q' A: Q is orthogonal to Phi), or phi_sub' into an empty basis."""
         xp, own = self.xp, self.phi
@@ -258,6 +268,11 @@ class IncrementalBasis:
         sub = self._streamed(Z, self._room(), block)
         if not sub.rank:
             return M
+        if QtA is None and sub.rank == phi.shape[1]:
+            # every direction of phi kept: phi itself is a basis of their span (Phi' phi = I),
+            # without the n r_c^2 rotation into phi_sub's
+            self._grow(phi)
+            return np.eye(sub.rank)
         self._grow((xp.asarray(sub.phi.T) @ Q.T).T)    # Q phi_sub: orthonormal, and orthogonal to the basis
         return np.vstack([M, sub.phi.T if QtA is None else sub.phi.T @ QtA])
 
@@ -272,7 +287,7 @@ class IncrementalBasis:
     def _grow(self, V: np.ndarray) -> None:
         need = self._cols + V.shape[1]
         if need > self._phi.shape[1]:     # amortized growth of the column buffer
-            cap = max(need, 2 * self._phi.shape[1], 16)
+            cap = max(need, 2 * self._phi.shape[1], 16, self._reserve)
             buf = _zeros(self.xp, (self.n, cap), self._order)
             buf[:, :self._cols] = self._phi[:, :self._cols]
             self._phi = buf

@@ -232,7 +232,8 @@ def _merge_chunks(plan: list[tuple[int, int]], parts: list, shape: tuple[int, in
     on the merged basis Phi, and Phi (see `impulse_experiments`)."""
     N, n_ch = shape[0], shape[3]
     Y = np.zeros(shape)
-    basis = IncrementalBasis(n_f, field_tol, xp=namespace(*(phi for _, phi, _ in parts)), method=field_basis)
+    basis = IncrementalBasis(n_f, field_tol, xp=namespace(*(phi for _, phi, _ in parts)), method=field_basis,
+                             reserve=sum(phi.shape[1] for _, phi, _ in parts))
     flat = [Yc_local.transpose(2, 0, 1, 3).reshape(phi.shape[1], -1) if phi.shape[1] else np.zeros((0, 0))
             for _, phi, Yc_local in parts]                    # (r_c, snapshots) per chunk
     # the tolerance is against the largest response of all chunks, whatever their order
@@ -276,7 +277,8 @@ def _impulse_chunk(task: tuple, plant, U_ext: np.ndarray, lags: int, field_lags:
     n_ch = n_u + n_w
     n = j1 - j0
     Y = np.zeros((n, lags, n_y, n_ch))
-    basis = IncrementalBasis(n_f, field_tol, xp=array_module_of(plant), method=field_basis)
+    snapshots = (n if local_starts is None else len(local_starts)) * n_ch * field_lags     # the rank's bound
+    basis = IncrementalBasis(n_f, field_tol, xp=array_module_of(plant), method=field_basis, reserve=snapshots)
     blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []   # (j, lag, channels, coef)
     desc = None if bar_desc is None else (bar_desc if n_chunks == 1 else f"{bar_desc} {i + 1}/{n_chunks}")
     bar = progress(None, desc or "", desc is not None, total=len(groups) * (n + lags - 1))
