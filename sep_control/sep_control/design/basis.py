@@ -77,9 +77,10 @@ class IncrementalBasis:
     def __init__(self, n: int, tol: float = 1e-12, max_rank: int | None = None, xp=np, method: str = "gram",
                  reserve: int = 0):
         """`reserve`: the most columns the basis is expected to reach (e.g. the number of snapshots
-        to come). Host "gram" allocates that many at once, up to RESERVE_BYTES (and the memory budget, `sep_control.compute.budget`): address space only,
-        its pages mapped as columns are written, and no growth copies (a growth faulted in and
-        copied the whole basis: 0.4 s of a plate 256^2 identification's merges)."""
+        to come). Host "gram" allocates that many at once, up to RESERVE_BYTES and the memory
+        budget (`sep_control.compute.budget`): address space only, its pages mapped as columns are
+        written, and no growth copies (a growth faulted in and copied the whole basis: 0.4 s of a
+        plate 256^2 identification's merges)."""
         if method not in METHODS:
             raise ValueError(f"field basis method must be one of {', '.join(METHODS)}, got {method!r}")
         self.n, self.tol = int(n), float(tol)
@@ -122,15 +123,13 @@ class IncrementalBasis:
         D = xp.atleast_2d(D)
         if D.shape[1] != self.n:
             raise ValueError(f"snapshots of length {D.shape[1]}, basis of length {self.n}")
-        size = None                                   # |D|_F, where the norms give it
+        sq = xp.einsum("ij,ij->i", D, D)                  # squared snapshot norms
         if scale is None:
-            sq = xp.einsum("ij,ij->i", D, D)
             norms = xp.sqrt(sq)
             scale = float(norms.max(initial=0.0)) if xp is np else (float(norms.max()) if D.shape[0] else 0.0)
-            size = float(np.sqrt(float(sq.sum())))
         self.scale = max(self.scale, float(scale))
         if self.method == "gram":
-            return self._add_gram(D, overwrite, size)
+            return self._add_gram(D, float(np.sqrt(float(sq.sum()))), overwrite)
         phi = self.phi
         if xp is not np and self._cols == 0:     # no products with an empty basis on a device
             C, E = xp.zeros((D.shape[0], 0)), D.copy()
@@ -170,14 +169,13 @@ class IncrementalBasis:
         room = self.n - self._cols
         return room if self.max_rank is None else min(room, max(0, self.max_rank - self._cols))
 
-    def _add_gram(self, D, overwrite: bool = False, size: float | None = None):
+    def _add_gram(self, D, size: float, overwrite: bool = False):
         """`add` with "gram": C = D Phi and E = D - C Phi' in one pass (the directions found in E
         are projected off Phi again, and E's coefficients are taken on them, so E's round-off
         along Phi changes nothing), then E's directions above tol * scale (`_gram_range`, and
         the SVD of the small E Q) join Phi; returns (b, r) coefficients. `overwrite`: E is
-        formed in D's memory. `size`: |D|_F (None: computed here)."""
+        formed in D's memory. `size`: |D|_F."""
         xp, phi, theta = self.xp, self.phi, self.tol * self.scale
-        size = float(xp.linalg.norm(D)) if size is None else size
         if self._cols:
             C = D @ phi
             E = _residual(xp, D, C, phi, overwrite)
@@ -241,8 +239,9 @@ class IncrementalBasis:
         above tol * scale only within the range of Y = A U_c S_c (c = U_c S_c V_c': the same
         singular values as A c, in r_c columns); `_gram_range` on Y' finds them, Q, and the
         streaming runs on the columns of Z = (A' Q)' c. Into an empty basis phi itself serves,
-        Q = phi and Z = c, and where the streaming keeps every direction, phi joins as it is. (A's own directions down to a floor would be r_c of them, most of
-        them carrying nothing of the snapshots.) The transfer T stacks M = Phi' phi and
+        Q = phi and Z = c, and where the streaming keeps every direction, phi joins as it is.
+        (A's own directions down to a floor would be r_c of them, most of them carrying nothing
+        of the snapshots.) The transfer T stacks M = Phi' phi and
         phi_sub' (A' Q)' (Q' phi = Q' A: Q is orthogonal to Phi), or phi_sub' into an empty basis."""
         xp, own = self.xp, self.phi
         if self._cols == 0:

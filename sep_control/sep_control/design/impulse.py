@@ -446,6 +446,6 @@ def _ranges(idx: np.ndarray) -> list[tuple[int, int]]:
 def _difference(V: np.ndarray, m: int, sides: int, delta: float) -> np.ndarray:
     """(experiments, m, n) impulse responses from the runs V (experiments, rows, n) of one slot:
     central (V[:m] - V[m:2m]) / 2 delta, forward (V[:m] - V[m]) / delta."""
-    D = V[:, :m] - (V[:, m:] if sides == 2 else V[:, m:m + 1])
-    D /= 2 * delta if sides == 2 else delta          # in place: the same numbers, one n-long temporary
-    return D
+    if sides == 2:
+        return (V[:, :m] - V[:, m:]) / (2 * delta)
+    return (V[:, :m] - V[:, m:m + 1]) / delta
