@@ -4,16 +4,18 @@ Every identification streams its field responses into an incremental orthonormal
 (`sep_control.design.basis`). "svd" finds a block's new directions by an SVD of the b x n_f
 residual block and a QR of them (0.8.0's arithmetic, experiment plan 0.8); "gram" (plan 0.9) from
 the b x b Gram matrix, CholeskyQR2 and a b x K SVD. For each `bench_scale.py` row, one
-identification around the scenario's initial input with the design's plan 0.9 TV-ERA settings,
+identification around the scenario's initial input with the design's plan 0.9 TV-ERA settings
+(its field basis tolerance, 1e-6 of the largest response, or `--field-tol`: 0.8.0's was 1e-8),
 once per method, in one run and with one BLAS thread, measures:
 
 * the identification's seconds, of it the plant's steps and the basis (`add` and `merge`);
 * the basis rank r_f, and the field responses' relative difference from "svd"'s
-  |Phi_g Yc_g - Phi_s Yc_s|_F / |Phi_s Yc_s|_F (the tolerance is 1e-8 of the largest response);
+  |Phi_g Yc_g - Phi_s Yc_s|_F / |Phi_s Yc_s|_F (against the tolerance);
 * the output Markov parameters' largest difference (none: the basis holds the fields only).
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_field_basis.py                    # plate:64, plate:128
     OPENBLAS_NUM_THREADS=1 python bench/bench_field_basis.py --rows plate:256   # ~4 min
+    OPENBLAS_NUM_THREADS=1 python bench/bench_field_basis.py --field-tol 1e-8   # 0.8.0's tolerance
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ from sep_control.design.pipeline import DesignSettings  # noqa: E402
 from sep_control.evaluation.metrics import format_table  # noqa: E402
 from sep_plant.scenario import load_scenario  # noqa: E402
 
-COLUMNS = ["n_x", "identify_s", "plant_s", "basis_s", "basis/svd", "r_f", "field_vs_svd",
+COLUMNS = ["n_x", "tol", "identify_s", "plant_s", "basis_s", "basis/svd", "r_f", "field_vs_svd",
            "outputs_vs_svd"]
 
 
@@ -73,11 +75,11 @@ def field_difference(a, b) -> float:
     return float(np.sqrt((inside + max(outside, 0.0)) / np.sum(yb ** 2)))
 
 
-def run_row(name: str) -> list[dict]:
+def run_row(name: str, field_tol: float | None = None) -> list[dict]:
     file, changes = ROWS[name]
     scen = load_scenario(REPO / "sep_plant" / "scenarios" / file if file else None).with_plant(**changes)
     plant, problem = scen.plant, scen.problem
-    rom = DesignSettings.for_scenario(scen, experiment_plan="0.9").rom(None, problem)
+    rom = DesignSettings.for_scenario(scen, experiment_plan="0.9", field_tol=field_tol).rom(None, problem)
     U = problem.u_start(plant.n_u)
     rows, data = [], {}
     for method in ("svd", "gram"):
@@ -95,7 +97,7 @@ def run_row(name: str) -> list[dict]:
             basis_mod.IncrementalBasis.add, basis_mod.IncrementalBasis.merge = add, merge
             del plant.step
         data[method] = ident.data
-        rows.append({"row": name, "n_x": int(plant.n_x), "method": method, "identify_s": total,
+        rows.append({"row": name, "n_x": int(plant.n_x), "method": method, "tol": rom.field_tol, "identify_s": total,
                      "plant_s": clock.plant, "basis_s": clock.basis, "r_f": int(ident.data.basis.shape[1])})
         print(f"  {name} {method}: {total:.1f} s", file=sys.stderr, flush=True)
     for r in rows:
@@ -109,11 +111,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rows", nargs="+", choices=list(ROWS), default=["plate:64", "plate:128"],
                     help="bench_scale.py rows (default: plate:64 plate:128)")
+    ap.add_argument("--field-tol", type=float, default=None,
+                    help="the field basis' relative tolerance (default: plan 0.9's, 1e-6)")
     args = ap.parse_args()
     out = {}
     with threadpool_limits(1):
         for name in args.rows:
-            out.update({f"{r['row']} {r['method']}": r for r in run_row(name)})
+            out.update({f"{r['row']} {r['method']}": r for r in run_row(name, args.field_tol)})
     print(format_table(out, COLUMNS))
     return 0
 

@@ -77,6 +77,8 @@ def _meta(npz) -> dict:
     meta.get("settings", {}).pop("experiment_plan", None)   # new setting; its "0.8" is 0.8.0's plan
     meta.get("settings", {}).pop("impulse_stride", None)    # new setting; plan 0.8's 1 is 0.8.0's experiments
     meta.get("settings", {}).pop("clip_correction", None)   # new setting; plan 0.8's off is 0.8.0's design
+    # new setting; plan 0.8's tolerance is 0.8.0's
+    assert meta.get("settings", {}).pop("field_tol", 1e-8) == 1e-8
     meta.get("provenance", {}).pop("created_unix", None)
     return meta
 

@@ -80,6 +80,50 @@ def test_impulse_stride_is_a_plan_key_and_is_checked():
             DesignSettings(impulse_stride=bad).check()
 
 
+def test_field_tol_is_a_plan_key_reaches_the_identifications_and_is_checked():
+    assert DesignSettings(experiment_plan="0.8").field_tol == 1e-8       # 0.8.0's tolerance
+    assert DesignSettings().field_tol == 1e-6
+    assert DesignSettings().rom().field_tol == 1e-6
+    assert DesignSettings(experiment_plan="0.8").rom().field_tol == 1e-8
+    assert DesignSettings(field_tol=1e-7).rom().field_tol == 1e-7
+    assert DesignSettings.from_meta({"settings": {}}).field_tol == 1e-8       # files before the key
+    assert DesignSettings.from_meta({"settings": {"experiment_plan": "0.9"}}).field_tol == 1e-8
+    assert DesignSettings.from_meta({"settings": {"field_tol": 1e-6}}).field_tol == 1e-6
+    for bad in (0.0, 1.0, -1e-6, float("nan")):
+        with pytest.raises(ValueError, match="field_tol"):
+            DesignSettings(field_tol=bad).check()
+
+
+def test_a_scenario_writes_number_settings_as_yaml_reads_them(tmp_path):
+    """YAML 1.1 reads 1e-6 (no dot) as a string: the design section takes it as the number."""
+    from dataclasses import replace as with_
+
+    scen = with_(reference(), design={"field_tol": "1e-6", "sv_tol": "1e-9"})
+    st = DesignSettings.for_scenario(scen)
+    assert st.field_tol == 1e-6 and st.sv_tol == 1e-9
+    with pytest.raises(ValueError, match="field_tol must be a number"):
+        DesignSettings.for_scenario(with_(reference(), design={"field_tol": "tiny"}))
+
+
+def test_a_coarse_proposal_model_is_never_a_full_one():
+    """With Hankel blocks of at most PLAN_PQ (p = q = 6) plan 0.9's proposal settings equal the
+    design's but for the coarse mark: its models still count as proposals (the optimizer identifies
+    a full model before it settles), the full settings' as full ones."""
+    from dataclasses import replace as with_
+
+    from core_helpers import flat
+    from sep_control.design.stages import PROPOSAL_ROM
+
+    s = flat(n_x=30, n_steps=12, k_band=8, lqr_k_switch=6)
+    U = np.full((12, 5), 0.2)
+    rom = with_(DesignSettings(p=3, q=3, n_r=4).rom(), inputs_only=True)
+    proposal = with_(rom, **PROPOSAL_ROM)
+    assert with_(proposal, coarse=False) == rom                   # the same settings but the mark
+    coarse, full = proposal.identify(s.plant, U), rom.identify(s.plant, U)
+    assert coarse.coarse and not coarse.made_with(rom.scheme, rom.field_tol, rom.p, rom.q, noise=False)
+    assert not full.coarse and full.made_with(rom.scheme, rom.field_tol, rom.p, rom.q, noise=False)
+
+
 def test_settle_stop_takes_the_step_and_ends_the_run():
     scen = reference().with_plant(n_x=20)
     problem = scen.problem.replace(n_steps=24, band_window=None, lqr_k_switch=None)

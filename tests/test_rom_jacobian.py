@@ -298,7 +298,7 @@ def test_coarse_proposal_models_reach_the_same_design():
     full = run_design(P, S, DesignSettings(**base, coarse_proposals=False), show_progress=False,
                       log=lambda m: None)
     c, f = coarse.meta["optimizer"], full.meta["optimizer"]
-    assert PROPOSAL_ROM == {"scheme": "forward", "field_tol": 1e-6}
+    assert PROPOSAL_ROM == {"scheme": "forward", "field_tol": 1e-6, "coarse": True}
     assert "rom (proposal)" in c["linearizations"] and "rom (proposal)" not in f["linearizations"]
     assert c["experiments"] < f["experiments"]
     per = {"rom (proposal)": SCHEMES["forward"], "rom": SCHEMES["central"], "rom (kept)": 0}

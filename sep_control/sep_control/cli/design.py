@@ -71,6 +71,11 @@ SETTINGS_OPTIONS = (
     ("--q", "q", dict(type=int), "Hankel block columns (past inputs)", False),
     ("--sv-tol", "sv_tol", dict(type=float), "relative Hankel singular-value cutoff", False),
     ("--impulse", "impulse", dict(type=float), "impulse amplitude relative to the RMS nominal input", False),
+    ("--field-tol", "field_tol", dict(type=float),
+     "the identifications' field basis (POD of the field responses, streamed) keeps the directions above this "
+     "times the largest response; its projections are the "
+     "design's main work outside the plant step on large grids (4 n_f r flops per snapshot, r the basis rank)",
+     False),
     ("--field-map-tol", "field_map_tol", dict(type=float),
      "the design's field map G_k = Phi g_k keeps the directions that move the field by more than this times "
      "its largest spread (the ROM state's covariance with and without the feedback); what is dropped changes the "
@@ -132,9 +137,11 @@ SWITCH_OPTIONS = (
     ("--no-coarse-proposals", "coarse_proposals",
      "rom Jacobian: identify every model with the full settings; by default the identifications far from the "
      "optimum, which only propose Gauss-Newton steps, use forward impulses and a field basis to 1e-6 (about half "
-     "the plant steps), and the ones near it and the design's ROM the full ones", False),
+     "the plant steps; plan 0.9: Hankel blocks p = q = 8 as well), and the ones near it and the design's ROM the "
+     "full ones", False),
 )
-_DEFAULT_TEXT = {"max_iter": "10 for gn, 60 for gd", "clip_correction": "the plan's: off for 0.8, on for 0.9"}
+_DEFAULT_TEXT = {"max_iter": "10 for gn, 60 for gd", "clip_correction": "the plan's: off for 0.8, on for 0.9",
+                 "field_tol": "the plan's: 1e-8 for 0.8, 1e-6 for 0.9"}
 
 
 def _on_off(text: str) -> bool:

@@ -31,8 +31,8 @@ are bandwidth-bound: 0.77 s for 64 x 65,536 on one core, against 0.02 s for E E'
 It keeps what the SVD keeps up to directions at the tolerance's edge. `merge` finds the
 directions of a chunk's snapshots outside Phi the same way, without a QR, from the range of the
 residual snapshots as a whole (A U_c S_c, `_merge_gram`) rather than of every direction of the
-chunk's basis: an identification's field responses then agree with "svd"'s to 2.4e-9 (the
-tolerance is 1e-8) with 1-4 fewer directions (`bench/bench_field_basis.py`, docs/benchmarks.md).
+chunk's basis: an identification's field responses then agree with "svd"'s to 2.4e-9 at a
+tolerance of 1e-8 with 1-4 fewer directions (`bench/bench_field_basis.py`, docs/benchmarks.md).
 "svd" is 0.8.0's arithmetic (experiment plan 0.8).
 
 `xp`: the array module Phi lives in. On a device (`sep_plant.device`) the snapshots arrive

@@ -34,8 +34,12 @@ from sep_control.design.runsteps import meter_of, unmetered
 
 #: relative tolerance of the field responses' basis (against the largest response) and of its
 #: final truncation to the span the field map uses (the field reconstruction needs no more; at 1e-8
-#: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes)
+#: the slab's field map has rank ~60 whatever n_x, 400 to 6400 nodes): the default of `identify`
+#: and of experiment plan 0.8 (a design's plan 0.9 uses `settings.PLAN_FIELD_TOL`)
 FIELD_TOL = 1e-8
+#: the fewest field snapshots in one block of the basis: steps with fewer are gathered with the
+#: next ones (`_FieldBlocks`, "gram" only)
+MIN_FIELD_ROWS = 32
 #: impulse schemes: experiments per impulse (a forward pass also steps one unperturbed copy of the
 #: nominal per start step, beside its impulses, so that both sides of every difference come from
 #: the same batched solve: a nominal from a separate rollout differs in round-off, which the
@@ -114,7 +118,8 @@ def impulse_experiments(plant: Plant, U: np.ndarray, lags: int, field_lags: int,
     `Xbar_ext` is the nominal over N + lags steps (computed if None), `U_ext` its input (None: U,
     its last input held).
     Field responses go straight into an incremental orthonormal basis per chunk (`field_tol`
-    relative to the chunk's largest response); only their coefficients are kept. The chunks'
+    relative to the chunk's largest response), with "gram" in blocks of at least MIN_FIELD_ROWS
+    snapshots (of consecutive steps, `_FieldBlocks`); only their coefficients are kept. The chunks'
     bases are then merged in chunk order into one basis Phi: each chunk's responses phi_c C_c
     are streamed in again from their coefficients (`IncrementalBasis.merge`, blocks of 64), with
     field_tol relative to the largest response of all chunks, so the merged basis is what one
@@ -308,11 +313,58 @@ def _impulse_pass(plant: Plant, U_ext: np.ndarray, Xbar_ext: np.ndarray, N: int,
         return
     ring = _Ring(plant, chs, n_u, n_w, lags, delta, scheme, noise, start) if starts is None else \
         _StridedRing(plant, chs, n_u, n_w, lags, delta, scheme, noise, start, starts)
+    fields = _FieldBlocks(plant, basis, blocks)
     for k in range(N + lags - 1 if starts is None else int(starts[-1]) + lags):
         if hasattr(bar, "update"):
             bar.update(1)
         j_slot = ring.advance(k, N, U_ext[k], Xbar_ext[k] if k < N else None)
-        ring.record(k, j_slot, field_lags, Y, basis, blocks)
+        ring.record(k, j_slot, field_lags, Y, fields)
+    fields.flush()
+
+
+class _FieldBlocks:
+    """The field responses of consecutive steps, gathered into blocks of at least
+    `MIN_FIELD_ROWS` snapshots before they enter the basis ("gram"; "svd", 0.8.0's, takes each
+    step's block as it comes). A block costs two products with the n_f x r basis, which read Phi
+    whatever the block's rows b: at b = 9 they ran at 10.8 GFLOP/s, at 18 at 22.0, at 27 at 25.9,
+    at 36 at 31.6 and at 54 at 36.6 (65,536 x 200, one core). Its Gram rounds cost n_f b^2 each
+    and CholeskyQR2 4 n_f K^2 per pass (K: the directions it finds), so larger blocks do not pay:
+    steps gathered into blocks of up to 64 rows took plate 256^2's design work outside the plant
+    step from 23.2-23.6 s to 25.3 s. A step holds few rows where the memory budget splits the
+    channels into groups (one group's channels per step), and while the ring fills and empties.
+    The coefficients (b, r) of a block go to `blocks` step by step, as (j, lag, channels,
+    coefficients)."""
+
+    def __init__(self, plant: Plant, basis: IncrementalBasis, blocks: list):
+        self.plant, self.basis, self.blocks = plant, basis, blocks
+        # a fixed number, not one from the free memory: the blocks decide the basis' bits. Memory
+        # beyond a step's own block: the rows held (fewer than MIN_FIELD_ROWS) and one copy of the
+        # block as it is added (0.25 GB per 32 rows at 10^6 nodes)
+        self.min_rows = MIN_FIELD_ROWS if basis.method == "gram" else 0
+        self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, object]] = []
+        self.rows = 0
+
+    def add(self, j: np.ndarray, lag: np.ndarray, chs: np.ndarray, D) -> None:
+        """One step's field responses D (len(j) len(chs), n_f), this step's own memory."""
+        self.pending.append((j, lag, chs, D))
+        self.rows += D.shape[0]
+        if self.rows >= self.min_rows:
+            self.flush()
+
+    def flush(self) -> None:
+        """Enter the pending responses into the basis, as one block."""
+        if not self.pending:
+            return
+        parts, self.pending, self.rows = self.pending, [], 0
+        D = parts[0][3] if len(parts) == 1 else namespace(parts[0][3]).concatenate([p[3] for p in parts])
+        C = to_host_of(self.plant, self.basis.add(D, overwrite=True))     # D is scratch
+        # a device state is checked here, once per block
+        if array_module_of(self.plant) is not np and not np.isfinite(C).all():
+            raise FloatingPointError("impulse experiments on the device gave non-finite field responses")
+        i = 0
+        for j, lag, chs, Dp in parts:
+            self.blocks.append((j, lag, chs, C[i:i + Dp.shape[0]]))
+            i += Dp.shape[0]
 
 
 class _Ring:
@@ -359,11 +411,9 @@ class _Ring:
                 X[r0:r1] = self.step(X[r0:r1], Uk[r0:r1], None if Wk is None else Wk[r0:r1])
         return j_slot
 
-    def record(self, k: int, j_slot: np.ndarray, field_lags: int, Y: np.ndarray, basis: IncrementalBasis,
-               blocks: list) -> None:
+    def record(self, k: int, j_slot: np.ndarray, field_lags: int, Y: np.ndarray, fields: _FieldBlocks) -> None:
         """Record lag k+1-j of every active experiment j (slots of finished ones are ignored):
-        outputs into Y, field responses of lags <= field_lags into `basis` and their
-        coefficients into `blocks`."""
+        outputs into Y, field responses of lags <= field_lags into `fields` (the basis)."""
         plant, rows, m, chs = self.plant, self.rows, self.m, self.chs
         lag = k + 1 - j_slot
         active = (j_slot >= 0) & (lag >= 1) & (lag <= self.lags)
@@ -379,10 +429,7 @@ class _Ring:
             n_f = int(plant.n_field)
             D = self._per_run_range(slots[keep], lambda X: _difference(
                 plant.field(X).reshape(-1, rows, n_f), m, self.sides, self.delta)).reshape(-1, n_f)   # (keep m, n_f)
-            C = to_host_of(plant, basis.add(D, overwrite=True))          # D is this step's own
-            if self.xp is not np and not np.isfinite(C).all():     # a device state is checked here, once
-                raise FloatingPointError("impulse experiments on the device gave non-finite field responses")
-            blocks.append((j[keep], lag[keep], chs, C))
+            fields.add(j[keep], lag[keep], chs, D)
 
     def _per_run_range(self, slots: np.ndarray, fn):
         """fn over the runs of the (sorted) `slots`, applied to each range of consecutive slots'

@@ -27,6 +27,15 @@ from sep_control.design.tvera import FIELD_TOL, SCHEMES, RomSettings
 #: 'auto' Jacobian: the ROM one from N + 1 > ROM_FROM (p + q) (the measured time crossover)
 ROM_FROM = 5
 
+#: plan 0.9's field basis tolerance (`field_tol`): the optimizer's coarse models already used it
+#: (`sep_control.design.stages.PROPOSAL_ROM`), and the design's field map keeps only directions
+#: above 1e-5 of its spread (`field_map_tol`). Against 1e-8 (0.8's) on the six shipped scenarios
+#: (design, then 300 Monte Carlo runs, docs/benchmarks.md): the same run-steps, Monte Carlo cost,
+#: in band and coverage to the digits printed, nominal costs to 5e-8 (plate_anneal's optimizer
+#: stopped 2.4e-4 higher), and a basis of about 0.6 the rank, whose projections are the design's
+#: main work outside the plant step at large n_f (4 n_f r flops per snapshot)
+PLAN_FIELD_TOL = 1e-6
+
 #: the experiment plans (`experiment_plan`) and the settings each gives the keys left at None:
 #: "0.8" is sep 0.8.0's plan (its designs bit for bit); "0.9" spends 0.13-0.27x its run-steps
 #: (docs/benchmarks.md): forward impulses (one run per impulse) at every second start step (the
@@ -35,12 +44,12 @@ ROM_FROM = 5
 #: of the inputs only and a settle stop (`sep_control.design.jacobians.KeptRomJacobian`,
 #: `sep_control.design.stages`), under input or rate limits the clip correction
 #: (`sep_control.design.saturation`), and the field basis' Gram method (`sep_control.design.basis`;
-#: set in `DesignSettings.rom`)
+#: set in `DesignSettings.rom`) to PLAN_FIELD_TOL
 PLANS: dict[str, dict[str, Any]] = {
     "0.8": {"impulse_scheme": "central", "ensemble": 200, "belief_iter": 2, "impulse_stride": 1,
-            "clip_correction": False},
+            "clip_correction": False, "field_tol": FIELD_TOL},
     "0.9": {"impulse_scheme": "forward", "ensemble": 50, "belief_iter": 0, "impulse_stride": 2,
-            "clip_correction": True},
+            "clip_correction": True, "field_tol": PLAN_FIELD_TOL},
 }
 DEFAULT_PLAN = "0.9"
 
@@ -83,6 +92,9 @@ class DesignSettings:
     experiment_plan : {"0.8", "0.9"}
         Which experiments the design runs (`PLANS`): "0.9" (default) spends 0.094-0.38x sep 0.8.0's
         plant run-steps (docs/benchmarks.md); "0.8" reproduces sep 0.8.0's designs bit for bit.
+    field_tol : float, optional
+        Field basis of the identifications: drop directions of the field responses below this
+        times the largest response (None: the plan's, 1e-8 for 0.8, 1e-6 for 0.9).
     field_map_tol : float
         Field map: drop directions moving the field by less than this times its spread.
     enkf_seed : int
@@ -136,6 +148,7 @@ class DesignSettings:
     impulse_scheme: str | None = None
     impulse_stride: int | None = None
     experiment_plan: str = DEFAULT_PLAN
+    field_tol: float | None = None
     field_map_tol: float = FIELD_MAP_TOL
     enkf_seed: int = 0
     tol: float = 1e-7
@@ -184,8 +197,9 @@ class DesignSettings:
             raise ValueError(f"clip_correction must be true or false, got {self.clip_correction!r}")
         if self.margin_iterations < 0:
             raise ValueError(f"margin_iterations must be >= 0, got {self.margin_iterations}")
-        if not 0.0 < self.field_map_tol < 1.0:
-            raise ValueError(f"field_map_tol must be in (0, 1), got {self.field_map_tol}")
+        for name in ("field_tol", "field_map_tol"):
+            if not 0.0 < getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
         for name in ("fd_eps", "impulse", "sv_tol", "step_size", "tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -272,7 +286,7 @@ class DesignSettings:
         return RomSettings(p=self.p, q=self.q, n_r=self.n_r, sv_tol=self.sv_tol, impulse=self.impulse,
                            scheme=self.impulse_scheme, memory_budget=self.memory_budget, chunks=self.chunks,
                            engine=engine, noise_std=None if problem is None else problem.w_std,
-                           stride=self.impulse_stride,
+                           stride=self.impulse_stride, field_tol=self.field_tol,
                            field_basis="svd" if self.experiment_plan == "0.8" else "gram")
 
     def resolved_jacobian(self, n_steps: int) -> str:
@@ -328,6 +342,13 @@ class DesignSettings:
         unknown = sorted(k for k in section if k not in known)
         if unknown:
             raise ValueError(f"scenario design section: unknown setting(s) {unknown}; known: {sorted(known)}")
+        for key, value in section.items():
+            # YAML 1.1 reads 1e-6 (no dot) as a string: a number setting takes it as the number
+            if isinstance(value, str) and str(known[key].type).startswith("float"):
+                try:
+                    section[key] = float(value)
+                except ValueError:
+                    raise ValueError(f"scenario design section: {key} must be a number, got {value!r}") from None
         st = cls(**{**section, **overrides})
         st.check()
         return st
@@ -339,9 +360,11 @@ class DesignSettings:
         identified again after every step, older than `field_map_tol` truncated the field map
         at the field basis' tolerance, older than `coarse_proposals` identified every model
         with the full settings, older than `disturbance` had no disturbance states, older than
-        `experiment_plan` ran 0.8.0's plan, and older ones record `enkf_seed` as `seed`)."""
+        `experiment_plan` ran 0.8.0's plan, older than `field_tol` kept the field basis to 1e-8,
+        and older ones record `enkf_seed` as `seed`)."""
         recorded = {"chunks": 1, "relinearize_rtol": SAME_INPUT_RTOL, "field_map_tol": FIELD_TOL,
-                    "coarse_proposals": False, "disturbance": "none", "experiment_plan": "0.8"}
+                    "coarse_proposals": False, "disturbance": "none", "experiment_plan": "0.8",
+                    "field_tol": FIELD_TOL}
         for key, value in meta.get("settings", {}).items():
             recorded[RENAMED.get(key, key)] = value
         return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__}).resolved()

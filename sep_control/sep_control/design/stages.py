@@ -47,7 +47,7 @@ BELIEF_TRIALS = 1
 #: response (the forward differences' round-off stays out of it) serve as well there. Halving the
 #: Hankel blocks too (p = q = 8, experiments of 16 steps) was tried: the same optimum on the slab,
 #: but on the Burgers example the proposals then stalled (J 0.369 after max_iter instead of 0.00156)
-PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6}
+PROPOSAL_ROM = {"scheme": "forward", "field_tol": 1e-6, "coarse": True}
 
 #: experiment plan "0.9" (`DesignSettings.experiment_plan`): the mean-only optimizer's first model
 #: is a coarse one (forward impulses, Hankel blocks p = q = PLAN_PQ, experiments of 2 PLAN_PQ steps,
@@ -215,7 +215,7 @@ def _identification_stage(plant: Plant, st: DesignSettings, nominal: NominalResu
     # which moved by ~1e-4 relative (within relinearize_rtol): the Markov parameters move by that
     # much, far below the forward impulses' own O(delta) error
     rtol = SAME_INPUT_RTOL if st.experiment_plan == "0.8" else st.relinearize_rtol
-    full = ident is not None and ident.made_with(st.impulse_scheme, p=st.p, q=st.q)
+    full = ident is not None and ident.made_with(st.impulse_scheme, st.field_tol, p=st.p, q=st.q)
     # the stride check first (no plant steps): a model the strided data do not resolve is neither
     # reused nor spot-checked, and its stride is not tried again at the final input
     resolved = resolved_share(ident) if full and ident.stride > 1 else None

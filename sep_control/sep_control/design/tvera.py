@@ -55,12 +55,15 @@ class Identification:
     q: int = 0
     stride: int = 1         # impulses at every stride-th start step (`impulse_experiments`)
     inputs_only: bool = False   # the plant's noise channels were not impulsed (no B_w)
+    coarse: bool = False    # a coarse proposal model (`RomSettings.coarse`)
 
     def made_with(self, scheme: str, field_tol: float | None = None, p: int | None = None,
                   q: int | None = None, noise: bool = True) -> bool:
-        """Whether it was identified with these settings (a coarse proposal model is not), its
-        noise channels included when the plant has them (`noise` False: whether or not)."""
-        return (not (noise and self.inputs_only) and self.scheme == scheme and self.field_tol == (FIELD_TOL if field_tol is None else field_tol)
+        """Whether it was identified with these settings (a coarse proposal model never is, even
+        where its settings equal the design's), its noise channels included when the plant has
+        them (`noise` False: whether or not)."""
+        return (not self.coarse and not (noise and self.inputs_only) and self.scheme == scheme
+                and self.field_tol == (FIELD_TOL if field_tol is None else field_tol)
                 and (p is None or self.p == p) and (q is None or self.q == q))
 
 
@@ -83,14 +86,17 @@ class RomSettings:
     stride: int = 1                 # impulses at every stride-th start step, the rest interpolated
     inputs_only: bool = False       # impulse the inputs only, not the plant's noise channels (no B_w)
     field_basis: str = "gram"       # how the field basis finds new directions ("svd": 0.8.0's)
+    coarse: bool = False            # the optimizer's coarse proposal settings (its models are never full ones)
 
     def identify(self, plant: Plant, U: np.ndarray, show_progress: bool = False) -> Identification:
         """`identify` around the nominal input U with these settings."""
-        return identify(plant, U, self.p, self.q, self.n_r, self.sv_tol, self.impulse, show_progress,
-                        field_tol=self.field_tol, memory_budget=self.memory_budget, scheme=self.scheme,
-                        chunks=self.chunks, engine=self.engine, noise_std=self.noise_std,
-                        noise_probes=self.noise_probes, stride=self.stride, inputs_only=self.inputs_only,
-                        field_basis=self.field_basis)
+        ident = identify(plant, U, self.p, self.q, self.n_r, self.sv_tol, self.impulse, show_progress,
+                         field_tol=self.field_tol, memory_budget=self.memory_budget, scheme=self.scheme,
+                         chunks=self.chunks, engine=self.engine, noise_std=self.noise_std,
+                         noise_probes=self.noise_probes, stride=self.stride, inputs_only=self.inputs_only,
+                         field_basis=self.field_basis)
+        ident.coarse = self.coarse
+        return ident
 
 
 def identify(plant: Plant, U: np.ndarray, p: int, q: int, n_r: int, sv_tol: float = 1e-10,

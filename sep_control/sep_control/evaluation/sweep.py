@@ -12,7 +12,7 @@ from typing import Any, Sequence
 from sep_control.compute.progress import RunSteps
 from sep_control.design.noise_sketch import identified_noise_channels
 from sep_control.design.pipeline import DesignSettings, identify_rom, with_rom
-from sep_control.design.tvera import markov_relative_error, tv_era
+from sep_control.design.tvera import FIELD_TOL, markov_relative_error, tv_era
 from sep_control.evaluation.montecarlo import portable, simulate
 from sep_control.evaluation.validation import impulse_run_steps
 
@@ -76,7 +76,8 @@ def rom_sweep(plant, design, oracle, orders: Sequence[int], runs: int, seed: int
                                keep_trajectories=0, engine=engine).metrics()["cost_mean"]
         progress.add(runs * N)
     shared = dict(plant=engine.ship(plant), data=ident.data, design=design if engine.local else portable(design),
-                  p=settings.p, q=settings.q, sv_tol=settings.sv_tol, seed=seed, runs=runs)
+                  p=settings.p, q=settings.q, sv_tol=settings.sv_tol, seed=seed, runs=runs,
+                  field_tol=settings.field_tol)
     points = engine.map(sweep_point, list(orders), shared,
                         [f"plant {design.scenario.plant_type}: ROM sweep point n_r = {n}" for n in orders],
                         "ROM sweep", show_progress=show_progress)
@@ -84,7 +85,8 @@ def rom_sweep(plant, design, oracle, orders: Sequence[int], runs: int, seed: int
     return [{**pt, "cost_oracle": oracle_cost} for pt in points]
 
 
-def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, seed: int, runs: int) -> dict[str, Any]:
+def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, seed: int, runs: int,
+                field_tol: float = FIELD_TOL) -> dict[str, Any]:
     """One sweep point: TV-ERA at order cap n_r from the shared Markov data, then `runs` runs.
 
     Parameters
@@ -103,6 +105,8 @@ def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, se
         Relative singular-value cutoff.
     seed, runs : int
         The Monte Carlo's seed and runs.
+    field_tol : float
+        The field map's truncation (the identification's field basis tolerance).
 
     Returns
     -------
@@ -112,7 +116,7 @@ def sweep_point(n_r: int, plant, data, design, p: int, q: int, sv_tol: float, se
     from sep_control.compute.engine import local_plant
 
     plant = local_plant(plant)
-    model, _ = tv_era(data, design.n_steps, p, q, n_r, sv_tol)
+    model, _ = tv_era(data, design.n_steps, p, q, n_r, sv_tol, field_tol=field_tol)
     m = simulate(plant, with_rom(design, model), "rom_lqg", seed, runs, keep_estimates=0,
                  keep_trajectories=0).metrics()
     return {"n_r": n_r, "n_r_used": int(model.dims.max()),
