@@ -95,14 +95,19 @@ def test_field_tol_is_a_plan_key_reaches_the_identifications_and_is_checked():
 
 
 def test_a_scenario_writes_number_settings_as_yaml_reads_them(tmp_path):
-    """YAML 1.1 reads 1e-6 (no dot) as a string: the design section takes it as the number."""
-    from dataclasses import replace as with_
+    """YAML 1.1 reads 1e-6 (no dot) as a string: a scenario file reads it as the number (in every
+    section), and a design setting that is no number is refused naming it."""
+    from sep_plant.scenario import load_scenario
 
-    scen = with_(reference(), design={"field_tol": "1e-6", "sv_tol": "1e-9"})
+    path = tmp_path / "s.yaml"
+    path.write_text("w_std: 1e-3\ndesign: {field_tol: 1e-6, sv_tol: 1e-9}\n")
+    scen = load_scenario(path)
     st = DesignSettings.for_scenario(scen)
     assert st.field_tol == 1e-6 and st.sv_tol == 1e-9
+    assert np.all(np.asarray(scen.problem.w_std) == 1e-3)
+    path.write_text("design: {field_tol: tiny}\n")
     with pytest.raises(ValueError, match="field_tol must be a number"):
-        DesignSettings.for_scenario(with_(reference(), design={"field_tol": "tiny"}))
+        DesignSettings.for_scenario(load_scenario(path))
 
 
 def test_a_coarse_proposal_model_is_never_a_full_one():

@@ -223,6 +223,29 @@ def reference() -> Scenario:
     return Scenario().canonical()
 
 
+@functools.lru_cache(maxsize=None)
+def _yaml_loader():
+    """PyYAML's safe loader, with numbers in exponent form without a dot (1e-6) read as floats:
+    YAML 1.1 reads them as strings (YAML 1.2 and JSON as numbers)."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"),
+                                 list("-+0123456789"))
+    return Loader
+
+
+def load_yaml(text: str) -> Any:
+    """A YAML document as scenario files (and KEY=VALUE settings) are read: safe, 1e-6 a number."""
+    import yaml  # local import: only file loading needs PyYAML
+
+    return yaml.load(text, Loader=_yaml_loader())
+
+
 def load_scenario(path: str | Path | None) -> Scenario:
     """Load a YAML scenario file (canonical); None gives the reference scenario.
 
@@ -236,7 +259,7 @@ def load_scenario(path: str | Path | None) -> Scenario:
     if not p.is_file():
         raise ScenarioError(f"scenario file not found: {p}")
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        data = load_yaml(p.read_text(encoding="utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{p}: not a YAML scenario file: {exc}") from None
     except OSError as exc:

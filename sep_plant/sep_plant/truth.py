@@ -23,7 +23,7 @@ import numpy as np
 
 from sep_plant.perturb import NEUTRAL, PerturbationError, PerturbedPlant, check_perturbation
 from sep_plant.protocol import PlantInfo
-from sep_plant.scenario import Scenario, ScenarioError
+from sep_plant.scenario import Scenario, ScenarioError, load_yaml
 
 
 class TruthError(ValueError):
@@ -65,7 +65,7 @@ def parse_assignments(items: Sequence[str], what: str = "--truth") -> dict[str, 
         if not sep or not key:
             raise TruthError(f"{what}: expected KEY=VALUE, got {item!r}")
         try:
-            out[key] = yaml.safe_load(text) if text.strip() else None
+            out[key] = load_yaml(text) if text.strip() else None
         except yaml.YAMLError as exc:
             raise TruthError(f"{what}: {key}: not a YAML value: {text!r} ({exc})") from None
     return out

@@ -337,6 +337,7 @@ class _FieldBlocks:
 
     def __init__(self, plant: Plant, basis: IncrementalBasis, blocks: list):
         self.plant, self.basis, self.blocks = plant, basis, blocks
+        self.xp = array_module_of(plant)
         # a fixed number, not one from the free memory: the blocks decide the basis' bits. Memory
         # beyond a step's own block: the rows held (fewer than MIN_FIELD_ROWS) and one copy of the
         # block as it is added (0.25 GB per 32 rows at 10^6 nodes)
@@ -356,10 +357,10 @@ class _FieldBlocks:
         if not self.pending:
             return
         parts, self.pending, self.rows = self.pending, [], 0
-        D = parts[0][3] if len(parts) == 1 else namespace(parts[0][3]).concatenate([p[3] for p in parts])
+        D = parts[0][3] if len(parts) == 1 else self.xp.concatenate([p[3] for p in parts])
         C = to_host_of(self.plant, self.basis.add(D, overwrite=True))     # D is scratch
         # a device state is checked here, once per block
-        if array_module_of(self.plant) is not np and not np.isfinite(C).all():
+        if self.xp is not np and not np.isfinite(C).all():
             raise FloatingPointError("impulse experiments on the device gave non-finite field responses")
         i = 0
         for j, lag, chs, Dp in parts:

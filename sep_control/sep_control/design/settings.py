@@ -175,6 +175,11 @@ class DesignSettings:
         if self.experiment_plan not in PLANS:
             raise ValueError(f"experiment_plan must be one of {', '.join(PLANS)}, got {self.experiment_plan!r}")
         self = self.resolved()
+        for name in ("field_tol", "field_map_tol", "fd_eps", "impulse", "sv_tol", "step_size", "tol",
+                     "limit_margin", "relinearize_rtol"):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)):
+                raise ValueError(f"{name} must be a number, got {v!r}")
         if self.method not in ("gn", "gd"):
             raise ValueError(f"method must be 'gn' or 'gd', got {self.method!r}")
         if self.impulse_scheme not in SCHEMES:
@@ -342,13 +347,6 @@ class DesignSettings:
         unknown = sorted(k for k in section if k not in known)
         if unknown:
             raise ValueError(f"scenario design section: unknown setting(s) {unknown}; known: {sorted(known)}")
-        for key, value in section.items():
-            # YAML 1.1 reads 1e-6 (no dot) as a string: a number setting takes it as the number
-            if isinstance(value, str) and str(known[key].type).startswith("float"):
-                try:
-                    section[key] = float(value)
-                except ValueError:
-                    raise ValueError(f"scenario design section: {key} must be a number, got {value!r}") from None
         st = cls(**{**section, **overrides})
         st.check()
         return st
