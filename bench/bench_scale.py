@@ -7,8 +7,10 @@ process (so its peak resident memory is its own) and measures, in one run:
 * n_x, one noise-free rollout of the horizon [s];
 * the design with the scenario's settings (the defaults and its `design:` section): total,
   optimize, identify, gains [s]; the time spent inside the plant's own `step` during it, and
-  design / plant-step time (the design's overhead over the floor its experiments set); the ROM
-  order and the field map's rank r_f;
+  design / plant-step time (the design's overhead over the floor its experiments set), the
+  plant's step per node-step ("ns/node-step") and the design's own work outside it per node-step
+  ("rest_ns": (design - plant steps) / (run-steps n_x), the figure `--against` compares across
+  versions whose designs spend different run-steps); the ROM order and the field map's rank r_f;
 * the peak resident memory of the row's process, the design file's size;
 * a Monte Carlo of ROM-LQG: seconds per 100 runs, in-band share (`--runs`, default 100);
 * ratios to one rollout.
@@ -67,10 +69,10 @@ ROWS = {                       # name -> (scenario file or None for the referenc
 DEFAULT_ROWS = [r for r in ROWS if r not in ("plate:1000", "block:100")]
 QUICK = ("slab:100", "slab:1600", "plate:64")
 COLUMNS = ["n_x", "rollout_s", "design_s", "optimize_s", "identify_s", "gains_s", "plant_step_s",
-           "design/plant_steps", "run_steps_k", "nominal_k", "belief_k", "ident_k", "ns/node-step", "n_r", "r_f", "peak_rss_mb", "file_mb",
+           "design/plant_steps", "run_steps_k", "nominal_k", "belief_k", "ident_k", "ns/node-step", "rest_ns", "n_r", "r_f", "peak_rss_mb", "file_mb",
            "mc_s_per_100", "in_band", "design/rollout", "mc100/rollout"]
 STAGE_COLUMNS = ["wall_s", "device_step_s", "host_s", "MB_to_device", "MB_to_host", "run_steps_k", "pool_GB"]
-AGAINST = ("design_s", "plant_step_s", "run_steps_k", "peak_rss_mb", "mc_s_per_100")
+AGAINST = ("design_s", "plant_step_s", "rest_ns", "run_steps_k", "peak_rss_mb", "mc_s_per_100")
 
 
 def block_label(value: str) -> str:
@@ -163,7 +165,8 @@ class StageClock:
 
 
 def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "default",
-            device: str = "cpu", echo: bool = False, threads: int = 1, plan: str | None = None) -> dict:
+            device: str = "cpu", echo: bool = False, threads: int = 1, plan: str | None = None,
+            memory_budget: str | None = None) -> dict:
     """Measure one row (in this process)."""
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -217,6 +220,11 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
         # a tree older than the key (0.8.0 with --against) runs its own plan, which plan 0.8 reproduces
         known = plan and "experiment_plan" in DesignSettings.__dataclass_fields__
         settings = DesignSettings.for_scenario(scen, **({"experiment_plan": plan} if known else {}))
+        if memory_budget:                  # the design's memory budget (sep >= 0.4): otherwise this machine's free memory
+            from dataclasses import replace
+
+            from sep_control.compute.budget import parse_budget
+            settings = replace(settings, memory_budget=parse_budget(memory_budget))
         design = run_design(plant, problem, settings, show_progress=False,
                             log=clock.log if clock else (lambda m: None), engine=engine)
         t_design = time.perf_counter() - t0
@@ -244,7 +252,8 @@ def run_row(name: str, runs: int, dask: str | None = None, block_nodes: str = "d
     return {**per_stage,"n_x": plant.n_x, "rollout_s": rollout, "design_s": t_design, "optimize_s": tm["optimize_s"],
             "identify_s": tm["identify_s"], "gains_s": tm["gains_s"], "plant_step_s": plant_s,
             "design/plant_steps": t_design / plant_s, "run_steps_k": run_steps / 1e3,
-            "ns/node-step": 1e9 * plant_s / (run_steps * plant.n_x), "n_r": int(design.rom.dims.max()),
+            "ns/node-step": 1e9 * plant_s / (run_steps * plant.n_x),
+            "rest_ns": 1e9 * (t_design - plant_s) / (run_steps * plant.n_x), "n_r": int(design.rom.dims.max()),
             "r_f": int(getattr(G, "rank", G.n)), "file_mb": file_mb, "mc_s_per_100": t_mc,
             "in_band": mc.summary["in_band"], "mc_cost": mc.summary["cost_mean"],
             "J_nominal": design.meta["optimizer"]["nominal_cost"],
@@ -275,6 +284,9 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1, help="BLAS threads of the design's host work (default 1)")
     ap.add_argument("--experiment-plan", choices=["0.8", "0.9"], default=None,
                     help="the design's experiment plan (default: the scenario's, i.e. 0.9; see `sep design --help`)")
+    ap.add_argument("--memory-budget", metavar="SIZE",
+                    help="the designs' memory budget (e.g. 1G; default: each design's own, from the free "
+                         "memory, which sets sep 0.8.0's field blocks and so its time per node-step)")
     ap.add_argument("--row", help=argparse.SUPPRESS)        # internal: run one row, print JSON
     args = ap.parse_args()
     for v in args.block_nodes:
@@ -282,7 +294,7 @@ def main() -> int:
             ap.error(f"--block-nodes: expected a number of nodes or 'default', got {v!r}")
     if args.row:
         print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0], args.device, args.log,
-                                 args.threads, args.experiment_plan)))
+                                 args.threads, args.experiment_plan, args.memory_budget)))
         return 0
     names = args.rows or (list(QUICK) if args.quick else DEFAULT_ROWS)
     trees = ([(f"@{Path(args.against).name}", Path(args.against).resolve())] if args.against else []) + [("", REPO)]
@@ -301,6 +313,7 @@ def main() -> int:
                                        "--block-nodes", value, "--device", args.device,
                                        "--threads", str(args.threads)]
                                       + (["--experiment-plan", args.experiment_plan] if args.experiment_plan else [])
+                                      + (["--memory-budget", args.memory_budget] if args.memory_budget else [])
                                       + (["--dask", args.dask] if args.dask else []) + (["--log"] if args.log else []),
                                       env=env, stdout=subprocess.PIPE, stderr=None if args.log else subprocess.PIPE,
                                       text=True)

@@ -181,8 +181,10 @@ class IncrementalBasis:
             E = _residual(xp, D, C, phi, overwrite)
         else:                                    # no products with an empty basis (a device's rule)
             C, E = xp.zeros((D.shape[0], 0)), D
-        if self._inside(E) or self._room() == 0:
+        if self._room() == 0:
             return C
+        # a residual within the tolerance (|E|_F <= tol * scale) gives no direction: the Gram
+        # matrix's trace says so (no separate pass over E for its norm)
         Q, EQ = _gram_range(xp, E, theta, phi, size)
         if Q.shape[1] == 0:
             return C
