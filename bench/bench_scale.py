@@ -292,6 +292,12 @@ def main() -> int:
     for v in args.block_nodes:
         if v != "default" and not v.isdigit():
             ap.error(f"--block-nodes: expected a number of nodes or 'default', got {v!r}")
+    if args.memory_budget:
+        from sep_control.compute.budget import parse_budget
+        try:
+            parse_budget(args.memory_budget)
+        except ValueError as exc:
+            ap.error(f"--memory-budget: {exc}")
     if args.row:
         print(json.dumps(run_row(args.row, args.runs, args.dask, args.block_nodes[0], args.device, args.log,
                                  args.threads, args.experiment_plan, args.memory_budget)))
